@@ -1,0 +1,95 @@
+"""The ``waveforest`` command: one subcommand per pipeline stage (DESIGN.md).
+
+Subcommands live beside the code they call (``<package>/cli.py``) and are loaded
+lazily, so ``waveforest --help`` stays fast and a stage appears once it exists.
+"""
+
+from __future__ import annotations
+
+import importlib
+import importlib.util
+import sys
+
+import click
+
+from . import __version__
+from .errors import WaveforestError
+
+# command name -> "module:attribute", in pipeline order
+COMMANDS = {
+    "synthesize": "waveforest.campaign.cli:synthesize",
+    "info": "waveforest.io.cli:info",
+    "ingest": "waveforest.io.cli:ingest",
+    "agc": "waveforest.sensor.cli:agc",
+    "calibrate": "waveforest.sensor.cli:calibrate",
+    "select": "waveforest.analysis.cli:select",
+    "vegetation": "waveforest.vegetation.cli:vegetation",
+    "trace": "waveforest.mcrt.cli:trace",
+    "simulate": "waveforest.analysis.cli:simulate",
+    "features": "waveforest.sensor.cli:features",
+    "compare": "waveforest.analysis.cli:compare",
+    "sensitivity": "waveforest.analysis.cli:sensitivity",
+    "sensor-study": "waveforest.analysis.cli:sensor_study",
+    "classify": "waveforest.analysis.cli:classify",
+    "diagnose": "waveforest.diagnose.cli:diagnose",
+    "report": "waveforest.report.cli:report",
+}
+
+
+def _available(target: str) -> bool:
+    module, attr = target.split(":")
+    if importlib.util.find_spec(module) is None:
+        return False
+    return hasattr(importlib.import_module(module), attr)
+
+
+class _LazyGroup(click.Group):
+    def list_commands(self, ctx):
+        return [name for name, target in COMMANDS.items() if _available(target)]
+
+    def get_command(self, ctx, name):
+        target = COMMANDS.get(name)
+        if target is None or not _available(target):
+            return None
+        module, attr = target.split(":")
+        return getattr(importlib.import_module(module), attr)
+
+    def format_commands(self, ctx, formatter):  # keep pipeline order, not alphabetical
+        rows = []
+        for name in self.list_commands(ctx):
+            cmd = self.get_command(ctx, name)
+            rows.append((name, cmd.get_short_help_str(limit=70)))
+        if rows:
+            with formatter.section("Commands (pipeline order)"):
+                formatter.write_dl(rows)
+
+
+@click.group(cls=_LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, prog_name="waveforest")
+def cli() -> None:
+    """Simulate and analyse waveform-recording airborne LiDAR over vegetation.
+
+    After Hovi & Korpela (2014). Each subcommand is one stage of the Snakemake
+    workflow; run `waveforest STAGE --help` for its inputs and outputs.
+    """
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Entry point: bad input ends with one message on stderr and exit code 1."""
+    try:
+        cli.main(args=argv, prog_name="waveforest", standalone_mode=False)
+    except WaveforestError as exc:
+        click.echo(f"waveforest: error: {exc}", err=True)
+        sys.exit(1)
+    except click.exceptions.Abort:
+        click.echo("Aborted.", err=True)
+        sys.exit(130)
+    except click.ClickException as exc:
+        exc.show()
+        sys.exit(exc.exit_code)
+    except click.exceptions.Exit as exc:
+        sys.exit(exc.exit_code)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

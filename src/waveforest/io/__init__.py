@@ -1,0 +1,1 @@
+"""Input and output: LAS waveform packets and the Parquet tables of the pipeline."""

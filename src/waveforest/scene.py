@@ -1,0 +1,171 @@
+"""Scenes: triangle soups with per-triangle optical properties, and their PLY files.
+
+A scene is in local metric coordinates: x east, y north, z up, ground near z = 0 and
+the field sample at the origin. Each triangle carries its bi-Lambertian reflectance
+``rho`` and transmittance ``tau`` at 1064 nm and an element ``kind``
+(0 ground, 1 leaf, 2 wood, 3 other; see :mod:`waveforest.constants`).
+The PLY form has one vertex list and faces with the properties ``vertex_indices``,
+``rho``, ``tau`` and ``kind``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .atomic import atomic_path
+from .errors import WaveforestError
+
+
+class SceneError(WaveforestError):
+    """A scene or scene file that cannot be used."""
+
+
+@dataclass(frozen=True)
+class Scene:
+    """Triangles with per-triangle optical properties.
+
+    Attributes
+    ----------
+    triangles : (n, 3, 3) float32, m
+        Vertex coordinates; the normal follows the right-hand rule of the vertex order.
+    rho, tau : (n,) float32
+        Reflectance and transmittance, 0 <= rho + tau <= 1.
+    kind : (n,) uint8
+        Element kind per triangle (0 ground, 1 leaf, 2 wood, 3 other).
+    """
+
+    triangles: np.ndarray
+    rho: np.ndarray
+    tau: np.ndarray
+    kind: np.ndarray
+
+    def __post_init__(self) -> None:
+        tri = np.ascontiguousarray(self.triangles, dtype=np.float32)
+        n = tri.shape[0] if tri.ndim == 3 else -1
+        if tri.ndim != 3 or tri.shape[1:] != (3, 3):
+            raise SceneError(f"triangles: expected shape (n, 3, 3), got {tri.shape}")
+        arrays = {}
+        for name, dtype in (("rho", np.float32), ("tau", np.float32), ("kind", np.uint8)):
+            a = np.ascontiguousarray(np.broadcast_to(getattr(self, name), (n,)), dtype=dtype)
+            arrays[name] = a
+        if not np.all(np.isfinite(tri)):
+            raise SceneError("triangles: non-finite coordinates")
+        rho, tau = arrays["rho"], arrays["tau"]
+        if np.any(rho < 0) or np.any(tau < 0) or np.any(rho + tau > 1 + 1e-6):
+            raise SceneError("rho, tau: expected rho >= 0, tau >= 0 and rho + tau <= 1")
+        if np.any(arrays["kind"] > 3):
+            raise SceneError("kind: expected 0 ground, 1 leaf, 2 wood or 3 other")
+        object.__setattr__(self, "triangles", tri)
+        for name, a in arrays.items():
+            object.__setattr__(self, name, a)
+
+    def __len__(self) -> int:
+        return self.triangles.shape[0]
+
+    @property
+    def normals(self) -> np.ndarray:
+        """(n, 3) float64 unit normals (right-hand rule of the vertex order)."""
+        t = self.triangles.astype(np.float64)
+        n = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+        norm = np.linalg.norm(n, axis=1, keepdims=True)
+        return n / np.where(norm > 0, norm, 1.0)
+
+    @property
+    def areas(self) -> np.ndarray:
+        """(n,) float64 one-sided triangle areas, m^2."""
+        t = self.triangles.astype(np.float64)
+        return 0.5 * np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1)
+
+    @property
+    def bounds(self) -> np.ndarray:
+        """(2, 3) float64 axis-aligned bounding box [min, max], m."""
+        v = self.triangles.reshape(-1, 3)
+        return np.stack([v.min(axis=0), v.max(axis=0)]).astype(np.float64)
+
+    def translated(self, offset) -> "Scene":
+        """The scene moved by ``offset`` (3,), m."""
+        off = np.asarray(offset, dtype=np.float32).reshape(1, 1, 3)
+        return Scene(self.triangles + off, self.rho, self.tau, self.kind)
+
+    def subset(self, mask) -> "Scene":
+        """The triangles selected by a boolean mask or index array."""
+        return Scene(self.triangles[mask], self.rho[mask], self.tau[mask], self.kind[mask])
+
+    @staticmethod
+    def concat(scenes: list["Scene"]) -> "Scene":
+        """One scene holding the triangles of all ``scenes``, in order."""
+        if not scenes:
+            raise SceneError("concat: no scenes")
+        return Scene(
+            np.concatenate([s.triangles for s in scenes]),
+            np.concatenate([s.rho for s in scenes]),
+            np.concatenate([s.tau for s in scenes]),
+            np.concatenate([s.kind for s in scenes]),
+        )
+
+
+def write_ply(scene: Scene, path: str | Path) -> Path:
+    """Write ``scene`` as a binary little-endian PLY (faces carry rho, tau, kind)."""
+    from plyfile import PlyData, PlyElement
+
+    n = len(scene)
+    verts = np.empty(3 * n, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4")])
+    flat = scene.triangles.reshape(-1, 3)
+    verts["x"], verts["y"], verts["z"] = flat[:, 0], flat[:, 1], flat[:, 2]
+    faces = np.empty(
+        n, dtype=[("vertex_indices", "<i4", (3,)), ("rho", "<f4"), ("tau", "<f4"), ("kind", "u1")]
+    )
+    faces["vertex_indices"] = np.arange(3 * n, dtype=np.int32).reshape(n, 3)
+    faces["rho"], faces["tau"], faces["kind"] = scene.rho, scene.tau, scene.kind
+    data = PlyData(
+        [PlyElement.describe(verts, "vertex"), PlyElement.describe(faces, "face")],
+        text=False,
+        byte_order="<",
+        comments=["waveforest scene: face rho, tau (1064 nm), kind 0 ground 1 leaf 2 wood 3 other"],
+    )
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        data.write(str(tmp))
+    return path
+
+
+def read_ply(path: str | Path) -> Scene:
+    """Read a PLY whose faces carry ``rho``, ``tau`` and ``kind`` (polygons are fanned)."""
+    from plyfile import PlyData
+
+    path = Path(path)
+    if not path.exists():
+        raise SceneError(f"{path}: no such file")
+    try:
+        ply = PlyData.read(str(path))
+        vert = ply["vertex"].data
+        face = ply["face"].data
+    except Exception as exc:  # plyfile raises several types for malformed files
+        raise SceneError(f"{path}: not a readable PLY with vertex and face elements ({exc})") from exc
+    names = face.dtype.names or ()
+    missing = [p for p in ("rho", "tau", "kind") if p not in names]
+    if missing:
+        raise SceneError(f"{path}: face property {', '.join(missing)} missing (expected rho, tau, kind)")
+    idx_name = "vertex_indices" if "vertex_indices" in names else "vertex_index"
+    if idx_name not in names:
+        raise SceneError(f"{path}: faces have no vertex_indices")
+    xyz = np.stack([vert["x"], vert["y"], vert["z"]], axis=1).astype(np.float32)
+    polys = face[idx_name]
+    if polys.dtype != object and polys.ndim == 2 and polys.shape[1] == 3:
+        idx = polys.astype(np.int64)
+        owner = np.arange(len(idx))
+    else:  # variable-length polygons: fan-triangulate
+        tris, owner_l = [], []
+        for i, p in enumerate(polys):
+            p = np.asarray(p, dtype=np.int64)
+            for k in range(1, len(p) - 1):
+                tris.append((p[0], p[k], p[k + 1]))
+                owner_l.append(i)
+        idx = np.asarray(tris, dtype=np.int64).reshape(-1, 3)
+        owner = np.asarray(owner_l, dtype=np.int64)
+    if idx.size and (idx.min() < 0 or idx.max() >= len(xyz)):
+        raise SceneError(f"{path}: face vertex index out of range (0..{len(xyz) - 1})")
+    return Scene(xyz[idx], face["rho"][owner], face["tau"][owner], face["kind"][owner])
