@@ -1,0 +1,33 @@
+# Beyond the paper: find the disagreement, name the missing effect, add it, show the gap shrink.
+
+
+rule diagnose:
+    input:
+        selected=expand(result("select", "{dataset}.parquet"), dataset=COMPARE_DATASETS),
+        real=expand(result("features", "{dataset}_real.parquet"), dataset=COMPARE_DATASETS),
+        calibration=expand(result("calibration", "{dataset}.json"), dataset=COMPARE_DATASETS),
+        table3=result("compare", "table3.csv"),
+        fields=campaign_file("fields.csv"),
+        datasets=campaign_file("datasets.csv"),
+    output:
+        model=result("diagnose", "model.yaml"),
+        candidates=result("diagnose", "candidates.csv"),
+        gap=result("diagnose", "gap_before_after.csv"),
+        figure=result("diagnose", "gap.png"),
+    params:
+        diagnose=config["diagnose"],
+        mcrt=config["mcrt"],
+        out=output_dir,
+        campaign=campaign_dir,
+        config=CONFIG_FILE,
+    log:
+        result("logs", "diagnose.log"),
+    benchmark:
+        result("benchmarks", "diagnose.tsv")
+    conda:
+        ENV
+    threads: 2
+    shell:
+        "waveforest diagnose --selected {input.selected} --features-real {input.real} "
+        "--calibration {input.calibration} --campaign {params.campaign} --out {params.out} "
+        "--threads {threads} --config {params.config} > {log} 2>&1"

@@ -1,0 +1,22 @@
+# LAS waveform packets -> pulse table.
+
+
+rule ingest:
+    input:
+        las=las_file,
+        trajectory=trajectory_file,
+    output:
+        result("pulses", "{dataset}.parquet"),
+    params:
+        agc=config["agc"],
+        config=CONFIG_FILE,
+    log:
+        result("logs", "ingest", "{dataset}.log"),
+    benchmark:
+        result("benchmarks", "ingest", "{dataset}.tsv")
+    conda:
+        ENV
+    threads: 1
+    shell:
+        "waveforest ingest {input.las} --out {output} --dataset {wildcards.dataset} "
+        "--trajectory {input.trajectory} --config {params.config} > {log} 2>&1"

@@ -1,0 +1,27 @@
+# One HTML/Markdown report with every table and figure, the config and the versions.
+
+
+rule report:
+    input:
+        table3=result("compare", "table3.csv"),
+        sensitivity=result("sensitivity", "sensitivity.csv"),
+        sensor_study=result("sensor_study", "sensor_study.csv"),
+        classify=expand(result("classify", "{dataset}.json"), dataset=DATASETS),
+        calibration=expand(result("calibration", "{dataset}.json"), dataset=DATASETS),
+        diagnose=result("diagnose", "model.yaml"),
+    output:
+        html=result("report", "report.html"),
+        markdown=result("report", "report.md"),
+    params:
+        results=results_dir,
+        config=CONFIG_FILE,
+    log:
+        result("logs", "report.log"),
+    benchmark:
+        result("benchmarks", "report.tsv")
+    conda:
+        ENV
+    threads: 1
+    shell:
+        "waveforest report --results {params.results} --config {params.config} "
+        "--out {output.html} > {log} 2>&1"

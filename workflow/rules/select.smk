@@ -1,0 +1,23 @@
+# Pulses that hit field samples (radius and echo rules, METHOD.md i1, i4).
+
+
+rule select:
+    input:
+        pulses=result("agc", "{dataset}.parquet"),
+        fields=campaign_file("fields.csv"),
+        datasets=campaign_file("datasets.csv"),
+    output:
+        result("select", "{dataset}.parquet"),
+    params:
+        select=config["select"],
+        config=CONFIG_FILE,
+    log:
+        result("logs", "select", "{dataset}.log"),
+    benchmark:
+        result("benchmarks", "select", "{dataset}.tsv")
+    conda:
+        ENV
+    threads: 1
+    shell:
+        "waveforest select {input.pulses} --fields {input.fields} --datasets {input.datasets} "
+        "--out {output} --config {params.config} > {log} 2>&1"
