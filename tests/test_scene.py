@@ -1,0 +1,93 @@
+"""Scene container and its PLY files: round trip, validation, geometry."""
+
+import numpy as np
+import pytest
+
+from waveforest.scene import Scene, SceneError, read_ply, write_ply
+
+
+def _random_scene(n=50, seed=0):
+    rng = np.random.default_rng(seed)
+    tri = rng.normal(size=(n, 3, 3)).astype(np.float32)
+    rho = rng.uniform(0, 0.5, n)
+    tau = rng.uniform(0, 0.5, n)
+    kind = rng.integers(0, 4, n)
+    return Scene(tri, rho, tau, kind)
+
+
+def test_ply_round_trip_is_exact(tmp_path):
+    scene = _random_scene()
+    path = write_ply(scene, tmp_path / "s.ply")
+    back = read_ply(path)
+    np.testing.assert_array_equal(back.triangles, scene.triangles)
+    np.testing.assert_array_equal(back.rho, scene.rho)
+    np.testing.assert_array_equal(back.tau, scene.tau)
+    np.testing.assert_array_equal(back.kind, scene.kind)
+
+
+def test_ascii_ply_with_quads_is_fanned(tmp_path):
+    text = """ply
+format ascii 1.0
+element vertex 4
+property float x
+property float y
+property float z
+element face 1
+property list uchar int vertex_indices
+property float rho
+property float tau
+property uchar kind
+end_header
+0 0 0
+1 0 0
+1 1 0
+0 1 0
+4 0 1 2 3 0.3 0 0
+"""
+    p = tmp_path / "quad.ply"
+    p.write_text(text)
+    s = read_ply(p)
+    assert len(s) == 2
+    assert s.areas.sum() == pytest.approx(1.0)
+    np.testing.assert_allclose(s.normals, [[0, 0, 1], [0, 0, 1]])
+    assert np.all(s.rho == np.float32(0.3))
+
+
+def test_ply_without_optical_properties_is_a_clear_error(tmp_path):
+    p = tmp_path / "bare.ply"
+    p.write_text(
+        "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+        "property float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n"
+        "0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n"
+    )
+    with pytest.raises(SceneError, match="rho, tau, kind"):
+        read_ply(p)
+
+
+def test_energy_conservation_is_enforced():
+    tri = np.zeros((1, 3, 3), np.float32)
+    with pytest.raises(SceneError, match="rho"):
+        Scene(tri, 0.6, 0.5, 1)
+
+
+def test_failed_write_leaves_existing_file(tmp_path, monkeypatch):
+    scene = _random_scene()
+    path = write_ply(scene, tmp_path / "s.ply")
+    before = path.read_bytes()
+    import plyfile
+
+    def boom(*a, **k):
+        raise RuntimeError("disk full")
+
+    monkeypatch.setattr(plyfile.PlyData, "write", boom)
+    with pytest.raises(RuntimeError):
+        write_ply(_random_scene(seed=1), path)
+    assert path.read_bytes() == before
+    assert [p.name for p in tmp_path.iterdir()] == ["s.ply"]
+
+
+def test_concat_translate_bounds():
+    a, b = _random_scene(10, 1), _random_scene(5, 2)
+    c = Scene.concat([a, b.translated([10, 0, 0])])
+    assert len(c) == 15
+    assert c.bounds[1, 0] == pytest.approx(b.bounds[1, 0] + 10, abs=1e-5)
