@@ -140,7 +140,10 @@ def read_ply(path: str | Path) -> Scene:
     if not path.exists():
         raise SceneError(f"{path}: no such file")
     try:
-        ply = PlyData.read(str(path))
+        try:  # fast path: triangle faces (what write_ply produces)
+            ply = PlyData.read(str(path), known_list_len={"face": {"vertex_indices": 3}})
+        except Exception:  # polygons of any size, or another list name
+            ply = PlyData.read(str(path))
         vert = ply["vertex"].data
         face = ply["face"].data
     except Exception as exc:  # plyfile raises several types for malformed files

@@ -13,7 +13,12 @@ rule compare:
     output:
         table=result("compare", "table3.csv"),
         markdown=result("compare", "table3.md"),
+        order=result("compare", "order_check.csv"),
+        fig6=expand(result("compare", "fig6_{dataset}.png"), dataset=COMPARE_DATASETS),
+        fig7=expand(result("compare", "fig7_{dataset}.png"), dataset=COMPARE_DATASETS),
     params:
+        simulate=config["simulate"],
+        seed=config["seed"],
         out=output_dir,
         config=CONFIG_FILE,
     log:
@@ -31,13 +36,19 @@ rule compare:
 
 rule sensitivity:
     input:
-        system=result("calibration", "2010_12_1.parquet") if "2010_12_1" in DATASETS else [],
+        system=reference_system,
     output:
         table=result("sensitivity", "sensitivity.csv"),
         figure=result("sensitivity", "fig8.png"),
+        baseline=result("sensitivity", "sensitivity_baseline.csv"),
+        pulses=result("sensitivity", "sensitivity_pulses.parquet"),
     params:
         sensitivity=config["sensitivity"],
         mcrt=config["mcrt"],
+        vegetation=config["vegetation"],
+        sensor=config["sensor"],
+        seed=config["seed"],
+        system=system_option,
         out=output_dir,
         config=CONFIG_FILE,
     log:
@@ -48,19 +59,24 @@ rule sensitivity:
         ENV
     threads: 2
     shell:
-        "waveforest sensitivity --system {input.system} --out {params.out} "
+        "waveforest sensitivity {params.system} --out {params.out} "
         "--threads {threads} --config {params.config} > {log} 2>&1"
 
 
 rule sensor_study:
     input:
-        system=result("calibration", "2010_12_1.parquet") if "2010_12_1" in DATASETS else [],
+        system=reference_system,
     output:
         table=result("sensor_study", "sensor_study.csv"),
         figure=result("sensor_study", "fig9.png"),
+        features=result("sensor_study", "sensor_study_features.csv"),
     params:
         sensor_study=config["sensor_study"],
         mcrt=config["mcrt"],
+        vegetation=config["vegetation"],
+        sensor=config["sensor"],
+        seed=config["seed"],
+        system=system_option,
         out=output_dir,
         config=CONFIG_FILE,
     log:
@@ -71,7 +87,7 @@ rule sensor_study:
         ENV
     threads: 2
     shell:
-        "waveforest sensor-study --system {input.system} --out {params.out} "
+        "waveforest sensor-study {params.system} --out {params.out} "
         "--threads {threads} --config {params.config} > {log} 2>&1"
 
 
@@ -82,6 +98,8 @@ rule classify:
         result("classify", "{dataset}.json"),
     params:
         classify=config["classify"],
+        select=config["select"],
+        seed=config["seed"],
         config=CONFIG_FILE,
     log:
         result("logs", "classify", "{dataset}.log"),

@@ -81,3 +81,19 @@ def campaign_dir(wildcards, input):
 
 
 ENV = "../envs/waveforest.yaml"
+
+
+REFERENCE_DATASET = "2010_12_1"
+"""The dataset whose S(t) the sensitivity and sensor studies use (METHOD.md i2, i3)."""
+
+
+def reference_system(wildcards):
+    """S(t) of the reference dataset if it is processed, else nothing (a Gaussian is used)."""
+    if REFERENCE_DATASET in DATASETS:
+        return result("calibration", "{}.parquet".format(REFERENCE_DATASET))
+    return []
+
+
+def system_option(wildcards, input):
+    """The --system option of the studies, empty when the reference S(t) is not available."""
+    return "--system {}".format(input.system) if input.system else ""

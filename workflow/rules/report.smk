@@ -12,6 +12,8 @@ rule report:
     output:
         html=result("report", "report.html"),
         markdown=result("report", "report.md"),
+        table4=result("report", "table4.csv"),
+        table4_md=result("report", "table4.md"),
     params:
         results=results_dir,
         config=CONFIG_FILE,

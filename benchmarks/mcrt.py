@@ -1,0 +1,148 @@
+"""MCRT speed: ms per pulse on a 6 x 6 m random-leaf canopy, the bare-Embree floor, scene build.
+
+Scene: LAI 3.35 of small leaves (spherical LAD, 6.7 cm^2 each, ~180,000 triangles) between
+0 and 1.2 m over a ground; pulses: R = 1200 m, 0.15 mrad divergence (0.18 m footprint),
+scan zenith 0-15 deg, 30,000 rays, 10 orders (METHOD.md d).
+
+Figures (``name: value unit``):
+
+* ``scene_triangles``, ``scene_build_ms`` (Embree BVH and per-triangle arrays, :func:`prepare`);
+* ``trace_ms_per_pulse[_<mode>_<threads>]`` for each way of using the threads (the first is the
+  default of :func:`trace`);
+* ``embree_floor_ms_per_pulse``: the same rays (recorded during a trace) replayed through the
+  bare Embree calls, intersect + occlusion, on all threads;
+* ``trace_over_floor``: the ratio (target <= 2);
+* ``ms_per_pulse_amortised_<k>``: tracing plus the scene build shared by k pulses (a pool of
+  instances; target <= 100 ms);
+* ``rays_per_pulse_intersect``, ``rays_per_pulse_occluded``: Embree work per pulse;
+* ``trace_cpu_ms_per_pulse_serial``, ``embree_floor_cpu_ms_per_pulse_serial``,
+  ``trace_over_floor_cpu``: the same on one thread, as CPU time of that thread, which other
+  jobs on a shared machine disturb far less than wall time.
+
+Wall times are the minimum of ``--repeat`` runs (the machine is shared). Run:
+``python benchmarks/mcrt.py [--pulses 16] [--repeat 3]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+
+import numba
+import numpy as np
+
+from waveforest.mcrt import Beams, prepare, trace
+from waveforest.mcrt.synthetic import random_leaves
+
+LAI, HEIGHT_M, SIZE_M, LEAF_AREA_M2 = 3.35, 1.2, 6.0, 6.7e-4
+RANGE_M, DIVERGENCE_MRAD, MAX_ZENITH_DEG = 1200.0, 0.15, 15.0
+N_RAYS, MAX_ORDER = 30000, 10
+
+
+class Recorder:
+    """An intersector wrapper that keeps every batch of rays it is asked to trace."""
+
+    def __init__(self, inner):
+        self.inner, self.backend = inner, inner.backend
+        self.intersects, self.occludes = [], []
+
+    def intersect(self, o, d, threads=None):
+        self.intersects.append((o.copy(), d.copy()))
+        return self.inner.intersect(o, d, threads=threads)
+
+    def occluded(self, o, d, t, threads=None):
+        self.occludes.append((o.copy(), d.copy(), np.array(t, np.float32)))
+        return self.inner.occluded(o, d, t, threads=threads)
+
+
+def best(fn, repeat: int, clock=time.perf_counter) -> float:
+    """Shortest of ``repeat`` runs of ``fn`` on ``clock``, s."""
+    times = []
+    for _ in range(repeat):
+        t = clock()
+        fn()
+        times.append(clock() - t)
+    return min(times)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--pulses", type=int, default=16)
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--seed", type=int, default=1)
+    args = ap.parse_args()
+    threads = numba.get_num_threads()
+    print(f"cpu_count: {os.cpu_count()} cores")
+    print(f"numba_threads: {threads} threads")
+    print(f"load_average_1min: {os.getloadavg()[0]:.2f} processes")
+
+    scene = random_leaves(LAI, (0.0, HEIGHT_M), SIZE_M, LEAF_AREA_M2, seed=args.seed)
+    print(f"scene_triangles: {len(scene)} triangles")
+    prepared = prepare(scene)  # warm-up (first Embree device)
+    build = best(lambda: prepare(scene), args.repeat)
+    print(f"scene_build_ms: {build * 1e3:.1f} ms")
+
+    rng = np.random.default_rng(args.seed)
+    n = args.pulses
+    targets = np.column_stack([rng.uniform(-1, 1, n), rng.uniform(-1, 1, n), np.zeros(n)])
+    beams = Beams.toward(targets, RANGE_M, rng.uniform(0, MAX_ZENITH_DEG, n), rng.uniform(0, 360, n),
+                         divergence_mrad=DIVERGENCE_MRAD)
+    kw = dict(n_rays=N_RAYS, max_order=MAX_ORDER, seed=args.seed)
+    trace(prepared, beams[:2], n_rays=500, max_order=3)  # compile / load the kernels
+
+    modes = [("pulses", threads), ("rays", threads), ("rays", 1)] if threads > 1 else [("rays", 1)]
+    per_pulse = {}
+    for mode, thr in modes:
+        per_pulse[(mode, thr)] = best(lambda: trace(prepared, beams, threads=thr, parallel=mode, **kw),
+                                      args.repeat) / n
+    default = per_pulse[modes[0]]
+    print(f"trace_ms_per_pulse: {default * 1e3:.1f} ms")
+    for (mode, thr), v in per_pulse.items():
+        print(f"trace_ms_per_pulse_{mode}_{thr}threads: {v * 1e3:.1f} ms")
+
+    rec = Recorder(prepared.intersector)
+    traced = type(prepared)(prepared.scene, rec, prepared.shift, prepared.tri_data, prepared.bounds)
+    res = trace(traced, beams, threads=threads, parallel="rays", **kw)
+    inner = prepared.intersector
+
+    def replay():
+        for o, d in rec.intersects:
+            inner.intersect(o, d, threads=threads)
+        for o, d, t in rec.occludes:
+            inner.occluded(o, d, t, threads=threads)
+
+    floor = best(replay, args.repeat) / n
+    print(f"embree_floor_ms_per_pulse: {floor * 1e3:.1f} ms")
+    print(f"trace_over_floor: {default / floor:.2f} x")
+    print(f"rays_per_pulse_intersect: {sum(len(o) for o, _ in rec.intersects) / n:.0f} rays")
+    print(f"rays_per_pulse_occluded: {sum(len(o) for o, _, _ in rec.occludes) / n:.0f} rays")
+    for k in (1, 10, 30):
+        print(f"ms_per_pulse_amortised_{k}: {(default + build / k) * 1e3:.1f} ms")
+
+    # one thread, CPU time of this thread (robust to other jobs on the machine)
+    prev = numba.get_num_threads()
+    numba.set_num_threads(1)
+    try:
+        cpu = best(lambda: trace(prepared, beams, threads=1, parallel="rays", **kw), args.repeat,
+                   time.thread_time) / n
+
+        def replay1():
+            for o, d in rec.intersects:
+                inner.intersect(o, d, threads=1)
+            for o, d, t in rec.occludes:
+                inner.occluded(o, d, t, threads=1)
+
+        cpu_floor = best(replay1, args.repeat, time.thread_time) / n
+    finally:
+        numba.set_num_threads(prev)
+    print(f"trace_cpu_ms_per_pulse_serial: {cpu * 1e3:.1f} ms")
+    print(f"embree_floor_cpu_ms_per_pulse_serial: {cpu_floor * 1e3:.1f} ms")
+    print(f"trace_over_floor_cpu: {cpu / cpu_floor:.2f} x")
+    print(f"mean_sigma_total: {res.total.mean():.4f} per sr")
+    print(f"mean_order1_fraction: {(res.order_totals[:, 0] / res.total).mean():.3f} fraction")
+    print(f"load_average_1min_end: {os.getloadavg()[0]:.2f} processes")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,26 @@
+"""The virtual ALS60 campaign: the embedded default data, with hidden effects (DESIGN.md).
+
+``waveforest synthesize`` writes a campaign folder in the layout a user provides for real
+data (``datasets.csv``, ``fields.csv``, ``targets.csv``, LAS 1.4 waveform files, trajectory
+CSVs; schema in :mod:`.readme`) plus ``truth.json``, which no analysis step reads.
+
+Modules: :mod:`.params` (the parameter files in ``resources/campaign``), :mod:`.rng`
+(seeded streams), :mod:`.layout` (stands, samples, targets), :mod:`.flight` (strips, scan
+pattern, trajectories, pulses near the sites), :mod:`.scenes` (the true scenes),
+:mod:`.system_pulse` (the true S(t)), :mod:`.agc_loop` (the true AGC), :mod:`.dr_cfd` (the
+sensor's DR discriminator), :mod:`.truth_sensor` (the sensor as it really behaves),
+:mod:`.synthesize` (orchestration), :mod:`.cli` (the command).
+"""
+
+from .agc_loop import AGCParams, agc_sequence
+from .layout import Frame, Layout, build_layout
+from .params import load_datasets, load_layout, load_targets
+from .synthesize import CampaignSummary, resolve_effects, run
+from .system_pulse import TrueSystemWaveform, true_system_waveform
+from .truth_sensor import TruthSensor, record
+
+__all__ = [
+    "AGCParams", "agc_sequence", "Frame", "Layout", "build_layout", "load_datasets", "load_layout",
+    "load_targets", "CampaignSummary", "resolve_effects", "run", "TrueSystemWaveform",
+    "true_system_waveform", "TruthSensor", "record",
+]

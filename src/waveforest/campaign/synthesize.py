@@ -1,0 +1,497 @@
+"""Generate the virtual ALS60 campaign: ``run(cfg, out_dir, effects, seed)``.
+
+Order of work (each step's randomness has its own seeded stream, :mod:`.rng`):
+
+1. parameters (``resources/campaign``) and the config's datasets; the true sensor of each
+   dataset (:class:`.truth_sensor.TruthSensor`);
+2. the layout of stands, field samples and targets (:func:`.layout.build_layout`);
+3. per dataset: strips and the pulses near its year's sites (:mod:`.flight`);
+4. per site (progress bar): its one true scene (:mod:`.scenes`), every pulse of every
+   dataset over it traced in one batched :func:`waveforest.mcrt.trace` call; the noise-free
+   peak of each pulse at unit gain (for the AGC loop) and sigma(t) kept (trimmed, float32);
+5. per dataset: the AGC loop over its pulses in time order (:mod:`.agc_loop`), the sensor
+   records each pulse (:func:`.truth_sensor.record`), the recorded geometry gets the per-strip
+   positioning errors and the ``xy_error`` effect, and the pulse table goes to a LAS 1.4 file
+   (point format 9, 8-bit samples, waveform packets inside the file: EVLR 65535) through
+   :func:`waveforest.io.las_write.write_waveform_las`, with its trajectory CSV;
+6. ``datasets.csv``, ``fields.csv``, ``targets.csv``, ``README.md``, ``truth.json`` and
+   ``truth_pulses.parquet``.
+
+The folder is built beside ``out_dir`` and renamed onto it at the end: a failure leaves
+``out_dir`` as it was.
+
+Hidden effects (src/waveforest/effects.py) act where their physics does: ``understory``,
+``clumping``, ``lad_shift``, ``leaf_albedo`` in the vegetation instances; ``specular``,
+``hotspot`` in the MCRT; ``noise_autocorr``, ``nonlinearity``, ``trigger_loss`` in the
+sensor; ``xy_error`` in the recorded geometry: each pulse's recorded anchor and echoes are
+moved horizontally by an N(0, xy_error) offset per axis (the field samples stay where the
+plants are; trajectory positions are not moved).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pyarrow as pa
+from tqdm import tqdm
+
+from .. import __version__
+from ..constants import BIN_NS, RANGE_PER_NS
+from ..effects import CATALOGUE, active, parse_effects
+from ..errors import WaveforestError
+from ..io.tables import PULSE_SCHEMA, padded_to_list, write_table
+from .agc_loop import agc_sequence
+from .flight import plan_flight, site_pulses
+from .layout import FIELD_COLUMNS, TARGET_COLUMNS, build_layout
+from .params import CAMPAIGN_RESOURCES, load_datasets, load_layout
+from .readme import readme_text
+from .rng import generator, int_seed
+from .scenes import TARGET_RAYS, sample_scene, target_scene
+from .truth_sensor import MAX_ECHOES, TruthSensor, record, unit_gain_peaks
+
+VEGETATION_EFFECTS = ("understory", "clumping", "lad_shift", "leaf_albedo")
+MCRT_EFFECTS = ("specular", "hotspot")
+SENSOR_EFFECTS = ("noise_autocorr", "nonlinearity", "trigger_loss")
+
+SIGMA_TRIM_REL = 1e-6
+"""sigma(t) bins at the ends of a site's batch below this fraction of its largest bin are not kept."""
+
+DIGITIZER_GAIN, DIGITIZER_OFFSET = 1.0, 0.0
+"""Waveform packet descriptor: volts per DN and volts at DN 0 (the ALS60's are not published)."""
+
+EFFECT_LIMITS = {
+    "understory": (0.0, np.inf, "[0, inf)"), "clumping": (0.0, np.inf, "[0, inf)"),
+    "xy_error": (0.0, np.inf, "[0, inf)"), "specular": (0.0, 1.0, "[0, 1]"),
+    "hotspot": (1e-9, np.inf, "(0, inf)"), "lad_shift": (-90.0, 90.0, "[-90, 90]"),
+    "leaf_albedo": (1e-9, np.inf, "(0, inf)"), "noise_autocorr": (-0.999999, 0.999999, "(-1, 1)"),
+    "nonlinearity": (0.0, np.inf, "[0, inf)"), "trigger_loss": (0.0, 0.999999, "[0, 1)"),
+}
+"""Physically meaningful range of each effect's value."""
+
+
+class SynthesizeError(WaveforestError):
+    """The campaign cannot be generated as configured."""
+
+
+@dataclass
+class CampaignSummary:
+    """What :func:`run` wrote."""
+
+    out_dir: Path
+    pulses: dict[str, int] = field(default_factory=dict)
+    points: dict[str, int] = field(default_factory=dict)
+    n_fields: int = 0
+    n_targets: int = 0
+    effects: dict[str, float] = field(default_factory=dict)
+    seconds: float = 0.0
+    timings: dict[str, float] = field(default_factory=dict)
+
+    def line(self) -> str:
+        """One-line summary for the CLI."""
+        eff = ", ".join(f"{k}={v:g}" for k, v in active(self.effects).items()) or "none"
+        return (f"wrote {self.out_dir}: {len(self.pulses)} datasets, {sum(self.pulses.values()):,} pulses "
+                f"({sum(self.points.values()):,} LAS points), {self.n_fields} field samples, "
+                f"{self.n_targets} targets; hidden effects: {eff}; {self.seconds:.0f} s")
+
+
+def resolve_effects(cfg: dict, effects=None) -> dict[str, float]:
+    """All ten effects with their values: off values, then config ``campaign.effects``, then ``effects``."""
+    values = {name: e.off for name, e in CATALOGUE.items()}
+    values.update(parse_effects(cfg.get("campaign", {}).get("effects") or {}))
+    values.update(parse_effects(effects))
+    for name, v in values.items():
+        lo, hi, text = EFFECT_LIMITS[name]
+        if not (np.isfinite(v) and lo <= v <= hi):
+            raise SynthesizeError(f"effect {name} = {v!r}: expected a value in {text}")
+    return values
+
+
+def _sites_table(fields: pd.DataFrame, targets: pd.DataFrame, year: int, margin: float, tree_radius: float) -> pd.DataFrame:
+    f = fields[fields["year"] == year]
+    t = targets[targets["year"] == year]
+    fr = np.where(f["is_tree"] == 1, tree_radius, f["radius_m"]) + margin
+    return pd.concat([
+        pd.DataFrame({"site": f["sample_id"].to_numpy(), "s": f["s"].to_numpy(), "w": f["w"].to_numpy(),
+                      "ground_z": f["ground_z"].to_numpy(), "disc_m": fr}),
+        pd.DataFrame({"site": t["target_id"].to_numpy(), "s": t["s"].to_numpy(), "w": t["w"].to_numpy(),
+                      "ground_z": t["z"].to_numpy(), "disc_m": t["radius_m"].to_numpy() + margin}),
+    ], ignore_index=True)
+
+
+def _trim(sigma: np.ndarray) -> tuple[int, np.ndarray]:
+    peak = sigma.max() if sigma.size else 0.0
+    if peak <= 0:
+        return 0, np.zeros((sigma.shape[0], 1), dtype=np.float32)
+    cols = np.flatnonzero(sigma.max(axis=0) > SIGMA_TRIM_REL * peak)
+    a, b = int(cols[0]), int(cols[-1]) + 1
+    return a, sigma[:, a:b].astype(np.float32)
+
+
+def _swap_in(tmp: Path, out: Path) -> None:
+    """Rename the finished folder ``tmp`` onto ``out`` (an existing folder is replaced)."""
+    if out.exists() and not out.is_dir():
+        raise SynthesizeError(f"{out}: exists and is not a folder")
+    old = None
+    if out.exists():
+        old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
+        old.rmdir()
+        os.replace(out, old)
+    try:
+        os.replace(tmp, out)
+    except BaseException:
+        if old is not None:
+            os.replace(old, out)
+        raise
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
+
+
+def _crs_wkt() -> str | None:
+    path = CAMPAIGN_RESOURCES / "crs.wkt"
+    return path.read_text().strip() if path.exists() else None
+
+
+def run(cfg: dict, out_dir: str | os.PathLike, effects=None, seed: int | None = None, *,
+        progress: bool = True) -> CampaignSummary:
+    """Generate the virtual campaign into ``out_dir`` (module docstring).
+
+    Parameters
+    ----------
+    cfg : dict
+        A loaded study config (:func:`waveforest.config.load`): ``datasets``, ``seed``,
+        ``campaign`` (effects, samples_per_species, density_scale, n_rays, max_order,
+        viewed_diameter_m, disc_margin_m, max_pulses_per_site), ``vegetation`` (ground_rho,
+        lai_jitter), ``select.tree_radius_m``.
+    out_dir : path
+        Campaign folder to write (replaced atomically if it exists).
+    effects : mapping or list of "NAME=VALUE", optional
+        Hidden effects on top of ``campaign.effects``.
+    seed : int, optional
+        Master seed (default: ``cfg["seed"]``).
+    progress : bool
+        Progress bars on stderr.
+
+    Returns
+    -------
+    CampaignSummary
+    """
+    t_start = time.perf_counter()
+    out = Path(out_dir)
+    seed = int(cfg["seed"] if seed is None else seed)
+    camp = cfg["campaign"]
+    eff = resolve_effects(cfg, effects)
+    veg_eff = {k: eff[k] for k in VEGETATION_EFFECTS}
+    datasets = load_datasets(list(cfg["datasets"]))
+    if datasets.empty:
+        raise SynthesizeError("config datasets: no dataset to generate")
+    sensors = {row["dataset"]: TruthSensor.from_row(row) for _, row in datasets.iterrows()}
+    years = sorted(set(int(y) for y in datasets["year"]))
+    lay = load_layout()
+
+    from ..vegetation import species_table
+
+    layout = build_layout(species_table(), int(camp["samples_per_species"]), seed)
+    fields = layout.fields[layout.fields["year"].isin(years)].reset_index(drop=True)
+    targets = layout.targets[layout.targets["year"].isin(years)].reset_index(drop=True)
+    only = camp.get("species")
+    if only:
+        unknown = sorted(set(only) - set(layout.fields["species"]))
+        if unknown:
+            raise SynthesizeError(f"campaign.species: unknown species {', '.join(unknown)}")
+        fields = fields[fields["species"].isin(only)].reset_index(drop=True)
+
+    # 3. pulses of every dataset near its sites
+    margin = float(camp["disc_margin_m"])
+    tree_r = float(cfg["select"]["tree_radius_m"])
+    cap = camp.get("max_pulses_per_site")
+    plans, pulses = {}, {}
+    for _, row in datasets.iterrows():
+        ds, year = row["dataset"], int(row["year"])
+        sites = _sites_table(fields, targets, year, margin, tree_r)
+        plans[ds] = plan_flight(row, layout.frame, lay, float(camp["density_scale"]), seed,
+                                float(sites["ground_z"].mean()))
+        p = site_pulses(plans[ds], sites, lay, seed, None if cap is None else int(cap))
+        p.insert(0, "dataset", ds)
+        p["year"] = year
+        pulses[ds] = p
+    timings = {"plan": time.perf_counter() - t_start, "scenes": 0.0, "trace": 0.0, "record_write": 0.0}
+    allp = pd.concat(pulses.values(), ignore_index=True)
+    if allp.empty:
+        raise SynthesizeError("no pulse reaches any site (check density_scale and the layout)")
+    offsets = np.cumsum([0] + [len(p) for p in pulses.values()])
+    allp["row"] = np.concatenate([np.arange(len(p)) for p in pulses.values()])
+
+    # 4. trace every site once
+    site_info = pd.concat([
+        pd.DataFrame({"site": fields["sample_id"], "kind": "sample", "x": fields["x"], "y": fields["y"],
+                      "z": fields["ground_z"], "species": fields["species"], "height_m": fields["height_m"],
+                      "rho": np.nan, "side_m": np.nan, "on_ground_rho": np.nan, "disc_m": 0.0}),
+        pd.DataFrame({"site": targets["target_id"], "kind": "target", "x": targets["x"], "y": targets["y"],
+                      "z": targets["z"], "species": "", "height_m": 0.0, "rho": targets["true_rho"],
+                      "side_m": targets["side_m"], "on_ground_rho": pd.to_numeric(targets["on_ground_rho"]),
+                      "disc_m": targets["radius_m"] + margin}),
+    ], ignore_index=True).set_index("site")
+    kinds = site_info["kind"]
+    for p in pulses.values():
+        p["kind"] = p["site"].map(kinds).to_numpy()
+    groups = allp.groupby("site", sort=False).indices
+    site_order = [s for s in site_info.index if s in groups]
+    a0 = {ds: np.zeros(len(p)) for ds, p in pulses.items()}
+    batches = {ds: [] for ds in pulses}
+    cover_true = {}
+    vcfg = cfg["vegetation"]
+    n_orders = int(camp["max_order"])
+    viewed = float(camp["viewed_diameter_m"])
+    from ..mcrt import Beams, prepare, trace
+
+    bar = tqdm(site_order, desc="synthesize: sites", unit="site", file=sys.stderr, disable=not progress)
+    for site in bar:
+        info = site_info.loc[site]
+        idx = groups[site]
+        sub = allp.iloc[idx]
+        t_site = time.perf_counter()
+        if info["kind"] == "sample":
+            scene = sample_scene(info["species"], info["height_m"], seed, site, ground_rho=float(vcfg["ground_rho"]),
+                                 lai_jitter=float(vcfg["lai_jitter"]), vegetation_effects=veg_eff)
+            n_rays = int(camp["n_rays"])
+        else:
+            scene = target_scene(float(info["rho"]), float(info["side_m"]), float(info["on_ground_rho"]),
+                                 float(info["disc_m"]) + 1.0)
+            n_rays = min(TARGET_RAYS, int(camp["n_rays"]))
+        origin = sub[["sensor_x", "sensor_y", "sensor_z"]].to_numpy() - np.array([info["x"], info["y"], info["z"]])
+        direction = sub[["dir_x", "dir_y", "dir_z"]].to_numpy()
+        div = datasets.set_index("dataset").loc[sub["dataset"], "divergence_mrad"].to_numpy(dtype=float)
+        beams = Beams.from_divergence(origin, direction, div, sub["range_ground_m"].to_numpy())
+        prepared = prepare(scene)
+        t_trace = time.perf_counter()
+        timings["scenes"] += t_trace - t_site
+        res = trace(prepared, beams, n_rays=n_rays, max_order=n_orders, bin_ns=BIN_NS,
+                    viewed_diameter_m=viewed, seed=int_seed(seed, "trace", site),
+                    specular=eff["specular"], hotspot=eff["hotspot"])
+        if info["kind"] == "sample":
+            fh = res.first_hit_counts.astype(np.float64)
+            cover_true[site] = float(np.mean(fh[:, 1:4].sum(axis=1) / fh.sum(axis=1)))
+        for ds in sub["dataset"].unique():
+            sel = np.flatnonzero(sub["dataset"].to_numpy() == ds)
+            rows = sub["row"].to_numpy()[sel]
+            b0, sig = _trim(res.sigma[sel])
+            t0 = res.t0_ns[sel] + b0 * BIN_NS
+            rg = sub["range_ground_m"].to_numpy()[sel]
+            a0[ds][rows] = unit_gain_peaks(sensors[ds], sig, t0, rg, trigger_loss=eff["trigger_loss"])
+            batches[ds].append((site, rows, sig, t0, rg))
+        timings["trace"] += time.perf_counter() - t_trace
+    bar.close()
+    t_rec = time.perf_counter()
+
+    # canopy cover (visual estimate) for the marked S12 samples
+    smp = lay["samples"]
+    crng = generator(seed, "cover")
+    noise = crng.normal(0.0, float(smp["canopy_cover_sd_pct"]), len(layout.fields))
+    est = layout.fields["sample_id"].map(cover_true).to_numpy(dtype=float) * 100.0 + noise
+    step = float(smp["canopy_cover_step_pct"])
+    est = np.clip(np.round(est / step) * step, 0.0, 100.0)
+    cover = pd.Series(np.where(layout.fields["cover_estimated"].to_numpy(), est, np.nan),
+                      index=layout.fields["sample_id"])
+    fields["canopy_cover_pct"] = fields["sample_id"].map(cover).to_numpy()
+
+    # 5. record, write LAS and trajectories
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
+    try:
+        summary = CampaignSummary(out_dir=out, effects=eff, timings=timings)
+        truth_ds, truth_rows = {}, []
+        wkt = _crs_wkt()
+        for _, row in datasets.iterrows():
+            ds = row["dataset"]
+            t_ds, info_ds, rows_ds = _record_dataset(
+                row, sensors[ds], plans[ds], pulses[ds], a0[ds], batches[ds], eff, seed, lay, tmp, wkt)
+            truth_ds[ds] = info_ds
+            truth_rows.append(rows_ds)
+            summary.pulses[ds] = info_ds["n_pulses"]
+            summary.points[ds] = info_ds["n_points"]
+            batches[ds] = None  # free sigma
+        _write_tables(tmp, datasets, fields, targets, camp)
+        write_table(pa.Table.from_pandas(pd.concat(truth_rows, ignore_index=True), preserve_index=False),
+                    tmp / "truth_pulses.parquet")
+        manifest = {
+            "description": "Truth of the virtual ALS60 campaign. No analysis step reads this file.",
+            "waveforest_version": __version__,
+            "seed": seed,
+            "effects": eff,
+            "active_effects": active(eff),
+            "config": {"datasets": list(datasets["dataset"]), "campaign": camp,
+                       "vegetation": {k: vcfg[k] for k in ("ground_rho", "lai_jitter")}},
+            "frame": {"origin_x": layout.frame.origin_x, "origin_y": layout.frame.origin_y,
+                      "azimuth_deg": layout.frame.azimuth_deg},
+            "datasets": truth_ds,
+            "targets": {r["target_id"]: {"true_rho": r["true_rho"], "side_m": r["side_m"],
+                                         "on_ground_rho": None if pd.isna(r["on_ground_rho"]) else float(r["on_ground_rho"])}
+                        for _, r in targets.iterrows()},
+            "canopy_cover_true_pct": {k: 100.0 * v for k, v in cover_true.items()},
+        }
+        with open(tmp / "truth.json", "w") as fh:
+            json.dump(_jsonable(manifest), fh, indent=1, sort_keys=False)
+        (tmp / "README.md").write_text(readme_text())
+        summary.n_fields, summary.n_targets = len(fields), len(targets)
+        _swap_in(tmp, out)
+        timings["record_write"] = time.perf_counter() - t_rec
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    summary.seconds = time.perf_counter() - t_start
+    return summary
+
+
+def _jsonable(obj):
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return [_jsonable(v) for v in obj.tolist()]
+    if isinstance(obj, (np.floating, float)):
+        v = float(obj)
+        return v if np.isfinite(v) else None
+    if isinstance(obj, (np.integer,)):
+        return int(obj)
+    if isinstance(obj, np.bool_):
+        return bool(obj)
+    return obj
+
+
+def _record_dataset(row, sensor: TruthSensor, plan, p: pd.DataFrame, a0: np.ndarray, batches, eff, seed,
+                    lay, out: Path, wkt):
+    """Run the AGC loop and the sensor over one dataset's pulses; write its LAS and trajectory."""
+    from ..io.las_write import write_waveform_las
+
+    ds = row["dataset"]
+    n = len(p)
+    agc, gain, observed = agc_sequence(p["gps_time"].to_numpy(), a0, p["strip"].to_numpy(), sensor.agc,
+                                       generator(seed, "agc", ds), saturation_dn=eff["nonlinearity"])
+    n_s = sensor.n_samples
+    samples = np.zeros((n, n_s), dtype=np.uint8)
+    first = np.full(n, np.nan)
+    echo_ns = np.full((n, MAX_ECHOES), np.nan)
+    echo_amp = np.full((n, MAX_ECHOES), np.nan)
+    inten = np.zeros((n, MAX_ECHOES), dtype=np.uint8)
+    n_echo = np.zeros(n, dtype=np.int64)
+    walk = np.full((n, MAX_ECHOES), np.nan)
+    for site, rows, sig, t0, rg in batches:
+        rec = record(sensor, sig, t0, rg, gain[rows], generator(seed, "sensor", ds, site),
+                     noise_autocorr=eff["noise_autocorr"], nonlinearity=eff["nonlinearity"],
+                     trigger_loss=eff["trigger_loss"])
+        samples[rows], first[rows], echo_ns[rows] = rec.samples, rec.first_sample_ns, rec.echo_ns
+        echo_amp[rows], inten[rows], n_echo[rows], walk[rows] = rec.echo_amp_dn, rec.intensity, rec.n_echoes, rec.walk_m
+
+    # geometry: true positions, then the recording errors
+    srng = generator(seed, "strip_error", ds)
+    n_strips = len(plan.strips)
+    strip_off = np.column_stack([srng.normal(0, sensor.strip_xy_sd_m, (n_strips, 2)),
+                                 srng.normal(0, sensor.strip_z_sd_m, n_strips)])
+    xy = generator(seed, "xy_error", ds).standard_normal((n, 2)) * eff["xy_error"]
+    sensor_true = p[["sensor_x", "sensor_y", "sensor_z"]].to_numpy()
+    d = p[["dir_x", "dir_y", "dir_z"]].to_numpy()
+    shift = strip_off[p["strip"].to_numpy()] + np.column_stack([xy, np.zeros(n)])
+    anchor = sensor_true + d * (first * RANGE_PER_NS)[:, None] + shift
+    echo_xyz = sensor_true[:, None, :] + d[:, None, :] * (echo_ns * RANGE_PER_NS)[:, :, None] + shift[:, None, :]
+    sensor_rec = sensor_true + strip_off[p["strip"].to_numpy()]
+    keep = n_echo > 0
+    kept = np.flatnonzero(keep)
+    lengths = n_echo[kept]
+    k = len(kept)
+    echo_t = echo_ns - first[:, None]
+
+    def lst(a, typ):
+        return padded_to_list(np.nan_to_num(a[kept]), lengths, typ)
+
+    table = pa.Table.from_arrays([
+        pa.array(np.full(k, ds), pa.string()),
+        pa.array(np.arange(k, dtype=np.int64)),
+        pa.array(np.full(k, "real"), pa.string()),
+        pa.array(p["gps_time"].to_numpy()[kept]),
+        pa.array(sensor_rec[kept, 0]), pa.array(sensor_rec[kept, 1]), pa.array(sensor_rec[kept, 2]),
+        pa.array(d[kept, 0]), pa.array(d[kept, 1]), pa.array(d[kept, 2]),
+        pa.array(anchor[kept, 0]), pa.array(anchor[kept, 1]), pa.array(anchor[kept, 2]),
+        pa.array(echo_ns[kept, 0] * RANGE_PER_NS),
+        pa.array(p["scan_angle_deg"].to_numpy()[kept]),
+        pa.array(agc[kept].astype(np.float64)),
+        pa.array(np.full(k, sensor.sampling_ns)),
+        pa.array(np.full(k, DIGITIZER_GAIN)), pa.array(np.full(k, DIGITIZER_OFFSET)),
+        padded_to_list(samples[kept].astype(np.float32), np.full(k, n_s), pa.float32()),
+        pa.array(lengths.astype(np.int16)),
+        lst(echo_xyz[:, :, 0], pa.float64()), lst(echo_xyz[:, :, 1], pa.float64()), lst(echo_xyz[:, :, 2], pa.float64()),
+        lst(echo_t, pa.float64()),
+        lst(inten.astype(np.float32), pa.float32()),
+    ], schema=PULSE_SCHEMA)
+    date = pd.Timestamp(str(row["campaign_date"]))
+    las = out / f"{ds}.las"
+    write_waveform_las(las, table, version="1.4", point_format=9, bits=8, storage="internal",
+                       agc_attribute="user_data", creation=(int(date.day_of_year), int(date.year)),
+                       system_identifier="ALS60 (virtual)", generating_software=f"waveforest {__version__}",
+                       wkt=wkt)
+    traj = plan.trajectory(float(lay["flight"]["trajectory_hz"]))
+    off = strip_off[traj["strip"].to_numpy()]
+    traj_out = pd.DataFrame({"gps_time": traj["gps_time"], "x": traj["x"] + off[:, 0],
+                             "y": traj["y"] + off[:, 1], "z": traj["z"] + off[:, 2]})
+    traj_out.to_csv(out / f"{ds}_trajectory.csv", index=False, float_format="%.4f")
+
+    a_mean = float(np.mean(agc[kept])) if k else float("nan")
+    law = sensor.agc
+    c = law.scale_at(a_mean)
+    info = {
+        "year": int(row["year"]),
+        "n_pulses": int(k), "n_points": int(lengths.sum()),
+        "n_without_echo": int(n - k),
+        "n_target_pulses": int(np.sum(keep & (p["kind"] == "target").to_numpy())),
+        "a": a_mean, "b": law.b_at(a_mean),
+        "agc": {"law": "gain = 1 + (AGC - law_a) * law_b on the signal (Eq. 1); a = dataset mean AGC, "
+                       "b = law_b / (1 + (a - law_a) law_b) describes the same law with reference a",
+                "law_a": law.law_a, "law_b": law.law_b, "a_mean": a_mean, "b_at_a_mean": law.b_at(a_mean),
+                "gain_at_a_mean": c, "loop": {kk: getattr(law, kk) for kk in (
+                    "bg_mean", "bg_sd", "bg_tau_s", "loop_tau_s", "loop_gain", "setpoint_dn", "jitter_sd")},
+                "agc_min": int(agc[kept].min()) if k else None, "agc_max": int(agc[kept].max()) if k else None},
+        "noise_mean_dn": sensor.noise_mean_dn, "noise_sd_dn": sensor.noise_sd_dn,
+        "pulse_fwhm_ns": sensor.system.fwhm_ns,
+        "system_waveform": {
+            "units": "DN m^2 per unit sigma (Eq. 7); t = 0 at the sensor's DR time of a spike target",
+            "t_ns": sensor.system.t_ns, "s": sensor.system.s, "s_at_a_mean": sensor.system.s * c},
+        "sensor": sensor.manifest(),
+        "strips": [{"index": st.index, "azimuth_deg": st.azimuth_deg, "w_line_m": st.w_line,
+                    "t_start": st.t_start, "duration_s": st.duration, "altitude_m": st.z_fly,
+                    "offset_xyz_m": strip_off[st.index]} for st in plan.strips],
+    }
+    truth = pd.DataFrame({
+        "dataset": ds, "gps_time": p["gps_time"].to_numpy(), "recorded": keep, "site": p["site"].to_numpy(),
+        "strip": p["strip"].to_numpy(), "sensor_x": sensor_true[:, 0], "sensor_y": sensor_true[:, 1],
+        "sensor_z": sensor_true[:, 2], "dir_x": d[:, 0], "dir_y": d[:, 1], "dir_z": d[:, 2],
+        "ground_x": p["ground_x"].to_numpy(), "ground_y": p["ground_y"].to_numpy(), "ground_z": p["ground_z"].to_numpy(),
+        "range_ground_m": p["range_ground_m"].to_numpy(), "a0_dn": a0, "agc": agc, "gain": gain,
+        "observed_peak_dn": observed, "xy_offset_x": xy[:, 0], "xy_offset_y": xy[:, 1],
+        "first_echo_range_m": echo_ns[:, 0] * RANGE_PER_NS, "first_echo_amp_dn": echo_amp[:, 0],
+        "first_echo_walk_m": walk[:, 0]})
+    return table, info, truth
+
+
+def _write_tables(out: Path, datasets: pd.DataFrame, fields: pd.DataFrame, targets: pd.DataFrame, camp: dict) -> None:
+    d = pd.DataFrame({
+        "dataset": datasets["dataset"], "year": datasets["year"],
+        "las_file": datasets["dataset"] + ".las", "trajectory_file": datasets["dataset"] + "_trajectory.csv",
+        "mean_range_m": datasets["mean_range_m"], "pulse_width_fwhm_ns": datasets["pulse_width_fwhm_ns"],
+        "footprint_diameter_m": datasets["footprint_diameter_m"], "divergence_mrad": datasets["divergence_mrad"],
+        "sampling_ns": datasets["sampling_ns"],
+        "pulse_density_m2": datasets["pulse_density_m2"] * float(camp["density_scale"]),
+        "max_scan_zenith_deg": datasets["max_scan_zenith_deg"]})
+    d.to_csv(out / "datasets.csv", index=False)
+    f = fields[FIELD_COLUMNS].copy()
+    f.to_csv(out / "fields.csv", index=False, float_format="%.3f")
+    t = targets[TARGET_COLUMNS].copy()
+    t.to_csv(out / "targets.csv", index=False, float_format="%.3f")

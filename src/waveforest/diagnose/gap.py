@@ -1,0 +1,688 @@
+"""The gap: a documented measure of disagreement between real and simulated features.
+
+A *cell* is one dataset x species; in it, each waveform feature f (METHOD.md h: H, Npeaks,
+Apeak, FWHM, E) has real values x (n_r pulses) and simulated values y (n_s pulses).
+
+Per cell and feature
+--------------------
+::
+
+    s_p = sqrt(((n_r - 1) s_r^2 + (n_s - 1) s_s^2) / (n_r + n_s - 2)),  floored at floor_f
+    d   = (mean(y) - mean(x)) / s_p               standardised mean difference
+    l   = ln(max(s_s, floor_f) / max(s_r, floor_f))   log SD ratio
+    w   = W1(y, x) / s_p                          Wasserstein-1 distance in pooled SDs
+
+``floor_f`` (:data:`FEATURE_SD_FLOOR`) is the feature's measurement resolution: the SD that
+rounding alone would give. It keeps a degenerate feature (Npeaks is often 1 for every
+pulse) from dividing by zero and from turning a few-hundredths difference into a huge d.
+
+Total
+-----
+The *moment gap* ``G = mean over valid (cell, feature) of (d^2 + l^2)``, in squared pooled
+SDs: a pure mean shift of k SDs in one of K cells adds k^2 / K, an SD ratio r adds
+ln(r)^2 / K. It is smooth in the model parameters (a good 1-D search objective) and
+computable from per-sample sums, so its bootstrap is a matrix product. Per feature, the
+same mean over the cells of that feature. ``w`` is reported beside it (shape differences
+that moments miss, e.g. the H histogram near the ground) but does not enter G.
+
+Noise
+-----
+Pulses of one field sample see the same plant and are correlated, so every bootstrap here
+resamples *field samples* (clusters), stratified by species, and takes each drawn sample's
+real and simulated pulses together (a paired cluster bootstrap). Even a perfect model has
+E[d^2] = Var(d) > 0: the *noise floor* ``F = mean of (Var*(d) + Var*(l))`` (bootstrap
+variances) is the gap expected from sampling noise alone, and the *excess gap* is
+``G - F``. The gap is *significant* when the lower bound of the excess gap's interval is
+above 0. Intervals of G (and of differences of G) are bootstrap percentile intervals
+recentred on the estimate (G + quantiles of G* - mean G*): the bootstrap adds its own
+noise to d*, shifting G* upwards by about F; recentring removes that shift and keeps the
+skewness of a sum of squares. Intervals of d and l are ``estimate -+ t * SE*`` (bootstrap
+standard error, Student t with samples - 1 degrees of freedom), as are those of a
+difference of two gaps (paired reductions; samples - species degrees of freedom); those of w
+are percentile intervals (descriptive only).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+from scipy.stats import t as student_t
+from scipy.stats import wasserstein_distance
+
+from ..errors import WaveforestError
+
+FEATURES: tuple[str, ...] = ("H", "Npeaks", "Apeak", "FWHM", "E")
+"""Features compared (METHOD.md h), in report order."""
+
+_ROUNDING_SD = 1.0 / np.sqrt(12.0)
+"""SD of a uniform rounding error of one unit."""
+
+FEATURE_SD_FLOOR: dict[str, float] = {
+    "H": 0.05,  # m: echo timing precision of the CFD (|dR| < 0.10 m for 95 %, METHOD f)
+    "Npeaks": _ROUNDING_SD,  # a count
+    "Apeak": _ROUNDING_SD,  # DN: 8-bit rounding
+    "FWHM": 0.1,  # ns: interpolated half-maximum crossings at 1-ns sampling
+    "E": 1.0,  # DN ns: rounding of ~10 summed samples
+    "n_echoes": _ROUNDING_SD,  # a count
+}
+"""Smallest meaningful SD of each feature (its measurement resolution), feature units."""
+
+DEFAULT_ALPHA = 0.05
+"""Two-sided level of every interval (95 % intervals)."""
+
+MIN_CELL_PULSES = 10
+"""A cell enters the gap when it has at least this many real pulses ..."""
+
+MIN_CELL_SAMPLES = 3
+"""... from at least this many field samples (a cluster bootstrap needs several clusters)."""
+
+_KEYS = ("dataset", "species", "sample_id")
+
+
+# --------------------------------------------------------------------------------------
+# per-sample sufficient statistics
+# --------------------------------------------------------------------------------------
+
+
+def sample_universe(*tables: pd.DataFrame) -> pd.Series:
+    """The field samples of feature tables: ``sample_id -> species``, sorted by id.
+
+    Parameters
+    ----------
+    *tables : DataFrame
+        Feature tables with columns ``sample_id`` and ``species``.
+
+    Returns
+    -------
+    Series
+        Index sample_id (str), values species (str); the bootstrap's clusters and strata.
+    """
+    parts = []
+    for t in tables:
+        _require(t, ("sample_id", "species"), "feature table")
+        parts.append(t[["sample_id", "species"]].astype(str))
+    both = pd.concat(parts, ignore_index=True).drop_duplicates()
+    dup = both["sample_id"].duplicated(keep=False)
+    if dup.any():
+        bad = sorted(both.loc[dup, "sample_id"].unique())[:5]
+        raise WaveforestError(f"feature tables: sample_id(s) {bad} belong to more than one species")
+    return both.set_index("sample_id")["species"].sort_index()
+
+
+def bootstrap_weights(universe: pd.Series, n_boot: int, seed) -> np.ndarray:
+    """Multiplicities of a cluster bootstrap stratified by species.
+
+    Within each species of J_s samples, J_s - 1 samples are drawn with replacement (the
+    rescaling bootstrap of Rao & Wu 1988 with m = J_s - 1): the plain bootstrap's variance of a
+    mean is biased low by (J_s - 1) / J_s, which matters with the few field samples per
+    species of a campaign (intervals of d then have their nominal coverage).
+
+    Parameters
+    ----------
+    universe : Series
+        ``sample_id -> species`` (:func:`sample_universe`), J samples.
+    n_boot : int
+        Replicates B.
+    seed : int or SeedSequence
+        Seed of the draws.
+
+    Returns
+    -------
+    (B, J) float64
+        How many times each sample enters each replicate; each species' entries sum to J_s - 1.
+    """
+    if n_boot < 1:
+        raise ValueError(f"n_boot must be >= 1, got {n_boot}")
+    rng = np.random.default_rng(seed)
+    species = universe.to_numpy()
+    w = np.zeros((n_boot, len(species)))
+    for sp in np.unique(species):
+        idx = np.flatnonzero(species == sp)
+        m = max(len(idx) - 1, 1)
+        w[:, idx] = rng.multinomial(m, np.full(len(idx), 1.0 / len(idx)), size=n_boot)
+    return w
+
+
+@dataclass
+class GapData:
+    """Real and simulated features reduced to per-sample sums, ready for bootstrapping.
+
+    Attributes
+    ----------
+    cells : DataFrame
+        C rows: dataset, species (the cells present in the real table).
+    features : tuple of str
+        F feature names.
+    floors : (F,) float64
+        SD floors (:data:`FEATURE_SD_FLOOR`), feature units.
+    universe : Series
+        J samples, ``sample_id -> species``.
+    n, s1, s2 : (2, C, F, J) float64
+        Per source (0 real, 1 sim), cell, feature and sample: count of finite values, sum
+        and sum of squares of the values minus ``center``.
+    center : (C, F) float64
+        Real mean per cell and feature (numerical centring only).
+    valid : (C, F) bool
+        Cells that enter the gap (enough real pulses and samples, >= 2 simulated values).
+    real, sim : DataFrame
+        The input rows (for the Wasserstein distance).
+    """
+
+    cells: pd.DataFrame
+    features: tuple[str, ...]
+    floors: np.ndarray
+    universe: pd.Series
+    n: np.ndarray
+    s1: np.ndarray
+    s2: np.ndarray
+    center: np.ndarray
+    valid: np.ndarray
+    real: pd.DataFrame
+    sim: pd.DataFrame
+
+    @classmethod
+    def build(
+        cls,
+        real: pd.DataFrame,
+        sim: pd.DataFrame,
+        universe: pd.Series | None = None,
+        *,
+        features: tuple[str, ...] = FEATURES,
+        floors: dict[str, float] | None = None,
+        min_pulses: int = MIN_CELL_PULSES,
+        min_samples: int = MIN_CELL_SAMPLES,
+    ) -> "GapData":
+        """Reduce two feature tables to per-sample sums.
+
+        Parameters
+        ----------
+        real, sim : DataFrame
+            Feature tables (one row per pulse) with dataset, species, sample_id and the
+            feature columns; NaN feature values are left out of that feature.
+        universe : Series, optional
+            The samples (``sample_id -> species``); default: those of the two tables. Pass
+            one universe to compare several simulations against the same real table with
+            the same bootstrap weights. Simulated samples outside it are an error.
+        features : tuple of str
+            Feature columns.
+        floors : dict, optional
+            SD floor per feature (default :data:`FEATURE_SD_FLOOR`; every feature needs one).
+        min_pulses, min_samples : int
+            Smallest real pulse and sample counts of a cell that enters the gap.
+        """
+        features = tuple(features)
+        floors = {**FEATURE_SD_FLOOR, **(floors or {})}
+        missing_floor = [f for f in features if f not in floors]
+        if missing_floor:
+            raise WaveforestError(f"gap: no SD floor for feature(s) {missing_floor}; pass floors=")
+        for name, t in (("real", real), ("simulated", sim)):
+            _require(t, _KEYS + features, f"{name} feature table")
+        if universe is None:
+            universe = sample_universe(real, sim)
+        ds_names = pd.Index(sorted(real["dataset"].astype(str).unique()))
+        sp_names = pd.Index(sorted(real["species"].astype(str).unique()))
+        code = _cell_codes(real, ds_names, sp_names)
+        present = np.unique(code)
+        lookup = np.full(len(ds_names) * len(sp_names), -1)
+        lookup[present] = np.arange(len(present))
+        cells = pd.DataFrame({"dataset": ds_names[present // len(sp_names)],
+                              "species": sp_names[present % len(sp_names)]})
+        n_c, n_f, n_j = len(cells), len(features), len(universe)
+        shape = (2, n_c, n_f, n_j)
+        n = np.zeros(shape)
+        s1 = np.zeros(shape)
+        s2 = np.zeros(shape)
+        center = np.zeros((n_c, n_f))
+        for src, table in enumerate((real, sim)):
+            code = _cell_codes(table, ds_names, sp_names)
+            c = np.where(code >= 0, lookup[np.maximum(code, 0)], -1)
+            j = universe.index.get_indexer(table["sample_id"].astype(str))
+            if src == 1 and np.any((j < 0) & (c >= 0)):
+                bad = sorted(table.loc[(j < 0) & (c >= 0), "sample_id"].astype(str).unique())[:5]
+                raise WaveforestError(f"simulated feature table: sample_id(s) {bad} are not in the real table")
+            keep = (c >= 0) & (j >= 0)
+            flat = c[keep] * n_j + j[keep]
+            for k, f in enumerate(features):
+                x = table[f].to_numpy(dtype=np.float64)[keep]
+                ok = np.isfinite(x)
+                if src == 0:
+                    center[:, k] = _group_mean(c[keep][ok], x[ok], n_c)
+                xc = x[ok] - center[c[keep][ok], k]
+                n[src, :, k] = np.bincount(flat[ok], minlength=n_c * n_j).reshape(n_c, n_j)
+                s1[src, :, k] = np.bincount(flat[ok], xc, minlength=n_c * n_j).reshape(n_c, n_j)
+                s2[src, :, k] = np.bincount(flat[ok], xc * xc, minlength=n_c * n_j).reshape(n_c, n_j)
+        n_real = n[0].sum(axis=-1)
+        n_real_samples = (n[0] > 0).sum(axis=-1)
+        valid = (n_real >= min_pulses) & (n_real_samples >= min_samples) & (n[1].sum(axis=-1) >= 2)
+        return cls(
+            cells=cells,
+            features=features,
+            floors=np.array([floors[f] for f in features], dtype=np.float64),
+            universe=universe,
+            n=n,
+            s1=s1,
+            s2=s2,
+            center=center,
+            valid=valid,
+            real=real,
+            sim=sim,
+        )
+
+
+def _require(table: pd.DataFrame, columns, what: str) -> None:
+    missing = [c for c in columns if c not in table.columns]
+    if missing:
+        raise WaveforestError(f"{what}: missing column(s) {', '.join(missing)}")
+
+
+def _cell_codes(table: pd.DataFrame, ds_names: pd.Index, sp_names: pd.Index) -> np.ndarray:
+    """``dataset index * n_species + species index`` per row; -1 where either is unknown."""
+    d = ds_names.get_indexer(table["dataset"].astype(str))
+    s = sp_names.get_indexer(table["species"].astype(str))
+    return np.where((d >= 0) & (s >= 0), d * len(sp_names) + s, -1)
+
+
+def _group_mean(group: np.ndarray, x: np.ndarray, n_groups: int) -> np.ndarray:
+    cnt = np.bincount(group, minlength=n_groups)
+    tot = np.bincount(group, x, minlength=n_groups)
+    return np.divide(tot, cnt, out=np.zeros(n_groups), where=cnt > 0)
+
+
+# --------------------------------------------------------------------------------------
+# statistics (point estimate and bootstrap replicates share one code path)
+# --------------------------------------------------------------------------------------
+
+
+def cell_statistics(data: GapData, weights: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """Means, SDs, d and l of every cell and feature, for the data or bootstrap replicates.
+
+    Parameters
+    ----------
+    data : GapData
+    weights : (B, J) float64, optional
+        Sample multiplicities (:func:`bootstrap_weights`); None = the data as observed.
+
+    Returns
+    -------
+    dict of arrays, each (C, F) or (B, C, F)
+        ``n_real, n_sim, mean_real, mean_sim, sd_real, sd_sim, pooled_sd, d, log_sd_ratio``;
+        NaN where a source has fewer than 2 values.
+    """
+    if weights is None:
+        n, s1, s2 = (a.sum(axis=-1) for a in (data.n, data.s1, data.s2))  # (2, C, F)
+    else:
+        weights = np.asarray(weights, dtype=np.float64)
+        if weights.ndim != 2 or weights.shape[1] != len(data.universe):
+            raise ValueError(f"weights must be (B, {len(data.universe)}), got {weights.shape}")
+        n, s1, s2 = (np.einsum("bj,scfj->sbcf", weights, a) for a in (data.n, data.s1, data.s2))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = s1 / n
+        var = np.maximum(s2 - s1 * mean, 0.0) / (n - 1)
+        var = np.where(n >= 2, var, np.nan)
+        mean = np.where(n >= 1, mean, np.nan)
+        sd = np.sqrt(var)
+        pooled = np.sqrt(((n[0] - 1) * var[0] + (n[1] - 1) * var[1]) / (n[0] + n[1] - 2))
+        pooled = np.maximum(pooled, data.floors)
+        d = (mean[1] - mean[0]) / pooled
+        lsr = np.log(np.maximum(sd[1], data.floors) / np.maximum(sd[0], data.floors))
+    return {
+        "n_real": n[0],
+        "n_sim": n[1],
+        "mean_real": mean[0] + data.center,
+        "mean_sim": mean[1] + data.center,
+        "sd_real": sd[0],
+        "sd_sim": sd[1],
+        "pooled_sd": pooled,
+        "d": d,
+        "log_sd_ratio": lsr,
+    }
+
+
+def contributions(stats: dict[str, np.ndarray]) -> np.ndarray:
+    """``d^2 + l^2`` per cell and feature (the moment-gap terms), same shape as ``d``."""
+    return stats["d"] ** 2 + stats["log_sd_ratio"] ** 2
+
+
+def total_gap(
+    data: GapData,
+    weights: np.ndarray | None = None,
+    valid: np.ndarray | None = None,
+    feature: str | None = None,
+) -> float | np.ndarray:
+    """The moment gap G: mean of ``d^2 + l^2`` over valid cells (and features).
+
+    Parameters
+    ----------
+    data : GapData
+    weights : (B, J) float64, optional
+        Bootstrap multiplicities; None = point estimate.
+    valid : (C, F) bool, optional
+        Cells to average over (default ``data.valid``); pass a common mask when comparing
+        simulations so that every gap averages the same cells.
+    feature : str, optional
+        Restrict to one feature (the per-feature gap).
+
+    Returns
+    -------
+    float, or (B,) float64 with weights
+        Squared pooled SDs. Replicates in which a valid cell is degenerate average the rest.
+    """
+    mask = data.valid if valid is None else np.asarray(valid, dtype=bool)
+    if feature is not None:
+        mask = mask & (np.asarray(data.features) == feature)[None, :]
+    if not mask.any():
+        raise WaveforestError("gap: no cell has enough real and simulated pulses to compare")
+    terms = contributions(cell_statistics(data, weights))
+    with np.errstate(invalid="ignore"):
+        out = np.nanmean(terms[..., mask], axis=-1)
+    return float(out) if weights is None else out
+
+
+def recentred_interval(estimate: float, replicates: np.ndarray, alpha: float = DEFAULT_ALPHA) -> tuple[float, float]:
+    """Bootstrap percentile interval of ``replicates`` shifted so its centre is ``estimate``.
+
+    ``[estimate + q(alpha/2) - mean, estimate + q(1 - alpha/2) - mean]`` of the finite
+    replicates: the bootstrap's shape, without the upward bias that resampling adds to
+    squared statistics (module docstring).
+    """
+    r = np.asarray(replicates, dtype=np.float64)
+    r = r[np.isfinite(r)]
+    if r.size < 2:
+        return (np.nan, np.nan)
+    lo, hi = np.quantile(r, [alpha / 2, 1 - alpha / 2])
+    m = r.mean()
+    return (float(estimate + lo - m), float(estimate + hi - m))
+
+
+def wald_interval(estimate: np.ndarray, replicates: np.ndarray, df, alpha: float = DEFAULT_ALPHA) -> np.ndarray:
+    """``estimate -+ t(1 - alpha/2, df) * SE*``, SE* the SD of the bootstrap replicates.
+
+    Used for d and l (nearly unbiased, nearly symmetric): with the ~10 field samples per
+    species of a campaign it keeps its nominal coverage where the percentile interval of
+    the same replicates is too narrow (tests/test_diagnose_gap.py).
+
+    Parameters
+    ----------
+    estimate : (...) float64
+    replicates : (B, ...) float64
+    df : int or (...) int
+        Degrees of freedom: field samples of the cell minus 1.
+
+    Returns
+    -------
+    (2, ...) float64
+        Lower and upper bounds.
+    """
+    with np.errstate(invalid="ignore"):
+        se = np.nanstd(replicates, axis=0, ddof=1)
+    half = student_t.ppf(1 - alpha / 2, df) * se
+    return np.stack([estimate - half, estimate + half])
+
+
+def cluster_df(universe: pd.Series) -> int:
+    """Degrees of freedom of a statistic pooled over all samples: samples - species (>= 1)."""
+    return max(len(universe) - universe.nunique(), 1)
+
+
+def noise_floor(data: GapData, weights: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
+    """Bootstrap variance of d plus that of l, per cell and feature: the gap of noise alone.
+
+    Returns
+    -------
+    (C, F) float64
+        ``Var*(d) + Var*(l)``; NaN where invalid. Its mean over the valid cells is F.
+    """
+    stats = cell_statistics(data, weights)
+    with np.errstate(invalid="ignore"):
+        out = np.nanvar(stats["d"], axis=0, ddof=1) + np.nanvar(stats["log_sd_ratio"], axis=0, ddof=1)
+    mask = data.valid if valid is None else valid
+    return np.where(mask, out, np.nan)
+
+
+# --------------------------------------------------------------------------------------
+# reports
+# --------------------------------------------------------------------------------------
+
+
+@dataclass
+class GapReport:
+    """The gap of one simulation against the real data, with intervals.
+
+    Attributes
+    ----------
+    cells : DataFrame
+        One row per dataset x species x feature: n_real, n_sim, n_samples, mean_real,
+        mean_sim, sd_real, sd_sim, pooled_sd, d (+ d_ci_low/high), log_sd_ratio
+        (+ lsr_ci_low/high), w1 (+ w1_ci_low/high), contribution (d^2 + l^2), noise
+        (Var d + Var l), valid.
+    summary : DataFrame
+        One row per feature and a last row ``total``: gap, ci_low, ci_high, noise_floor,
+        excess, excess_ci_low, excess_ci_high, significant, w1 (mean over cells), n_cells.
+    replicates : (B,) float64
+        Bootstrap replicates of the total gap.
+    """
+
+    cells: pd.DataFrame
+    summary: pd.DataFrame
+    replicates: np.ndarray
+
+    @property
+    def total(self) -> float:
+        """Total moment gap G, squared pooled SDs."""
+        return float(self.summary.loc["total", "gap"])
+
+    @property
+    def noise_floor(self) -> float:
+        """Total noise floor F."""
+        return float(self.summary.loc["total", "noise_floor"])
+
+    @property
+    def excess(self) -> float:
+        """G - F."""
+        return float(self.summary.loc["total", "excess"])
+
+    @property
+    def significant(self) -> bool:
+        """Whether the total excess gap's interval lies above 0."""
+        return bool(self.summary.loc["total", "significant"])
+
+
+def gap_report(
+    real: pd.DataFrame,
+    sim: pd.DataFrame,
+    *,
+    n_boot: int = 200,
+    seed=0,
+    alpha: float = DEFAULT_ALPHA,
+    features: tuple[str, ...] = FEATURES,
+    floors: dict[str, float] | None = None,
+    min_pulses: int = MIN_CELL_PULSES,
+    min_samples: int = MIN_CELL_SAMPLES,
+    wasserstein: bool = True,
+    universe: pd.Series | None = None,
+    weights: np.ndarray | None = None,
+) -> GapReport:
+    """The gap between real and simulated features, per cell, per feature and in total.
+
+    Parameters
+    ----------
+    real, sim : DataFrame
+        Feature tables (dataset, species, sample_id and the feature columns).
+    n_boot : int
+        Cluster-bootstrap replicates (field samples resampled within species).
+    seed : int or SeedSequence
+        Seed of the bootstrap.
+    alpha : float
+        Two-sided level of the intervals.
+    features, floors, min_pulses, min_samples
+        See :meth:`GapData.build`.
+    wasserstein : bool
+        Also compute w (and its interval) per cell; the slowest part.
+    universe, weights : optional
+        Shared samples and bootstrap weights (to pair this report with another one).
+
+    Returns
+    -------
+    GapReport
+    """
+    data = GapData.build(real, sim, universe, features=features, floors=floors,
+                         min_pulses=min_pulses, min_samples=min_samples)
+    if weights is None:
+        weights = bootstrap_weights(data.universe, n_boot, seed)
+    if not data.valid.any():
+        raise WaveforestError("gap: no cell has enough real and simulated pulses to compare")
+    point = cell_statistics(data)
+    boot = cell_statistics(data, weights)
+    terms = contributions(point)
+    noise = noise_floor(data, weights)
+    q = [alpha / 2, 1 - alpha / 2]
+    df = np.maximum((data.n[0] > 0).sum(axis=-1) - 1, 1)
+    d_ci = wald_interval(point["d"], boot["d"], df, alpha)
+    l_ci = wald_interval(point["log_sd_ratio"], boot["log_sd_ratio"], df, alpha)
+    w1 = np.full(data.valid.shape, np.nan)
+    w1_ci = np.full((2,) + data.valid.shape, np.nan)
+    if wasserstein:
+        w1, w1_ci = _wasserstein(data, point["pooled_sd"], weights, q)
+    rows = []
+    for c, (ds, sp) in enumerate(data.cells.itertuples(index=False)):
+        for k, f in enumerate(data.features):
+            rows.append({
+                "dataset": ds, "species": sp, "feature": f,
+                "n_real": int(point["n_real"][c, k]), "n_sim": int(point["n_sim"][c, k]),
+                "n_samples": int((data.n[0, c, k] > 0).sum()),
+                "mean_real": point["mean_real"][c, k], "mean_sim": point["mean_sim"][c, k],
+                "sd_real": point["sd_real"][c, k], "sd_sim": point["sd_sim"][c, k],
+                "pooled_sd": point["pooled_sd"][c, k],
+                "d": point["d"][c, k], "d_ci_low": d_ci[0, c, k], "d_ci_high": d_ci[1, c, k],
+                "log_sd_ratio": point["log_sd_ratio"][c, k],
+                "lsr_ci_low": l_ci[0, c, k], "lsr_ci_high": l_ci[1, c, k],
+                "w1": w1[c, k], "w1_ci_low": w1_ci[0, c, k], "w1_ci_high": w1_ci[1, c, k],
+                "contribution": terms[c, k], "noise": noise[c, k], "valid": bool(data.valid[c, k]),
+            })
+    cells = pd.DataFrame(rows)
+    summary_rows = {}
+    total_reps = None
+    for f in list(data.features) + ["total"]:
+        mask = data.valid & ((np.asarray(data.features) == f)[None, :] if f != "total" else True)
+        if not mask.any():
+            summary_rows[f] = {"gap": np.nan, "ci_low": np.nan, "ci_high": np.nan, "noise_floor": np.nan,
+                               "excess": np.nan, "excess_ci_low": np.nan, "excess_ci_high": np.nan,
+                               "significant": False, "w1": np.nan, "n_cells": 0}
+            continue
+        g = float(np.nanmean(terms[mask]))
+        reps = np.nanmean(contributions(boot)[:, mask], axis=1)
+        fl = float(np.nanmean(noise[mask]))
+        lo, hi = recentred_interval(g, reps, alpha)
+        summary_rows[f] = {
+            "gap": g, "ci_low": lo, "ci_high": hi, "noise_floor": fl,
+            "excess": g - fl, "excess_ci_low": lo - fl, "excess_ci_high": hi - fl,
+            "significant": bool(lo - fl > 0), "w1": float(np.nanmean(w1[mask])) if wasserstein else np.nan,
+            "n_cells": int(mask.sum()),
+        }
+        if f == "total":
+            total_reps = reps
+    summary = pd.DataFrame.from_dict(summary_rows, orient="index")
+    summary.index.name = "feature"
+    return GapReport(cells=cells, summary=summary, replicates=total_reps)
+
+
+def _wasserstein(data: GapData, pooled: np.ndarray, weights: np.ndarray, q) -> tuple[np.ndarray, np.ndarray]:
+    """W1 / pooled SD per cell and feature, and its bootstrap percentile interval.
+
+    The bootstrap reuses the sample multiplicities as pulse weights (scipy's weighted W1),
+    so no resampled arrays are built.
+    """
+    n_c, n_f = data.valid.shape
+    w1 = np.full((n_c, n_f), np.nan)
+    ci = np.full((2, n_c, n_f), np.nan)
+    uni = data.universe.index
+    by_cell = []
+    for table in (data.real, data.sim):
+        key = table["dataset"].astype(str) + "\x00" + table["species"].astype(str)
+        by_cell.append((key.to_numpy(), uni.get_indexer(table["sample_id"].astype(str))))
+    for c, (ds, sp) in enumerate(data.cells.itertuples(index=False)):
+        sel = [k == f"{ds}\x00{sp}" for k, _ in by_cell]
+        for k, f in enumerate(data.features):
+            if not data.valid[c, k]:
+                continue
+            xs, js = [], []
+            for src, table in enumerate((data.real, data.sim)):
+                x = table[f].to_numpy(dtype=np.float64)[sel[src]]
+                j = by_cell[src][1][sel[src]]
+                ok = np.isfinite(x) & (j >= 0)
+                xs.append(x[ok])
+                js.append(j[ok])
+            w1[c, k] = wasserstein_distance(xs[1], xs[0]) / pooled[c, k]
+            reps = np.full(len(weights), np.nan)
+            for b in range(len(weights)):
+                wr, ws = weights[b, js[0]], weights[b, js[1]]
+                if wr.sum() > 0 and ws.sum() > 0:
+                    reps[b] = wasserstein_distance(xs[1], xs[0], ws, wr) / pooled[c, k]
+            ci[:, c, k] = np.nanquantile(reps, q)
+    return w1, ci
+
+
+@dataclass
+class Reduction:
+    """Paired comparison of two simulations against the same real data (same bootstrap).
+
+    Attributes
+    ----------
+    gap_base, gap_new : float
+        Total moment gaps G of the baseline and the new simulation.
+    noise_base : float
+        Noise floor of the baseline.
+    reduction : float
+        ``gap_base - gap_new`` (> 0: the new simulation agrees better).
+    ci_low, ci_high : float
+        Interval of the reduction, ``reduction -+ t * SE*`` with the paired bootstrap's
+        standard error (same resamples for both) and samples - species degrees of freedom.
+    relative : float
+        ``reduction / (gap_base - noise_base)``: the share of the baseline's excess gap
+        removed; NaN when the baseline has no excess.
+    replicates : (B,) float64
+        Bootstrap replicates of the reduction.
+    """
+
+    gap_base: float
+    gap_new: float
+    noise_base: float
+    reduction: float
+    ci_low: float
+    ci_high: float
+    relative: float
+    replicates: np.ndarray
+
+
+def paired_reduction(
+    real: pd.DataFrame,
+    sim_base: pd.DataFrame,
+    sim_new: pd.DataFrame,
+    *,
+    n_boot: int = 200,
+    seed=0,
+    alpha: float = DEFAULT_ALPHA,
+    universe: pd.Series | None = None,
+    **build_kw,
+) -> Reduction:
+    """How much ``sim_new`` reduces the gap of ``sim_base``, with a paired cluster bootstrap.
+
+    Both gaps average the same cells (valid in both) and every replicate resamples the same
+    field samples for the real data and both simulations.
+    """
+    if universe is None:
+        universe = sample_universe(real, sim_base, sim_new)
+    a = GapData.build(real, sim_base, universe, **build_kw)
+    b = GapData.build(real, sim_new, universe, **build_kw)
+    valid = a.valid & b.valid
+    w = bootstrap_weights(universe, n_boot, seed)
+    ga, gb = total_gap(a, valid=valid), total_gap(b, valid=valid)
+    reps = total_gap(a, w, valid) - total_gap(b, w, valid)
+    lo, hi = wald_interval(ga - gb, reps, cluster_df(universe), alpha)
+    fl = float(np.nanmean(noise_floor(a, w, valid)[valid]))
+    excess = ga - fl
+    rel = (ga - gb) / excess if excess > 0 else np.nan
+    return Reduction(gap_base=ga, gap_new=gb, noise_base=fl, reduction=ga - gb, ci_low=lo, ci_high=hi,
+                     relative=float(rel), replicates=reps)

@@ -1,0 +1,30 @@
+"""Monte Carlo ray tracing of LiDAR pulses: scene + pulses -> sigma(t) (METHOD.md d).
+
+Public API::
+
+    from waveforest.mcrt import Beams, prepare, trace
+    prepared = prepare(scene)                     # Embree BVH, built once
+    beams = Beams.from_divergence(sensor_xyz, dir_xyz, 0.15, range_m)
+    res = trace(prepared, beams, n_rays=30000, max_order=10, seed=1)
+    res.sigma, res.t0_ns, res.bin_ns, res.order_totals, res.first_hit_counts
+
+Modules: :mod:`.beams` (pulses), :mod:`.embree` (intersectors, :func:`prepare`),
+:mod:`.kernels` (Numba kernels), :mod:`.tracer` (wavefront orchestration),
+:mod:`.synthetic` (scenes with analytic answers), :mod:`.runner` (the ``trace`` stage).
+"""
+
+from .beams import Beams, direction_from_angles
+from .embree import EmbreeIntersector, NumpyIntersector, PreparedScene, prepare
+from .tracer import DEFAULT_WINDOW_NS, TraceResult, trace
+
+__all__ = [
+    "Beams",
+    "direction_from_angles",
+    "EmbreeIntersector",
+    "NumpyIntersector",
+    "PreparedScene",
+    "prepare",
+    "trace",
+    "TraceResult",
+    "DEFAULT_WINDOW_NS",
+]

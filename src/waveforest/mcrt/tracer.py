@@ -1,0 +1,347 @@
+"""The wavefront Monte Carlo ray tracer: scene + pulses -> sigma(t) per pulse (METHOD.md d).
+
+All rays of a chunk of pulses advance one scattering order per step: one batched Embree
+intersection call, one Numba kernel (receiver contributions, binning, new rays), one batched
+occlusion call for the visibility rays of orders >= 2, and a serial binning pass.
+
+Coordinates: sensors may be kilometres from the scene. Each pulse's rays start on the plane
+perpendicular to its axis just before the scene's bounding box (in the scene's internal
+float32 frame, a few metres around the origin); the skipped path is carried in float64 and
+every time is computed in float64.
+
+Time: ``sigma[i, k]`` holds the contributions whose two-way time from emission (total path
+sensor -> hit 1 -> ... -> hit n -> receiver, divided by the speed of light) lies in
+``[t0_ns[i] + k bin_ns, t0_ns[i] + (k + 1) bin_ns)``. ``t0_ns`` lies :data:`T0_LEAD_NS`
+before the earliest possible return (the scene's bounding box along the beam); the window
+is ``window_ns`` long, and contributions after it are not binned but summed in
+``sigma_dropped`` (they are still in ``order_totals``).
+
+Randomness: a counter-based generator keyed by (seed, pulse index in the call, ray, order,
+draw) (:mod:`.kernels`), so the same seed gives the identical result whatever the threads,
+the chunking and the parallel mode.
+
+Threads (``parallel``): ``pulses`` (default) runs chunks of pulses concurrently, one serial
+wavefront per thread; ``rays`` splits every Embree call (embreex releases the GIL) and Numba
+kernel (``prange``) of one wavefront. ``benchmarks/mcrt.py`` times both.
+
+Scene reuse: building the Embree BVH of a ~180,000-triangle canopy costs about as much as
+tracing two or three pulses; trace many pulses per :func:`prepare` d scene where that is
+statistically sound (a pool of instances with random placement), as the calling stage decides.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..constants import BIN_NS, C_M_PER_NS, RANGE_PER_NS, RAY_EPS_M
+from ..effects import CATALOGUE, SPECULAR_PHONG_EXPONENT
+from ..scene import Scene
+from .beams import Beams
+from .embree import PreparedScene, prepare
+from .kernels import (MISS_KIND, BeamFrame, Scattered, accumulate, beam_keys, compact, emit_rays,
+                      scatter)
+
+DEFAULT_WINDOW_NS = 100.0
+"""Default sigma window, ns of two-way time after t0 (15 m of one-way range: a 6 x 6 m scene
+with 10 orders of scattering rarely returns light later; later light is counted as dropped)."""
+
+T0_LEAD_NS = 1.0
+"""Bin 0 starts this long before the earliest possible return, ns."""
+
+START_MARGIN_M = 0.05
+"""Rays start this far before the scene's bounding box along the beam, m."""
+
+CHUNK_RAYS = 240_000
+"""Rays per wavefront (pulses are traced in chunks of ``CHUNK_RAYS // n_rays``)."""
+
+PARALLEL_MODES = ("pulses", "rays")
+"""How ``trace`` uses its threads: whole chunks of pulses per thread, or every call split."""
+
+
+def _default_threads() -> int:
+    import numba
+
+    return max(1, int(numba.get_num_threads()))
+
+
+def _map_serial_workers(fn, items, workers: int):
+    """``fn(item, 1)`` for every item on ``workers`` threads, each running serial kernels.
+
+    Numba's thread count is thread-local, so each worker sets its own to 1; Embree calls and
+    the ``nogil`` kernels release the GIL, so the workers run concurrently. Yields results
+    in the order of ``items``.
+    """
+    import numba
+    from concurrent.futures import ThreadPoolExecutor
+
+    def work(item):
+        numba.set_num_threads(1)
+        return fn(item, 1)
+
+    with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="waveforest-trace") as pool:
+        yield from pool.map(work, items)
+
+
+@dataclass(frozen=True)
+class TraceResult:
+    """sigma(t) of a batch of pulses.
+
+    Attributes
+    ----------
+    sigma : (n, n_bins) float64, sr^-1 per unit emitted power
+        Per-bin sum of receiver contributions (a Lambertian plane at normal incidence gives
+        a total of rho / pi).
+    t0_ns : (n,) float64, ns
+        Two-way time from emission of the left edge of bin 0.
+    bin_ns : float
+        Bin width, ns of two-way time.
+    order_totals : (n, max_order) float64
+        Total contribution of each scattering order (binned and dropped).
+    first_hit_counts : (n, 5) int64
+        Rays whose first hit is a ground, leaf, wood or other element, and rays that missed.
+    sigma_dropped : (n,) float64
+        Contributions later than the window (not in ``sigma``).
+    n_rays : int
+        Rays per pulse.
+    sigma_by_order : (n, max_order, n_bins) float64 or None
+        sigma split by scattering order (``trace(..., by_order=True)``).
+    """
+
+    sigma: np.ndarray
+    t0_ns: np.ndarray
+    bin_ns: float
+    order_totals: np.ndarray
+    first_hit_counts: np.ndarray
+    sigma_dropped: np.ndarray
+    n_rays: int
+    sigma_by_order: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return self.sigma.shape[0]
+
+    @property
+    def n_bins(self) -> int:
+        return self.sigma.shape[1]
+
+    @property
+    def max_order(self) -> int:
+        return self.order_totals.shape[1]
+
+    @property
+    def total(self) -> np.ndarray:
+        """(n,) total sigma of each pulse, all orders, binned or dropped."""
+        return self.order_totals.sum(axis=1)
+
+    def times_ns(self) -> np.ndarray:
+        """(n, n_bins) two-way time from emission of each bin's left edge, ns."""
+        return self.t0_ns[:, None] + self.bin_ns * np.arange(self.n_bins)[None, :]
+
+    def frame(self, i: int = 0):
+        """sigma(t) of pulse ``i`` as a table.
+
+        Columns: ``time_ns`` (two-way time from emission, bin left edge), ``range_m``
+        (one-way range of that time), ``sigma`` and, if traced ``by_order``,
+        ``sigma_order_1`` ... ``sigma_order_<max_order>``.
+        """
+        import pandas as pd
+
+        t = self.t0_ns[i] + self.bin_ns * np.arange(self.n_bins)
+        cols = {"time_ns": t, "range_m": t * RANGE_PER_NS, "sigma": self.sigma[i]}
+        if self.sigma_by_order is not None:
+            for k in range(self.max_order):
+                cols[f"sigma_order_{k + 1}"] = self.sigma_by_order[i, k]
+        return pd.DataFrame(cols)
+
+
+def master_key(seed) -> np.uint64:
+    """The uint64 key of the counter-based generator from an int seed or a numpy Generator."""
+    if isinstance(seed, np.random.Generator):
+        return np.uint64(seed.integers(0, 2**64, dtype=np.uint64))
+    if isinstance(seed, (bool, np.bool_)) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ValueError(f"seed: expected a non-negative int or a numpy Generator, got {seed!r}")
+    return np.random.SeedSequence(int(seed)).generate_state(1, dtype=np.uint64)[0]
+
+
+def start_plane(bounds: np.ndarray, sensor: np.ndarray, axis: np.ndarray) -> np.ndarray:
+    """Distance from each sensor, along its axis, of a plane just before the scene's box.
+
+    Parameters
+    ----------
+    bounds : (2, 3) float64, m
+        Bounding box [min, max] (same frame as ``sensor``).
+    sensor : (nb, 3) float64, m
+    axis : (nb, 3) float64, unit
+
+    Returns
+    -------
+    (nb,) float64, m
+        min over the 8 box corners of (corner - sensor) . axis, minus
+        :data:`START_MARGIN_M`, and never negative.
+    """
+    corners = np.array([[bounds[i, 0], bounds[j, 1], bounds[k, 2]]
+                        for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+    depth = np.einsum("bck,bk->bc", corners[None, :, :] - sensor[:, None, :], axis)
+    return np.maximum(depth.min(axis=1) - START_MARGIN_M, 0.0)
+
+
+def _check(n_rays, max_order, bin_ns, viewed_diameter_m, window_ns, specular, hotspot):
+    if not isinstance(n_rays, (int, np.integer)) or n_rays < 1:
+        raise ValueError(f"n_rays: expected a positive int, got {n_rays!r}")
+    if not isinstance(max_order, (int, np.integer)) or max_order < 1:
+        raise ValueError(f"max_order: expected a positive int, got {max_order!r}")
+    for name, v in (("bin_ns", bin_ns), ("viewed_diameter_m", viewed_diameter_m), ("window_ns", window_ns)):
+        if not (np.isfinite(v) and v > 0):
+            raise ValueError(f"{name}: expected a positive number, got {v!r}")
+    lo, hi = 0.0, 1.0
+    if not lo <= specular <= hi:
+        raise ValueError(f"specular: expected a fraction in [0, 1], got {specular!r}")
+    if not (np.isfinite(hotspot) and hotspot >= 0):
+        raise ValueError(f"hotspot: expected a factor >= 0 (off = {CATALOGUE['hotspot'].off}), got {hotspot!r}")
+
+
+def _trace_chunk(prepared: PreparedScene, beams: Beams, index: np.ndarray, key, n_rays: int,
+                 max_order: int, bin_ns: float, n_bins: int, viewed_diameter_m: float,
+                 specular: float, hotspot: float, by_order: bool, threads: int | None):
+    """Trace one chunk of beams (``index`` = their positions in the trace call).
+
+    Returns (sigma (nb, layers, n_bins), dropped (nb,), order_totals (nb, max_order),
+    first_hit_counts (nb, 5), t0_ns (nb,)).
+    """
+    nb = len(beams)
+    sensor = beams.origin - prepared.shift
+    axis = beams.direction
+    plane = start_plane(prepared.bounds, sensor, axis)
+    t0 = 2.0 * plane / C_M_PER_NS - T0_LEAD_NS
+    frame = BeamFrame(np.ascontiguousarray(sensor), np.ascontiguousarray(axis), t0, beam_keys(key, index))
+    acc = np.zeros((nb, max_order if by_order else 1, n_bins))
+    dropped = np.zeros(nb)
+    totals = np.zeros((nb, max_order))
+
+    rays = emit_rays(frame, beams.footprint_m, beams.range_m, plane, n_rays)
+    buffers = rays  # the live rays are packed into the emission arrays after each order
+    work = Scattered.empty(len(rays))
+    isect = prepared.intersector
+    kind = prepared.scene.kind
+    first = None
+    for order in range(1, max_order + 1):
+        if len(rays) == 0:
+            break
+        tfar, prim = isect.intersect(rays.origin, rays.direction, threads=threads)
+        if order == 1:
+            code = np.where(prim >= 0, kind[np.maximum(prim, 0)], MISS_KIND)
+            first = np.bincount(rays.beam * (MISS_KIND + 1) + code,
+                                minlength=nb * (MISS_KIND + 1)).reshape(nb, MISS_KIND + 1)
+        out = scatter(order, order == max_order, rays, tfar, prim, prepared, frame, n_bins, bin_ns,
+                      viewed_diameter_m, specular, SPECULAR_PHONG_EXPONENT, hotspot, RAY_EPS_M,
+                      out=work)
+        counted = np.flatnonzero(out.value > 0.0)
+        if order > 1 and counted.size:
+            blocked = isect.occluded(out.shadow_origin[counted], out.shadow_direction[counted],
+                                     out.shadow_tmax[counted], threads=threads)
+            counted = counted[~blocked]
+        accumulate(counted, rays.beam, out.value, out.bin, order, acc, dropped, totals, by_order)
+        if order < max_order:
+            rays = compact(out, rays, buffers)
+    return acc, dropped, totals, first, t0
+
+
+def trace(scene: Scene | PreparedScene, beams: Beams, n_rays: int = 30000, max_order: int = 10,
+          bin_ns: float = BIN_NS, viewed_diameter_m: float = 5.0, seed=0, *,
+          specular: float = 0.0, hotspot: float = 1.0, window_ns: float = DEFAULT_WINDOW_NS,
+          by_order: bool = False, chunk_rays: int = CHUNK_RAYS, threads: int | None = None,
+          parallel: str = "pulses", progress: bool = False) -> TraceResult:
+    """Forward Monte Carlo ray tracing of LiDAR pulses through a scene (METHOD.md d, Eq. 2).
+
+    Parameters
+    ----------
+    scene : Scene or PreparedScene
+        Triangles with rho, tau, kind; prepare it once (:func:`prepare`) to trace it often.
+    beams : Beams
+        The pulses: sensor positions, unit directions, 1/e footprints.
+    n_rays : int
+        Rays per pulse, each with power 1 / n_rays.
+    max_order : int
+        Highest scattering order traced.
+    bin_ns : float
+        sigma bin width, ns of two-way time.
+    viewed_diameter_m : float
+        Diameter of the receiver's viewed cylinder around the beam axis, m: only scattering
+        points within ``viewed_diameter_m / 2`` of the axis (perpendicular distance;
+        the horizontal circle at nadir) contribute.
+    seed : int or numpy.random.Generator
+        Same seed, same beams -> identical result (whatever the threads or chunking).
+    specular : float
+        Effect ``specular``: fraction of the leaf (kind 1) reflectance that is a Phong lobe
+        of exponent :data:`waveforest.effects.SPECULAR_PHONG_EXPONENT`; 0 = off.
+    hotspot : float
+        Effect ``hotspot``: factor on order-1 contributions of vegetation (kind != 0); 1 = off.
+    window_ns : float
+        Length of the sigma window after ``t0_ns``, ns.
+    by_order : bool
+        Also return sigma split by order (``sigma_by_order``).
+    chunk_rays : int
+        Rays per wavefront (bounds memory: about 150 bytes per ray).
+    threads : int, optional
+        Threads to use (default: Numba's thread count, set by ``--threads``).
+    parallel : {"pulses", "rays"}
+        How the threads share the work: ``pulses`` traces chunks of pulses concurrently,
+        one serial wavefront per thread (the faster on 2 cores, see ``benchmarks/mcrt.py``;
+        a single pulse falls back to ``rays``); ``rays`` splits every Embree call and
+        Numba kernel of one wavefront over the threads. Results are identical.
+    progress : bool
+        Show a progress bar over chunks (stderr).
+
+    Returns
+    -------
+    TraceResult
+    """
+    if not isinstance(beams, Beams):
+        raise TypeError(f"beams: expected waveforest.mcrt.Beams, got {type(beams).__name__}")
+    _check(n_rays, max_order, bin_ns, viewed_diameter_m, window_ns, specular, hotspot)
+    prepared = prepare(scene)
+    key = master_key(seed)
+    n = len(beams)
+    n_bins = int(math.ceil(window_ns / bin_ns - 1e-9))
+    per_chunk = max(1, int(chunk_rays) // int(n_rays))
+    sigma = np.zeros((n, max_order if by_order else 1, n_bins))
+    dropped = np.zeros(n)
+    totals = np.zeros((n, max_order))
+    first = np.zeros((n, MISS_KIND + 1), np.int64)
+    t0 = np.zeros(n)
+    threads = _default_threads() if threads is None else max(1, int(threads))
+    if parallel not in PARALLEL_MODES:
+        raise ValueError(f"parallel: expected one of {', '.join(PARALLEL_MODES)}, got {parallel!r}")
+    by_pulses = parallel == "pulses" and threads > 1 and n > 1
+    if by_pulses:  # at least one chunk per worker
+        per_chunk = min(per_chunk, -(-n // threads))
+    chunks = [(a, min(n, a + per_chunk)) for a in range(0, n, per_chunk)]
+
+    def run_chunk(ab, embree_threads):
+        a, b = ab
+        return _trace_chunk(prepared, beams[a:b], np.arange(a, b), key, int(n_rays), int(max_order),
+                            float(bin_ns), n_bins, float(viewed_diameter_m), float(specular),
+                            float(hotspot), by_order, embree_threads)
+
+    if by_pulses:
+        results = _map_serial_workers(run_chunk, chunks, threads)
+    else:
+        results = map(lambda ab: run_chunk(ab, threads), chunks)
+    if progress:
+        from tqdm import tqdm
+
+        results = tqdm(results, total=len(chunks), desc="trace", unit="chunk", leave=False)
+    for (a, b), (acc, drop, tot, fh, t0c) in zip(chunks, results):
+        sigma[a:b], dropped[a:b], totals[a:b], first[a:b], t0[a:b] = acc, drop, tot, fh, t0c
+    return TraceResult(
+        sigma=sigma.sum(axis=1),
+        t0_ns=t0,
+        bin_ns=float(bin_ns),
+        order_totals=totals,
+        first_hit_counts=first,
+        sigma_dropped=dropped,
+        n_rays=int(n_rays),
+        sigma_by_order=sigma if by_order else None,
+    )

@@ -1,0 +1,447 @@
+"""The study report: one self-contained HTML page and a Markdown twin.
+
+Everything a run produced under the results folder is gathered in the order of the paper:
+calibration, selection, real vs simulated (Table 3, Figs. 6-7), sensitivity (Fig. 8), sensor
+study (Fig. 9), classification (Table 4, built here from ``classify/*.json`` with the paper's
+values beside ours), the diagnosis, and then every other table (CSV) and figure (PNG) found,
+so nothing a run wrote is left out. Then where the time went (Snakemake benchmark files),
+the config used (YAML) and the software versions.
+
+HTML embeds figures as base64 PNG (one file to send); Markdown links them relatively.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import json
+import os
+import platform
+from dataclasses import dataclass, field
+from importlib import metadata
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import yaml
+
+from ..analysis import paper
+from ..analysis.classify import table4
+from ..analysis.markdown import format_value, to_markdown
+from ..atomic import atomic_path
+
+MAX_TABLE_ROWS = 400
+"""Longest table shown in full; longer ones are cut (the CSV holds all rows)."""
+
+PACKAGES = ("waveforest", "numpy", "numba", "embreex", "scipy", "pandas", "pyarrow", "scikit-learn",
+            "matplotlib", "laspy", "snakemake", "click", "pyyaml", "jsonschema")
+"""Packages whose versions the report lists."""
+
+SKIP_DIRS = ("campaign", "logs", "report", ".snakemake")
+"""Folders of the results tree not searched for further tables and figures."""
+
+
+@dataclass
+class Section:
+    """A report section: title, text paragraphs, tables and figures (in order)."""
+
+    title: str
+    # ("text", str) | ("table", caption, DataFrame) | ("figure", caption, Path)
+    items: list = field(default_factory=list)
+
+    def text(self, s: str) -> None:
+        self.items.append(("text", s))
+
+    def table(self, caption: str, df: pd.DataFrame) -> None:
+        self.items.append(("table", caption, df))
+
+    def figure(self, caption: str, path: Path) -> None:
+        self.items.append(("figure", caption, Path(path)))
+
+
+def versions() -> dict:
+    """Installed versions of the packages of :data:`PACKAGES` and of Python."""
+    out = {"python": platform.python_version()}
+    for p in PACKAGES:
+        try:
+            out[p] = metadata.version(p)
+        except metadata.PackageNotFoundError:
+            out[p] = "not installed"
+    return out
+
+
+def _read_csv(path: Path) -> pd.DataFrame:
+    try:
+        return pd.read_csv(path)
+    except (pd.errors.EmptyDataError, pd.errors.ParserError):
+        return pd.DataFrame()
+
+
+def _calibration(results: Path, used: set) -> Section | None:
+    sec = Section("System waveform calibration and AGC (METHOD.md b, e)")
+    rows = []
+    for path in sorted((results / "calibration").glob("*.json")):
+        used.add(path)
+        try:
+            meta = json.loads(path.read_text())
+        except json.JSONDecodeError:
+            continue
+        row = {"dataset": path.stem}
+        for k, v in meta.items():
+            if isinstance(v, (int, float, str)) and not isinstance(v, bool):
+                row[k] = v
+        agc = results / "agc" / f"{path.stem}.json"
+        if agc.exists():
+            used.add(agc)
+            try:
+                a = json.loads(agc.read_text())
+                for k in ("a", "b", "cv_before", "cv_after"):
+                    if isinstance(a.get(k), (int, float)):
+                        row[f"agc_{k}"] = a[k]
+            except json.JSONDecodeError:
+                pass
+        rows.append(row)
+    if not rows:
+        return None
+    sec.table("Calibration per dataset (noise from the last samples of target pulses; AGC fit of Eq. 1)",
+              pd.DataFrame(rows))
+    for png in sorted((results / "calibration").glob("*.png")):
+        used.add(png)
+        sec.figure(f"S(t) of {png.stem}", png)
+    return sec
+
+
+def _selection(results: Path, used: set) -> Section | None:
+    import pyarrow.parquet as pq
+
+    frames = []
+    for p in sorted((results / "select").glob("*.parquet")):
+        cols = [c for c in ("dataset", "species", "functional_group", "sample_id", "classification_set",
+                            "comparison_set") if c in pq.read_schema(p).names]
+        frames.append(pq.read_table(p, columns=cols).to_pandas())
+    if not frames:
+        return None
+    df = pd.concat(frames, ignore_index=True)
+    if df.empty:
+        return None
+    g = df.groupby(["dataset", "functional_group", "species"], sort=True)
+    t = g.agg(pulses=("species", "size"), samples=("sample_id", "nunique"),
+              classification=("classification_set", "sum"), comparison=("comparison_set", "sum")).reset_index()
+    sec = Section("Selected pulses (METHOD.md i1, i4)")
+    sec.text("Pulses whose first DR echo hit a field sample; `classification`: single DR echo of a species "
+             "with enough pulses; `comparison`: modelled species (birch 2.5-5 m).")
+    sec.table("Selected pulses per dataset and species", t)
+    return sec
+
+
+def _compare(results: Path, used: set) -> Section | None:
+    d = results / "compare"
+    if not (d / "table3.csv").exists():
+        return None
+    sec = Section("Real vs simulated features (Table 3, Figs. 6-7; METHOD.md i1)")
+    t3 = _read_csv(d / "table3.csv")
+    used.add(d / "table3.csv")
+    used.add(d / "table3.md")
+    sec.text("Delta % = (sim - real) / real x 100. `paper_*` are the values of Hovi & Korpela (2014) Table 3. "
+             "Birch waveform features use first echoes higher than 1.5 m only.")
+    cols = [c for c in ("dataset", "species", "feature", "sim_mean", "sim_sd", "real_mean", "real_sd",
+                        "delta_pct", "n_sim", "n_real", "paper_sim_mean", "paper_sim_sd", "paper_real_mean",
+                        "paper_delta_pct") if c in t3.columns]
+    sec.table("Table 3 analogue, with the paper's values", t3[cols])
+    if (d / "order_check.csv").exists():
+        used.add(d / "order_check.csv")
+        sec.table("Species order of mean Apeak, E, FWHM: our simulation vs the paper's simulation and our real "
+                  "data; largest deviation of our simulated means from the paper's", _read_csv(d / "order_check.csv"))
+    for png in sorted(d.glob("fig6_*.png")):
+        used.add(png)
+        sec.figure(f"Fig. 6 analogue: echo heights, {png.stem[5:]}", png)
+    for png in sorted(d.glob("fig7_*.png")):
+        used.add(png)
+        sec.figure(f"Fig. 7 analogue: waveforms, {png.stem[5:]}", png)
+    return sec
+
+
+def _sensitivity(results: Path, used: set) -> Section | None:
+    d = results / "sensitivity"
+    if not (d / "sensitivity.csv").exists():
+        return None
+    sec = Section("Sensitivity to vegetation parameters (Fig. 8; METHOD.md i2)")
+    used.add(d / "sensitivity.csv")
+    sec.text("3-m birch, no ground, nadir, R 1200 m, sensor XY jitter +-0.30 m; mean Apeak +- SE per setting. "
+             "Paper: spherical LAD gives Apeak ~55 DN; +-10 deg mean leaf angle changes Apeak 20-30 %; leaf rho "
+             "0.4 -> 0.5 raises it ~55 -> 70 DN; leaf-area scale 0.5 -> 1.5 ~50 -> 80 DN.")
+    if (d / "sensitivity_baseline.csv").exists():
+        used.add(d / "sensitivity_baseline.csv")
+        sec.table("Baseline: the birch model as is (spherical LAD, rho 0.47, tau 0.50, leaf-area scale 1)",
+                  _read_csv(d / "sensitivity_baseline.csv"))
+    sec.table("Sensitivity", _read_csv(d / "sensitivity.csv"))
+    if (d / "fig8.png").exists():
+        used.add(d / "fig8.png")
+        sec.figure("Fig. 8 analogue", d / "fig8.png")
+    return sec
+
+
+def _sensor_study(results: Path, used: set) -> Section | None:
+    d = results / "sensor_study"
+    if not (d / "sensor_study.csv").exists():
+        return None
+    sec = Section("Sensor parameters and three-species classification (Fig. 9; METHOD.md i3)")
+    used.add(d / "sensor_study.csv")
+    t = _read_csv(d / "sensor_study.csv")
+    sec.text("Simulated birch, raspberry, fireweed at 1200 m; LDA on Apeak, FWHM, E. `resubstitution` = "
+             "training set used for validation (the paper's scheme); `cross_validated` = folds never split a "
+             "vegetation instance. Paper: accuracy rises with footprint up to 0.30-0.36 m, then saturates "
+             "(100 % for 5-pulse means at the largest footprints); pulse width and sampling matter little.")
+    if not t.empty and {"parameter", "value", "level", "scheme", "accuracy"} <= set(t.columns):
+        wide = t.pivot_table(index=["parameter", "value"], columns=["level", "scheme"], values="accuracy",
+                             sort=False)
+        wide.columns = [f"{a} {b}" for a, b in wide.columns]
+        sec.table("Overall accuracy (fraction correct)", wide.reset_index())
+    else:
+        sec.table("Sensor study", t)
+    if (d / "sensor_study_features.csv").exists():
+        used.add(d / "sensor_study_features.csv")
+        sec.table("Mean first-echo features per setting and species", _read_csv(d / "sensor_study_features.csv"))
+    if (d / "fig9.png").exists():
+        used.add(d / "fig9.png")
+        sec.figure("Fig. 9 analogue", d / "fig9.png")
+    return sec
+
+
+def _classify(results: Path, used: set, out_dir: Path) -> Section | None:
+    paths = sorted((results / "classify").glob("*.json"))
+    if not paths:
+        return None
+    res = []
+    for p in paths:
+        used.add(p)
+        res.append(json.loads(p.read_text()))
+    t4 = table4(res, paper.table4())
+    with atomic_path(out_dir / "table4.csv") as tmp:
+        t4.to_csv(tmp, index=False, float_format="%.6g")
+    with atomic_path(out_dir / "table4.md") as tmp:
+        tmp.write_text("# Real-data classification of four functional groups (Table 4 analogue)\n\n" + to_markdown(t4))
+    sec = Section("Real-data classification (Table 4; METHOD.md i4)")
+    sec.text("LDA of conifer / broadleaf / low green / low barren + abiotic on E and Apeak normalised by the sand-road "
+             "mean. Percent correct and kappa by resubstitution (as the paper) and cross-validated with folds that "
+             "never split a field sample (`cv_*`); `paper_*`: Hovi & Korpela (2014) Table 4.")
+    sec.table("Table 4 analogue (also results/report/table4.csv)", t4)
+    extra_rows, three_rows = [], []
+    for r in res:
+        for e in r.get("extra") or []:
+            for level in ("one_pulse", "mean_of_sample"):
+                b = e.get(level) or {}
+                for scheme in ("resubstitution", "cross_validated"):
+                    s = b.get(scheme)
+                    if s:
+                        extra_rows.append({"dataset": r["dataset"], "features": "+".join(e["features"]),
+                                           "level": level, "scheme": scheme,
+                                           "correct_pct": 100 * s["accuracy"], "kappa": s["kappa"]})
+        ts = r.get("three_species")
+        if ts:
+            for level in ("one_pulse", "multi_pulse"):
+                b = ts.get(level) or {}
+                for scheme in ("resubstitution", "cross_validated"):
+                    s = b.get(scheme)
+                    if s:
+                        three_rows.append({"dataset": r["dataset"], "species": ", ".join(ts["species"]),
+                                           "level": level if level == "one_pulse" else f"{ts['group_size']}-pulse",
+                                           "scheme": scheme, "correct_pct": 100 * s["accuracy"],
+                                           "kappa": s["kappa"], "n": s["n"]})
+    if extra_rows:
+        sec.table("Other feature sets (paper: adding FWHM gains < 1 pp)", pd.DataFrame(extra_rows))
+    if three_rows:
+        sec.table("Three-species LDA on real data, Apeak + FWHM + E (paper: 78.6-88.3 % 1-pulse, "
+                  "89.6-95.8 % 5-pulse)", pd.DataFrame(three_rows))
+    for r in res:
+        one = (r["main"].get("one_pulse") or {}).get("resubstitution")
+        if one:
+            cm = pd.DataFrame(one["confusion"], columns=[f"pred {x}" for x in one["labels"]])
+            cm.insert(0, "true", one["labels"])
+            sec.table(f"Confusion matrix, {r['dataset']}, 1-pulse, resubstitution", cm)
+    return sec
+
+
+def _diagnose(results: Path, used: set) -> Section | None:
+    d = results / "diagnose"
+    if not d.exists():
+        return None
+    sec = Section("Diagnosis: the missing effect")
+    for p in sorted(d.glob("*.yaml")) + sorted(d.glob("*.md")):
+        used.add(p)
+        sec.text(f"`{p.name}`:\n\n```\n{p.read_text().strip()}\n```")
+    for p in sorted(d.glob("*.csv")):
+        used.add(p)
+        sec.table(p.name, _read_csv(p))
+    for p in sorted(d.glob("*.png")):
+        used.add(p)
+        sec.figure(p.name, p)
+    return sec if sec.items else None
+
+
+def _others(results: Path, used: set) -> Section | None:
+    sec = Section("Further tables and figures of the run")
+    for p in sorted(results.rglob("*")):
+        rel = p.relative_to(results)
+        if not p.is_file() or p in used or rel.parts[0] in SKIP_DIRS or rel.parts[0] == "benchmarks":
+            continue
+        if p.suffix == ".csv":
+            sec.table(str(rel), _read_csv(p))
+        elif p.suffix == ".png":
+            sec.figure(str(rel), p)
+    return sec if sec.items else None
+
+
+def _benchmarks(results: Path) -> Section | None:
+    rows = []
+    for p in sorted((results / "benchmarks").rglob("*.tsv")):
+        try:
+            t = pd.read_csv(p, sep="\t")
+        except (pd.errors.EmptyDataError, pd.errors.ParserError):
+            continue
+        if t.empty or "s" not in t.columns:
+            continue
+        rel = p.relative_to(results / "benchmarks")
+        rows.append({"step": str(rel.with_suffix("")), "wall_s": float(t["s"].mean()),
+                     "max_rss_mb": float(t["max_rss"].mean()) if "max_rss" in t.columns else np.nan,
+                     "cpu_time_s": float(t["cpu_time"].mean()) if "cpu_time" in t.columns else np.nan})
+    if not rows:
+        return None
+    df = pd.DataFrame(rows).sort_values("wall_s", ascending=False)
+    stage = df["step"].str.split("/").str[0]
+    by_stage = df.assign(stage=stage).groupby("stage", sort=False).agg(
+        jobs=("step", "size"), wall_s=("wall_s", "sum"), max_rss_mb=("max_rss_mb", "max")).reset_index()
+    by_stage = by_stage.sort_values("wall_s", ascending=False)
+    sec = Section("Where the time went (Snakemake benchmarks)")
+    sec.text(f"Sum of the wall times of all jobs: {df['wall_s'].sum():.0f} s (jobs may run in parallel).")
+    sec.table("Wall time per stage", by_stage)
+    sec.table("Wall time per job", df)
+    return sec
+
+
+def collect(results: str | Path, cfg: dict | None, out_dir: Path) -> list[Section]:
+    """All sections of the report of a results folder."""
+    results = Path(results)
+    used: set = set()
+    sections = []
+    for make in (_calibration, _selection, _compare, _sensitivity, _sensor_study):
+        s = make(results, used)
+        if s:
+            sections.append(s)
+    s = _classify(results, used, out_dir)
+    if s:
+        sections.append(s)
+    for make in (_diagnose, _others):
+        s = make(results, used)
+        if s:
+            sections.append(s)
+    s = _benchmarks(results)
+    if s:
+        sections.append(s)
+    setup = Section("Configuration and software")
+    setup.text("Config used:\n\n```yaml\n" + (yaml.safe_dump(cfg, sort_keys=True).strip() if cfg else "(defaults)")
+               + "\n```")
+    setup.table("Software versions", pd.DataFrame(sorted(versions().items()), columns=["package", "version"]))
+    sections.append(setup)
+    return sections
+
+
+# -- rendering ------------------------------------------------------------------------------
+
+_CSS = """
+body{font-family:system-ui,Segoe UI,Helvetica,Arial,sans-serif;max-width:1200px;margin:2em auto;padding:0 1em;color:#222}
+h1{border-bottom:2px solid #1f4e79}h2{color:#1f4e79;margin-top:2em;border-bottom:1px solid #ccc}
+table{border-collapse:collapse;font-size:12px;margin:0.5em 0 1.5em 0}
+th,td{border:1px solid #ccc;padding:2px 6px;text-align:right}th{background:#eef3f8}
+td:first-child,th:first-child{text-align:left}caption{text-align:left;font-weight:600;padding:4px 0}
+figure{margin:1em 0}figcaption{font-size:13px;color:#555}img{max-width:100%}
+pre{background:#f6f8fa;padding:0.8em;overflow:auto;font-size:12px}nav li{font-size:14px}
+"""
+
+
+def _cut(df: pd.DataFrame) -> tuple[pd.DataFrame, str]:
+    if len(df) > MAX_TABLE_ROWS:
+        return df.head(MAX_TABLE_ROWS), f" (first {MAX_TABLE_ROWS} of {len(df)} rows)"
+    return df, ""
+
+
+def _html_table(caption: str, df: pd.DataFrame) -> str:
+    df, note = _cut(df)
+    head = "".join(f"<th>{html.escape(str(c))}</th>" for c in df.columns)
+    body = "".join("<tr>" + "".join(f"<td>{html.escape(format_value(v))}</td>" for v in row) + "</tr>"
+                   for row in df.itertuples(index=False))
+    return (f"<table><caption>{html.escape(caption + note)}</caption><thead><tr>{head}</tr></thead>"
+            f"<tbody>{body}</tbody></table>")
+
+
+def _html_text(s: str) -> str:
+    parts, out = s.split("```"), []
+    for i, p in enumerate(parts):
+        if i % 2:  # code block; first line may be a language tag
+            lines = p.split("\n", 1)
+            code = lines[1] if len(lines) > 1 and lines[0].strip().isalpha() else p
+            out.append(f"<pre>{html.escape(code.strip())}</pre>")
+        elif p.strip():
+            out.append("<p>" + html.escape(p.strip()).replace("\n\n", "</p><p>") + "</p>")
+    return "".join(out)
+
+
+def render_html(sections: list[Section], title: str) -> str:
+    """One self-contained HTML page (figures as base64 PNG)."""
+    nav = "".join(f'<li><a href="#s{i}">{html.escape(s.title)}</a></li>' for i, s in enumerate(sections))
+    parts = [f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>"
+             f"<style>{_CSS}</style></head><body><h1>{html.escape(title)}</h1><nav><ol>{nav}</ol></nav>"]
+    for i, s in enumerate(sections):
+        parts.append(f'<h2 id="s{i}">{html.escape(s.title)}</h2>')
+        for item in s.items:
+            if item[0] == "text":
+                parts.append(_html_text(item[1]))
+            elif item[0] == "table":
+                parts.append(_html_table(item[1], item[2]))
+            else:
+                data = base64.b64encode(item[2].read_bytes()).decode("ascii")
+                parts.append(f"<figure><img alt='{html.escape(item[1])}' src='data:image/png;base64,{data}'>"
+                             f"<figcaption>{html.escape(item[1])}</figcaption></figure>")
+    parts.append("</body></html>\n")
+    return "".join(parts)
+
+
+def render_markdown(sections: list[Section], title: str, md_dir: Path) -> str:
+    """The Markdown twin; figures linked relative to ``md_dir``."""
+    lines = [f"# {title}", ""]
+    for s in sections:
+        lines += [f"## {s.title}", ""]
+        for item in s.items:
+            if item[0] == "text":
+                lines += [item[1], ""]
+            elif item[0] == "table":
+                df, note = _cut(item[2])
+                lines += [f"**{item[1]}**{note}", "", to_markdown(df), ""]
+            else:
+                rel = os.path.relpath(item[2].resolve(), md_dir.resolve())
+                lines += [f"![{item[1]}]({Path(rel).as_posix()})", ""]
+    return "\n".join(lines)
+
+
+@dataclass(frozen=True)
+class ReportOutputs:
+    html: Path
+    markdown: Path
+    n_sections: int
+    n_tables: int
+    n_figures: int
+
+
+def run(results, out_html, cfg: dict | None, out_md=None, title: str = "waveforest study report") -> ReportOutputs:
+    """The ``report`` stage: write the HTML page, its Markdown twin and table4.csv/md beside them."""
+    out_html = Path(out_html)
+    out_md = Path(out_md) if out_md else out_html.with_suffix(".md")
+    out_html.parent.mkdir(parents=True, exist_ok=True)
+    sections = collect(results, cfg, out_html.parent)
+    with atomic_path(out_html) as tmp:
+        tmp.write_text(render_html(sections, title))
+    with atomic_path(out_md) as tmp:
+        tmp.write_text(render_markdown(sections, title, out_md.parent))
+    items = [i for s in sections for i in s.items]
+    return ReportOutputs(out_html, out_md, len(sections), sum(i[0] == "table" for i in items),
+                         sum(i[0] == "figure" for i in items))

@@ -1,0 +1,38 @@
+"""The sensor model and waveform processing (METHOD.md b, c, e, f, h).
+
+Everything between sigma(t) and a feature table, for real and simulated waveforms alike:
+
+- :class:`SystemWaveform`, :func:`gaussian_system_waveform`, :func:`load_system_waveform` -- S(t), Eqs. 6-8;
+- :func:`render` -- the signal model of Eq. 7 (convolution, trigger, record window, sampling,
+  noise, rounding, clipping; effects noise_autocorr, nonlinearity, trigger_loss);
+- :class:`CFDParams`, :func:`detect_echoes`, :func:`fit_range_correction` -- echo detection (f);
+- :func:`first_echo_features`, :func:`feature_table` -- features (h);
+- :func:`agc_gain`, :func:`normalise_waveforms`, :func:`normalise_intensity`, :func:`fit_b` -- Eq. 1 (b);
+- :func:`calibrate_system_waveform`, :func:`noise_stats` -- Eq. 8 and the noise (e);
+- :func:`target_membership`, :func:`pulse_targets` -- pulses on reference targets.
+
+CLI stages: ``waveforest agc``, ``waveforest calibrate``, ``waveforest features``.
+"""
+
+from .agc import agc_gain, fit_b, nested_cv, normalise_intensity, normalise_pulses, normalise_waveforms, peak_amplitudes
+from .calibration import calibrate_system_waveform, load_calibration, range_correction_of
+from .cfd import Echoes, RangeCorrection, apply_range_correction, detect_echoes, fit_range_correction, gaussian_cfd_time
+from .features import FEATURE_NAMES, feature_table, first_echo_features
+from .noise import NoiseStats, ar1, noise_stats
+from .params import CFDParams, FeatureParams
+from .signal import Rendered, analog_waveforms, apply_trigger_loss, render
+from .system_waveform import SystemWaveform, gaussian_system_waveform, load_system_waveform
+from .targets import pulse_targets, read_datasets, read_targets, target_membership
+
+__all__ = [
+    "SystemWaveform", "gaussian_system_waveform", "load_system_waveform",
+    "Rendered", "render", "analog_waveforms", "apply_trigger_loss",
+    "CFDParams", "Echoes", "detect_echoes", "gaussian_cfd_time",
+    "RangeCorrection", "fit_range_correction", "apply_range_correction",
+    "FeatureParams", "FEATURE_NAMES", "first_echo_features", "feature_table",
+    "agc_gain", "normalise_intensity", "normalise_waveforms", "normalise_pulses", "peak_amplitudes",
+    "nested_cv", "fit_b",
+    "calibrate_system_waveform", "load_calibration", "range_correction_of",
+    "NoiseStats", "noise_stats", "ar1",
+    "read_targets", "read_datasets", "target_membership", "pulse_targets",
+]

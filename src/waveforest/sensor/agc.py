@@ -1,0 +1,432 @@
+"""AGC normalisation, Eq. 1 (METHOD.md b).
+
+``I_cal = I_obs / (1 + (AGC - a) b)`` for DR intensities, and for waveforms, sample-wise on
+the part above the noise floor:
+
+    V_norm = (V - n0) / (1 + (AGC - a) b) + n0
+
+with n0 the dataset noise mean c-bar from the last ``calibrate.noise_tail`` samples of every
+waveform, a the dataset mean AGC, and b fitted per dataset by minimising the pooled
+within-target relative SD ("nested CV") of the waveform peak amplitude over homogeneous
+targets (targets.csv rows with agc = 1):
+
+    CV(b) = sqrt( sum_k sum_i (A_ki / mean_i(A_ki) - 1)^2 / (N - K) ),  A_ki = (max V - n0) / g_ki(b)
+
+k = target, i = pulse, N pulses, K targets; a coarse grid over the bounded interval
+``agc.b_bounds`` followed by a bounded Brent refinement around the best grid point. The
+interval is narrowed so that every pulse keeps a gain of at least :data:`GAIN_MIN`; pulses
+whose waveform reaches the digitiser maximum (clipped peaks) are left out of the fit.
+
+Pulses with no AGC (NaN) are not normalised (gain 1). A dataset with no AGC at all is passed
+through unnormalised with a warning and b = NaN (the AGC is not faked).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import warnings
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+from scipy.optimize import minimize_scalar
+
+from ..atomic import atomic_path
+from ..errors import WaveforestError
+from ..io.tables import check_pulses, iter_pulses, list_to_padded
+from . import _checks
+from .noise import tail_samples
+from .params import GAIN_MIN
+from .targets import dataset_year, pulse_targets
+
+AGC_METADATA_KEY = b"waveforest.agc"
+"""Parquet schema-metadata key of a normalised pulse table: JSON with dataset, a, b, n0."""
+
+GAIN_COLUMN = "agc_gain"
+"""Column appended to a normalised pulse table: the gain g of Eq. 1 applied to each pulse."""
+
+
+def agc_gain(agc, a: float, b: float) -> np.ndarray:
+    """Gain ``1 + (AGC - a) b`` of Eq. 1 (NaN where the AGC is NaN).
+
+    Raises ValueError if a finite gain is <= 0 (b outside its meaningful range).
+    """
+    g = 1.0 + (np.asarray(agc, dtype=np.float64) - a) * b
+    if np.any(g[np.isfinite(g)] <= 0):
+        raise ValueError(f"AGC gain 1 + (AGC - a) b <= 0 for a = {a}, b = {b}: b is too large for these AGC values")
+    return g
+
+
+def normalise_intensity(intensity, agc, a: float, b: float) -> np.ndarray:
+    """DR intensities normalised by Eq. 1 (unchanged where the AGC is NaN)."""
+    g = agc_gain(agc, a, b)
+    g = np.where(np.isfinite(g), g, 1.0)
+    return np.asarray(intensity, dtype=np.float64) / g
+
+
+def normalise_waveforms(samples, agc, a: float, b: float, n0: float) -> np.ndarray:
+    """Waveforms normalised by Eq. 1 above the noise floor: (V - n0)/g + n0.
+
+    Parameters
+    ----------
+    samples : (n, n_s) DN (NaN padding stays NaN).  agc : (n,) AGC values (NaN: unchanged).
+    a, b : Eq. 1.  n0 : noise floor, DN.
+
+    Returns
+    -------
+    (n, n_s) float32
+    """
+    x = np.asarray(samples, dtype=np.float64)
+    if x.ndim != 2:
+        raise ValueError(f"samples must be 2-D, got shape {x.shape}")
+    g = agc_gain(agc, a, b)
+    if g.shape != (x.shape[0],):
+        raise ValueError(f"agc must have shape ({x.shape[0]},), got {g.shape}")
+    g = np.where(np.isfinite(g), g, 1.0)
+    return ((x - n0) / g[:, None] + n0).astype(np.float32)
+
+
+def peak_amplitudes(samples, lengths, n0: float) -> np.ndarray:
+    """Largest sample of each waveform minus n0, DN (NaN for empty rows)."""
+    x, lens = _checks.waveforms(samples, lengths)
+    if x.shape[1] == 0:
+        return np.full(x.shape[0], np.nan)
+    valid = np.arange(x.shape[1])[None, :] < lens[:, None]
+    m = np.where(valid, x, -np.inf).max(axis=1).astype(np.float64)
+    return np.where(lens > 0, m - n0, np.nan)
+
+
+def nested_cv(amplitudes, agc, groups, a: float, b: float) -> float:
+    """Pooled within-target relative SD of AGC-normalised amplitudes (METHOD.md b suggestion).
+
+    Parameters
+    ----------
+    amplitudes : (N,) peak amplitudes above n0, DN.  agc : (N,) AGC.  groups : (N,) int target
+    labels.  a, b : Eq. 1.
+
+    Returns
+    -------
+    float, CV(b) = sqrt(sum (A/mean_k - 1)^2 / (N - K)).
+    """
+    A = np.asarray(amplitudes, dtype=np.float64) / agc_gain(agc, a, b)
+    _, inv = np.unique(np.asarray(groups), return_inverse=True)
+    K = int(inv.max()) + 1 if inv.size else 0
+    N = A.size
+    if N - K < 1:
+        return float("nan")
+    means = np.bincount(inv, weights=A, minlength=K) / np.bincount(inv, minlength=K)
+    return float(math.sqrt(np.sum((A / means[inv] - 1.0) ** 2) / (N - K)))
+
+
+def cv_per_group(amplitudes, agc, groups, a: float, b: float) -> dict:
+    """Relative SD of the normalised amplitude within each target: {label: cv}."""
+    A = np.asarray(amplitudes, dtype=np.float64) / agc_gain(agc, a, b)
+    groups = np.asarray(groups)
+    out = {}
+    for g in np.unique(groups):  # a handful of targets
+        v = A[groups == g]
+        out[g.item() if hasattr(g, "item") else g] = float(np.std(v, ddof=1) / np.mean(v)) if v.size > 1 else float("nan")
+    return out
+
+
+def feasible_b_bounds(agc, a: float, bounds: tuple[float, float]) -> tuple[float, float]:
+    """``bounds`` narrowed so that 1 + (AGC - a) b >= GAIN_MIN for every finite AGC."""
+    v = np.asarray(agc, dtype=np.float64)
+    v = v[np.isfinite(v)]
+    lo, hi = float(bounds[0]), float(bounds[1])
+    if lo > hi:
+        raise ValueError(f"b bounds must be (lo, hi) with lo <= hi, got {bounds}")
+    if v.size:
+        below = a - v.min()  # > 0: pulses below the mean AGC limit positive b
+        above = v.max() - a  # > 0: pulses above it limit negative b
+        if below > 0:
+            hi = min(hi, (1.0 - GAIN_MIN) / below)
+        if above > 0:
+            lo = max(lo, -(1.0 - GAIN_MIN) / above)
+    if lo > hi:
+        raise ValueError(f"no b in {bounds} keeps every AGC gain >= {GAIN_MIN}")
+    return lo, hi
+
+
+def fit_b(amplitudes, agc, groups, a: float, bounds=(0.0, 0.05), grid_points: int = 101,
+          all_agc=None) -> tuple[float, float, np.ndarray, np.ndarray]:
+    """b of Eq. 1 minimising :func:`nested_cv` (a fixed), bounded 1-D search.
+
+    Parameters
+    ----------
+    amplitudes, agc, groups : (N,) target-pulse peak amplitudes (DN above n0), AGC, labels.
+    a : reference AGC (dataset mean).  bounds : (lo, hi) search interval.
+    grid_points : coarse grid size before the Brent refinement.
+    all_agc : AGC values of the whole dataset, to keep every gain positive (default: ``agc``).
+
+    Returns
+    -------
+    b, cv_min, b_grid (grid_points,), cv_grid (grid_points,)
+    """
+    amplitudes = np.asarray(amplitudes, dtype=np.float64)
+    agc = np.asarray(agc, dtype=np.float64)
+    groups = np.asarray(groups)
+    if not (amplitudes.shape == agc.shape == groups.shape) or amplitudes.ndim != 1:
+        raise ValueError("amplitudes, agc and groups must be 1-D arrays of equal length")
+    ok = np.isfinite(amplitudes) & np.isfinite(agc) & (amplitudes > 0)
+    amplitudes, agc, groups = amplitudes[ok], agc[ok], groups[ok]
+    if amplitudes.size - np.unique(groups).size < 2:
+        raise ValueError("fit_b: too few target pulses to fit b")
+    lo, hi = feasible_b_bounds(agc if all_agc is None else all_agc, a, bounds)
+    grid = np.linspace(lo, hi, max(int(grid_points), 3))
+    curve = np.array([nested_cv(amplitudes, agc, groups, a, b) for b in grid])  # grid_points evaluations
+    k = int(np.nanargmin(curve))
+    lo_r, hi_r = grid[max(k - 1, 0)], grid[min(k + 1, grid.size - 1)]
+    if hi_r > lo_r:
+        res = minimize_scalar(lambda b: nested_cv(amplitudes, agc, groups, a, b), bounds=(lo_r, hi_r),
+                              method="bounded", options={"xatol": 1e-9 * max(1.0, abs(hi - lo))})
+        b_best, cv_best = (float(res.x), float(res.fun)) if res.fun <= curve[k] else (float(grid[k]), float(curve[k]))
+    else:
+        b_best, cv_best = float(grid[k]), float(curve[k])
+    return b_best, cv_best, grid, curve
+
+
+@dataclass
+class AGCFit:
+    """The AGC fit of one dataset (written as the ``agc`` step's JSON)."""
+
+    dataset: str
+    year: int | None
+    a: float
+    b: float
+    n0: float
+    noise_sd: float
+    b_bounds: tuple[float, float]
+    cv_before: float
+    cv_after: float
+    n_pulses_total: int
+    n_fit_pulses: int
+    n_missing_agc: int
+    n_saturated: int
+    n_per_target: dict = field(default_factory=dict)
+    cv_per_target_before: dict = field(default_factory=dict)
+    cv_per_target_after: dict = field(default_factory=dict)
+    b_grid: list = field(default_factory=list)
+    cv_grid: list = field(default_factory=list)
+    fixed_b: bool = False
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["b_bounds"] = list(self.b_bounds)
+        return d
+
+
+def _scale_list_column(col: pa.ChunkedArray, gain: np.ndarray, n0: float) -> pa.ListArray:
+    """A list<float32> column with each row mapped v -> (v - n0)/gain[row] + n0."""
+    arr = col.combine_chunks() if isinstance(col, pa.ChunkedArray) else col
+    offsets = arr.offsets.to_numpy().astype(np.int64)
+    values = arr.flatten().to_numpy(zero_copy_only=False).astype(np.float64)
+    lens = np.diff(offsets)
+    g = np.repeat(gain, lens)
+    new = ((values - n0) / g + n0).astype(np.float32)
+    return pa.ListArray.from_arrays(pa.array(offsets - offsets[0], type=pa.int32()), pa.array(new, type=pa.float32()))
+
+
+def normalise_pulses(pulses: pa.Table, a: float, b: float, n0: float) -> pa.Table:
+    """A pulse table with waveforms and DR intensities normalised by Eq. 1.
+
+    Adds the column :data:`GAIN_COLUMN` (the gain applied; 1 where the AGC is NaN or b is NaN).
+    """
+    agc = pulses.column("agc").to_numpy(zero_copy_only=False).astype(np.float64)
+    if np.isfinite(a) and np.isfinite(b):
+        g = agc_gain(agc, a, b)
+        g = np.where(np.isfinite(g), g, 1.0)
+    else:
+        g = np.ones(pulses.num_rows)
+    out = pulses
+    for name, level in (("samples", n0), ("echo_intensity", 0.0)):
+        i = out.schema.get_field_index(name)
+        out = out.set_column(i, name, _scale_list_column(out.column(name), g, level))
+    if GAIN_COLUMN in out.column_names:
+        out = out.drop_columns([GAIN_COLUMN])
+    return out.append_column(GAIN_COLUMN, pa.array(g, type=pa.float64()))
+
+
+# -- the `agc` stage ------------------------------------------------------------------------
+_PASS1_COLUMNS = ["dataset", "agc", "echo_x", "echo_y", "samples"]
+
+
+def _single_dataset(names: set, path) -> str:
+    if len(names) != 1:
+        raise WaveforestError(
+            f"{path}: holds datasets {', '.join(sorted(map(str, names))) or '(none)'}; expected exactly one "
+            "(run the step once per dataset file)")
+    return next(iter(names))
+
+
+def run(pulses_path, targets, datasets, out_path, fit_path, cfg: dict, *, plot_path=None,
+        batch_rows: int = 65536, progress: bool = True) -> AGCFit:
+    """The ``agc`` stage: fit b on the AGC targets, normalise every pulse, write both outputs.
+
+    Parameters
+    ----------
+    pulses_path : pulse table of one dataset (Parquet).  targets, datasets : DataFrames of
+    targets.csv / datasets.csv (see :mod:`waveforest.sensor.targets`).  out_path : normalised
+    pulse table (Parquet, with :data:`GAIN_COLUMN` and schema metadata a, b, n0).
+    fit_path : JSON of the :class:`AGCFit`.  cfg : loaded config (sections agc, calibrate, sensor).
+    plot_path : optional PNG of CV(b).
+
+    Returns
+    -------
+    AGCFit
+    """
+    from tqdm import tqdm
+
+    pulses_path = Path(pulses_path)
+    if not pulses_path.exists():
+        raise WaveforestError(f"{pulses_path}: no such file")
+    sec = cfg.get("agc", {})
+    tail = int(cfg.get("calibrate", {}).get("noise_tail", 50))
+    dmax = float(cfg.get("sensor", {}).get("digitizer_max", 255))
+    min_per_target = int(sec.get("min_pulses_per_target", 5))
+    names: set = set()
+    agc_sum = agc_n = 0.0
+    agc_min, agc_max = np.inf, -np.inf
+    n_total = n_missing = 0
+    tail_sum = tail_sq = tail_n = 0.0
+    fit_rows: list[tuple] = []
+    year_cache: dict = {}
+    batches = iter_pulses(pulses_path, batch_rows, columns=_PASS1_COLUMNS)
+    for batch in tqdm(batches, desc="agc: read", unit="batch", disable=not progress, file=None):
+        ds = batch.column("dataset").to_numpy(zero_copy_only=False)
+        names.update(set(np.unique(ds.astype(str))))
+        name = _single_dataset(names, pulses_path)
+        if name not in year_cache:
+            year_cache[name] = dataset_year(datasets, name)
+        agc = batch.column("agc").to_numpy(zero_copy_only=False).astype(np.float64)
+        fin = np.isfinite(agc)
+        n_total += agc.size
+        n_missing += int((~fin).sum())
+        if fin.any():
+            agc_sum += agc[fin].sum()
+            agc_n += fin.sum()
+            agc_min, agc_max = min(agc_min, agc[fin].min()), max(agc_max, agc[fin].max())
+        samples, lens = list_to_padded(batch.column("samples"))
+        if samples.shape[1]:
+            tv, ok = tail_samples(samples, lens, tail)
+            v = tv[ok]
+            tail_sum += v.sum()
+            tail_sq += (v**2).sum()
+            tail_n += v.size
+        tidx = pulse_targets(batch, targets, year_cache[name])
+        on = tidx >= 0
+        on[on] = targets["agc"].to_numpy(dtype=bool)[tidx[on]]
+        if on.any():
+            raw_max = peak_amplitudes(samples[on], lens[on], 0.0)
+            fit_rows.append((raw_max, agc[on], tidx[on]))
+    if not names:
+        raise WaveforestError(f"{pulses_path}: the pulse table is empty")
+    name = _single_dataset(names, pulses_path)
+    year = year_cache[name]
+    if tail_n < 2:
+        raise WaveforestError(f"{pulses_path}: no waveform samples to estimate the noise floor n0")
+    n0 = tail_sum / tail_n
+    noise_sd = math.sqrt(max(tail_sq / tail_n - n0**2, 0.0) * tail_n / (tail_n - 1))
+
+    raw_max = np.concatenate([r[0] for r in fit_rows]) if fit_rows else np.empty(0)
+    fagc = np.concatenate([r[1] for r in fit_rows]) if fit_rows else np.empty(0)
+    fgrp = np.concatenate([r[2] for r in fit_rows]) if fit_rows else np.empty(0, dtype=np.int64)
+    sat = raw_max >= dmax
+    keep = ~sat & np.isfinite(fagc) & np.isfinite(raw_max)
+    amps, fagc, fgrp = raw_max[keep] - n0, fagc[keep], fgrp[keep]
+    ids, counts = np.unique(fgrp, return_counts=True)
+    good = np.isin(fgrp, ids[counts >= min_per_target])
+    amps, fagc, fgrp = amps[good], fagc[good], fgrp[good]
+    tid = targets["target_id"].to_numpy()
+    n_per_target = {str(tid[k]): int(c) for k, c in zip(*np.unique(fgrp, return_counts=True))}
+
+    fixed = sec.get("b")
+    bounds = tuple(sec.get("b_bounds", (0.0, 0.05)))
+    if agc_n == 0:
+        warnings.warn(f"{pulses_path}: dataset {name} has no AGC values; waveforms are not normalised (b = NaN)",
+                      stacklevel=2)
+        a = b = cv_before = cv_after = float("nan")
+        grid = curve = np.empty(0)
+        eff_bounds = (float("nan"), float("nan"))
+    else:
+        a = agc_sum / agc_n
+        all_agc = np.array([agc_min, agc_max])
+        eff_bounds = feasible_b_bounds(all_agc, a, bounds)
+        if n_missing:
+            warnings.warn(f"{pulses_path}: {n_missing} pulse(s) without AGC are left unnormalised", stacklevel=2)
+        if fixed is not None:
+            b, grid, curve = float(fixed), np.empty(0), np.empty(0)
+            agc_gain(all_agc, a, b)  # raises if the fixed b makes a gain <= 0
+            cv_after = nested_cv(amps, fagc, fgrp, a, b) if amps.size else float("nan")
+        else:
+            if amps.size - len(n_per_target) < 2:
+                raise WaveforestError(
+                    f"dataset {name}: too few pulses on AGC targets (targets.csv rows with agc = 1 and year {year}; "
+                    f"found {amps.size} usable pulses on {len(n_per_target)} target(s)); set agc.b in the config "
+                    "to use a fixed b instead")
+            b, cv_after, grid, curve = fit_b(amps, fagc, fgrp, a, bounds, int(sec.get("grid_points", 101)),
+                                             all_agc=all_agc)
+        cv_before = nested_cv(amps, fagc, fgrp, a, 0.0) if amps.size else float("nan")
+
+    label = lambda d: {str(tid[k]): v for k, v in d.items()}  # noqa: E731
+    fit = AGCFit(
+        dataset=str(name), year=int(year), a=float(a), b=float(b), n0=float(n0), noise_sd=float(noise_sd),
+        b_bounds=tuple(float(v) for v in eff_bounds), cv_before=float(cv_before), cv_after=float(cv_after),
+        n_pulses_total=int(n_total), n_fit_pulses=int(amps.size), n_missing_agc=int(n_missing),
+        n_saturated=int(sat.sum()), n_per_target=n_per_target,
+        cv_per_target_before=label(cv_per_group(amps, fagc, fgrp, a, 0.0)) if amps.size and np.isfinite(a) else {},
+        cv_per_target_after=label(cv_per_group(amps, fagc, fgrp, a, b)) if amps.size and np.isfinite(b) else {},
+        b_grid=grid.tolist(), cv_grid=curve.tolist(), fixed_b=fixed is not None,
+    )
+
+    meta = {AGC_METADATA_KEY: json.dumps({"dataset": fit.dataset, "a": fit.a, "b": fit.b, "n0": fit.n0}).encode()}
+    out_path = Path(out_path)
+    with atomic_path(out_path) as tmp:
+        writer = None
+        try:
+            for batch in tqdm(iter_pulses(pulses_path, batch_rows), desc="agc: normalise", unit="batch",
+                              disable=not progress):
+                batch = normalise_pulses(check_pulses(batch, pulses_path), fit.a, fit.b, fit.n0)
+                if writer is None:
+                    writer = pq.ParquetWriter(tmp, batch.schema.with_metadata(meta), compression="zstd")
+                writer.write_table(batch.cast(writer.schema))
+        finally:
+            if writer is not None:
+                writer.close()
+    write_json(fit.to_dict(), fit_path)
+    if plot_path is not None and len(fit.b_grid):
+        from .plots import plot_cv_curve
+
+        plot_cv_curve(fit, plot_path)
+    return fit
+
+
+def write_json(obj: dict, path) -> Path:
+    """Write a JSON document atomically (NaN written as null)."""
+    path = Path(path)
+
+    def clean(v):
+        if isinstance(v, float) and not math.isfinite(v):
+            return None
+        if isinstance(v, dict):
+            return {str(k): clean(x) for k, x in v.items()}
+        if isinstance(v, (list, tuple)):
+            return [clean(x) for x in v]
+        if isinstance(v, np.generic):
+            return clean(v.item())
+        return v
+
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(clean(obj), indent=2) + "\n")
+    return path
+
+
+def read_agc_metadata(path) -> dict:
+    """The {dataset, a, b, n0} metadata of a normalised pulse table ({} if absent)."""
+    md = pq.read_schema(path).metadata or {}
+    if AGC_METADATA_KEY in md:
+        return json.loads(md[AGC_METADATA_KEY])
+    return {}

@@ -1,0 +1,233 @@
+"""simulate: geometry against an analytic scene, determinism, chunk independence, effects."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pandas as pd
+import pyarrow as pa
+import pytest
+
+from waveforest import config
+from waveforest.analysis.pulse_sim import split_effects
+from waveforest.analysis.simulate import Calibration, load_calibration, plan, simulate_pulses
+from waveforest.analysis.synthetic import plate_scene, pulse_table
+from waveforest.constants import RANGE_PER_NS
+from waveforest.sensor import feature_table, gaussian_system_waveform
+
+SAMPLES = {  # sample_id: species, x, y, ground_z, height
+    "R1": ("raspberry", 100.0, 200.0, 50.0, 1.2),
+    "F1": ("fireweed", 110.0, 200.0, 51.0, 0.9),
+    "B1": ("birch", 120.0, 200.0, 52.0, 3.0),
+    "P1": ("scots_pine", 130.0, 200.0, 52.0, 3.0),  # not a modelled species
+}
+ALTITUDE = 1000.0
+S_PEAK = 7.0e8  # DN m^2 per unit sigma: a 0.47 plate at 1000 m peaks at ~105 DN (no clipping)
+
+
+def _selected(n_per_sample=6, seed=0):
+    rng = np.random.default_rng(seed)
+    echoes, meta = [], []
+    for sid, (sp, x, y, gz, h) in SAMPLES.items():
+        for _ in range(n_per_sample):
+            dx, dy = rng.uniform(-0.3, 0.3, 2)
+            echoes.append([(x + dx, y + dy, gz + h)])
+            meta.append((sid, sp, x, y, gz, h))
+    df = pulse_table("2010_12_1", echoes, pulse_ids=np.arange(len(echoes)) * 7 + 3).to_pandas()
+    zen, az = np.radians(rng.uniform(0, 15, len(df))), rng.uniform(0, 2 * np.pi, len(df))
+    d = np.column_stack([np.sin(zen) * np.cos(az), np.sin(zen) * np.sin(az), -np.cos(zen)])
+    echo = np.array([e[0] for e in echoes])
+    sensor = echo - d * (ALTITUDE / np.cos(zen))[:, None]
+    df[["dir_x", "dir_y", "dir_z"]] = d
+    df[["sensor_x", "sensor_y", "sensor_z"]] = sensor
+    m = pd.DataFrame(meta, columns=["sample_id", "species", "sample_x", "sample_y", "ground_z", "height_m"])
+    for c in m.columns:
+        df[c] = m[c].to_numpy()
+    df["functional_group"] = "x"
+    df["is_tree"] = df["species"].isin(["birch", "scots_pine"])
+    df["comparison_set"] = df["species"].isin(["birch", "raspberry", "fireweed"])
+    df["classification_set"] = True
+    return pa.Table.from_pandas(df, preserve_index=False)
+
+
+def _info():
+    return pd.Series(dict(dataset="2010_12_1", year=2010, mean_range_m=ALTITUDE, pulse_width_fwhm_ns=7.2,
+                          footprint_diameter_m=0.15, divergence_mrad=0.15, sampling_ns=1.0))
+
+
+def _cfg(**simulate):
+    return config.load(overrides={"seed": 5, "mcrt": {"n_rays": 200, "max_order": 3},
+                                  "simulate": dict({"instances_per_sample": 2}, **simulate)})
+
+
+def _cal():
+    return Calibration(gaussian_system_waveform(7.2, S_PEAK), 10.0, 1.5)
+
+
+def _sim(cfg, chunk=0, chunks=1, effects=None, builder=plate_scene):
+    table, summary = simulate_pulses(_selected(), _info(), _cal(), cfg, chunk=chunk, chunks=chunks,
+                                     effects=effects, progress=False, scene_builder=builder)
+    return table, summary
+
+
+def _sorted(t: pa.Table) -> pa.Table:
+    return t.sort_by("pulse_id")
+
+
+def _same(a: pa.Table, b: pa.Table) -> bool:
+    """Tables equal column by column, NaN equal to NaN (Arrow's equals says NaN != NaN)."""
+    if a.schema != b.schema or a.num_rows != b.num_rows:
+        return False
+    for name in a.column_names:
+        x, y = a.column(name), b.column(name)
+        if pa.types.is_floating(x.type):
+            if not np.array_equal(x.to_numpy(), y.to_numpy(), equal_nan=True):
+                return False
+        elif not x.equals(y):
+            return False
+    return True
+
+
+def test_plate_geometry_and_amplitude():
+    cfg = _cfg()
+    table, s = _sim(cfg)
+    df = table.to_pandas()
+    sel = _selected().to_pandas()
+    assert s.n_pulses == 18 and s.n_written == 18 and s.n_no_echo == 0
+    assert set(df["pulse_id"]) == set(sel.loc[sel["comparison_set"], "pulse_id"])
+    assert (df["source"] == "sim").all() and set(df["sim_instance"]) <= {0, 1}
+    merged = df.merge(sel[["pulse_id", "sensor_x", "sensor_y", "sensor_z"]], on="pulse_id", suffixes=("", "_real"))
+    assert np.allclose(merged[["sensor_x", "sensor_y", "sensor_z"]].to_numpy(),
+                       merged[["sensor_x_real", "sensor_y_real", "sensor_z_real"]].to_numpy())
+    ez = np.array([z[0] for z in df["echo_z"]])
+    # first CFD echo on the plate top: H = field height (CFD + sampling error << 5 cm)
+    assert np.abs(ez - df["ground_z"] - df["height_m"]).max() < 0.05
+    # echo positions lie on the recorded beam line
+    ex, ey = np.array([x[0] for x in df["echo_x"]]), np.array([y[0] for y in df["echo_y"]])
+    along = (df["sensor_z"] - ez) / -df["dir_z"]
+    assert np.allclose(ex, df["sensor_x"] + df["dir_x"] * along, atol=1e-6)
+    assert np.allclose(ey, df["sensor_y"] + df["dir_y"] * along, atol=1e-6)
+    # anchor and echo time agree with the range of the first echo
+    t0 = np.array([t[0] for t in df["echo_time_ns"]])
+    assert np.allclose(df["range_m"], np.hypot(np.hypot(df["anchor_x"] - df["sensor_x"], df["anchor_y"] - df["sensor_y"]),
+                                               df["anchor_z"] - df["sensor_z"]) + t0 * RANGE_PER_NS, atol=1e-6)
+    # Eq. 7 amplitude: sigma = rho cos(theta)/pi per unit power seen at the slant, R = range to ground
+    f = feature_table(table, {"2010_12_1": dict(noise_mean=10.0, noise_sd=1.5)})
+    cos = -df["dir_z"].to_numpy()
+    r = (df["sensor_z"] - df["ground_z"]).to_numpy() / cos
+    expected = S_PEAK * 0.47 * cos / np.pi / r**2
+    assert np.allclose(df["sigma_total"], 0.47 * cos / np.pi, rtol=1e-6)
+    assert np.abs(f["Apeak"].to_numpy() / expected - 1).max() < 0.05  # sampling phase + noise + rounding
+
+
+def test_same_seed_same_table_and_chunks_do_not_matter():
+    cfg = _cfg()
+    a, _ = _sim(cfg)
+    b, _ = _sim(cfg)
+    assert _same(a, b)
+    parts = [_sim(cfg, chunk=c, chunks=3)[0] for c in range(3)]
+    assert sum(p.num_rows for p in parts) == a.num_rows
+    assert _same(_sorted(pa.concat_tables(parts)), _sorted(a))
+    c, _ = _sim(_cfg() | {"seed": 6})
+    assert not _sorted(c).column("samples").equals(_sorted(a).column("samples"))
+
+
+def test_plan_cap_and_instances():
+    sel = _selected().to_pandas()
+    cfg = _cfg(max_pulses=4)
+    p = plan(sel, cfg, "2010_12_1")
+    assert p.groupby("species").size().to_dict() == {"birch": 4, "fireweed": 4, "raspberry": 4}
+    assert set(p["instance"]) <= {0, 1} and (p["chunk_hash"] >= 0).all()
+    # the same pulses whatever the chunking; the groups are whole in a chunk
+    for chunks in (2, 3):
+        assert (p.groupby("group")["chunk_hash"].nunique() == 1).all()
+    one = plan(sel, _cfg(instances_per_sample=None), "2010_12_1")
+    assert one["group"].nunique() == len(one)  # the paper's rule: an instance per pulse
+
+
+def test_builder_sees_the_vegetation_effects_and_pool_size():
+    calls = []
+
+    def recording(species, height, seed, **kw):
+        calls.append((species, height, seed, kw))
+        return plate_scene(species, height, seed, **kw)
+
+    cfg = _cfg()
+    _sim(cfg, effects={"understory": 1.5, "hotspot": 1.3, "noise_autocorr": 0.5}, builder=recording)
+    assert len(calls) == len({(c[0], c[2]) for c in calls}) <= 3 * 2  # one build per (sample, instance)
+    assert all(c[3]["understory"] == 1.5 and "hotspot" not in c[3] for c in calls)
+    assert all(c[3]["ground_rho"] == 0.30 and c[3]["lai_jitter"] == 0.10 for c in calls)
+    veg, mcrt, sensor, xy = split_effects({"understory": 1.5, "hotspot": 1.3, "noise_autocorr": 0.5, "xy_error": 0.2})
+    assert veg == {"understory": 1.5} and mcrt == {"hotspot": 1.3} and sensor == {"noise_autocorr": 0.5}
+    assert xy == 0.2
+
+
+def test_xy_error_moves_the_traced_beam_not_the_record():
+    """A plate covering only x > 0 of each sample: a large xy_error makes some pulses miss it."""
+
+    def half_plate(species, height, seed, **kw):
+        sc = plate_scene(species, height, seed, **kw)
+        tri = sc.triangles.copy()
+        top = tri[:, 0, 2] > 0.01
+        tri[top, :, 0] = np.clip(tri[top, :, 0], 0.0, None)
+        from waveforest.scene import Scene
+
+        return Scene(tri, sc.rho, sc.tau, sc.kind)
+
+    cfg = _cfg()
+    base, _ = _sim(cfg, builder=half_plate)
+    moved, _ = _sim(cfg, effects={"xy_error": 1.0}, builder=half_plate)
+    b, m = base.to_pandas().set_index("pulse_id"), moved.to_pandas().set_index("pulse_id")
+    common = b.index.intersection(m.index)
+    assert len(common) >= 12
+    h = lambda d: np.array([z[0] for z in d.loc[common, "echo_z"]]) - d.loc[common, "ground_z"].to_numpy()  # noqa
+    changed = np.abs(h(b) - h(m)) > 0.3  # plate top vs ground
+    assert changed.sum() >= 2
+    for col in ("sensor_x", "sensor_y", "dir_x", "dir_y"):  # recorded geometry unchanged
+        assert np.array_equal(b.loc[common, col], m.loc[common, col])
+    # echoes stay on the recorded beam line
+    ez = np.array([z[0] for z in m.loc[common, "echo_z"]])
+    ex = np.array([x[0] for x in m.loc[common, "echo_x"]])
+    along = (m.loc[common, "sensor_z"] - ez) / -m.loc[common, "dir_z"]
+    assert np.allclose(ex, m.loc[common, "sensor_x"] + m.loc[common, "dir_x"] * along, atol=1e-6)
+
+
+def test_load_calibration(tmp_path):
+    sw = gaussian_system_waveform(7.2, S_PEAK)
+    sw.save(tmp_path / "s.parquet")
+    (tmp_path / "s.json").write_text(json.dumps(dict(dataset="d", noise_mean=9.5, noise_sd=1.25)))
+    cal = load_calibration(tmp_path / "s.parquet", tmp_path / "s.json")
+    assert (cal.noise_mean, cal.noise_sd, cal.range_correction) == (9.5, 1.25, None)
+    assert cal.system.fwhm_ns == pytest.approx(7.2, rel=1e-3)
+    (tmp_path / "bad.json").write_text(json.dumps(dict(dataset="d", noise_mean=9.5)))
+    with pytest.raises(ValueError, match="noise_sd"):
+        load_calibration(tmp_path / "s.parquet", tmp_path / "bad.json")
+
+
+def test_cli_end_to_end_with_the_vegetation_models(tmp_path):
+    """Files in, files out, with the real vegetation models (few rays, one pulse per species)."""
+    from waveforest.cli import main
+    from waveforest.io.tables import read_pulses, write_pulses
+
+    veg = pytest.importorskip("waveforest.vegetation")
+    if not hasattr(veg, "build_scene"):
+        pytest.skip("waveforest.vegetation.build_scene not available yet")
+    sel = _selected().drop_columns(["sample_x", "sample_y", "height_m"])  # supplied by --fields
+    write_pulses(sel, tmp_path / "sel.parquet")
+    rows = [dict(sample_id=k, year=2010, species=v[0], functional_group="x", x=v[1], y=v[2], ground_z=v[3],
+                 height_m=v[4], radius_m=0.5, is_tree=int(v[0] in ("birch", "scots_pine"))) for k, v in SAMPLES.items()]
+    pd.DataFrame(rows).to_csv(tmp_path / "fields.csv", index=False)
+    pd.DataFrame([_info().to_dict()]).to_csv(tmp_path / "datasets.csv", index=False)
+    gaussian_system_waveform(7.2, S_PEAK).save(tmp_path / "s.parquet")
+    (tmp_path / "s.json").write_text(json.dumps(dict(dataset="2010_12_1", noise_mean=10.0, noise_sd=1.5)))
+    (tmp_path / "c.yaml").write_text("mcrt: {n_rays: 300, max_order: 3}\nsimulate: {max_pulses: 1, instances_per_sample: 1}\n")
+    args = ["simulate", str(tmp_path / "sel.parquet"), "--fields", str(tmp_path / "fields.csv"), "--datasets",
+            str(tmp_path / "datasets.csv"), "--system", str(tmp_path / "s.parquet"), "--calibration",
+            str(tmp_path / "s.json"), "--chunks", "1", "--out", str(tmp_path / "sim.parquet"),
+            "--config", str(tmp_path / "c.yaml")]
+    main(args)
+    out = read_pulses(tmp_path / "sim.parquet")
+    assert 1 <= out.num_rows <= 3 and set(out.column("source").to_pylist()) == {"sim"}
+    h = np.array([z[0] for z in out.column("echo_z").to_pylist()]) - out.column("ground_z").to_numpy()
+    assert np.all((h > -0.3) & (h < out.column("height_m").to_numpy() + 0.3))  # within the plant or on the ground

@@ -1,0 +1,80 @@
+"""Recording one dataset: AGC loop, sensor, geometry errors and the LAS pulse table (no MCRT needed)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from waveforest.campaign.flight import plan_flight, site_pulses
+from waveforest.campaign.layout import area_frame
+from waveforest.campaign.params import load_datasets, load_layout
+from waveforest.campaign.synthesize import _record_dataset, resolve_effects
+from waveforest.campaign.truth_sensor import TruthSensor
+from waveforest.constants import BIN_NS, C_M_PER_NS, RANGE_PER_NS
+
+pytest.importorskip("waveforest.io.las_write")
+
+
+def _planar_dataset(tmp_path, xy_error=0.0):
+    row = load_datasets(["2012_10_1"]).iloc[0]
+    lay = load_layout()
+    frame = area_frame(lay)
+    sites = pd.DataFrame({"site": ["plane"], "s": [10.0], "w": [-30.0], "ground_z": [150.0], "disc_m": [4.0]})
+    plan = plan_flight(row, frame, lay, 1.0, 5, 150.0)
+    p = site_pulses(plan, sites, lay, 5)
+    p["kind"] = "target"
+    n = len(p)
+    r = p["range_ground_m"].to_numpy()
+    sigma = np.zeros((n, 300))
+    sigma[:, 100] = 0.3 / np.pi * -p["dir_z"].to_numpy()
+    sigma[1::2] = 0.0  # every second pulse returns nothing: no DR echo, not recorded
+    t0 = 2 * r / C_M_PER_NS - 100.5 * BIN_NS
+    sensor = TruthSensor.from_row(row)
+    a0 = np.zeros(n)
+    rows = np.arange(n)
+    eff = resolve_effects({"campaign": {"effects": {"xy_error": xy_error}}})
+    table, info, truth = _record_dataset(row, sensor, plan, p, a0, [("plane", rows, sigma, t0, r)], eff, 5, lay,
+                                         tmp_path, None)
+    return p, sensor, table, info, truth
+
+
+def test_pulse_table_geometry_and_dropped_pulses(tmp_path):
+    p, sensor, table, info, truth = _planar_dataset(tmp_path)
+    n = len(p)
+    assert table.num_rows == info["n_pulses"] == (n + 1) // 2
+    assert info["n_without_echo"] == n // 2
+    assert (tmp_path / "2012_10_1.las").exists() and (tmp_path / "2012_10_1_trajectory.csv").exists()
+    kept = p.iloc[::2]
+    # first echo on the plane: the true ground point plus the range walk and jitter, plus the strip offset
+    ex = np.array([v[0] for v in table.column("echo_x").to_pylist()])
+    ey = np.array([v[0] for v in table.column("echo_y").to_pylist()])
+    ez = np.array([v[0] for v in table.column("echo_z").to_pylist()])
+    off = np.array([info["strips"][k]["offset_xyz_m"] for k in kept["strip"]])
+    true = kept[["ground_x", "ground_y", "ground_z"]].to_numpy() + off
+    err = np.linalg.norm(np.column_stack([ex, ey, ez]) - true, axis=1)
+    assert err.max() < sensor.walk_max_m + 5 * sensor.timing_jitter_ns * RANGE_PER_NS
+    # anchor + dir * t * RANGE_PER_NS gives every echo (the LAS relation)
+    t = np.array([v[0] for v in table.column("echo_time_ns").to_pylist()])
+    anchor = np.column_stack([table.column(c).to_numpy() for c in ("anchor_x", "anchor_y", "anchor_z")])
+    d = np.column_stack([table.column(c).to_numpy() for c in ("dir_x", "dir_y", "dir_z")])
+    assert np.allclose(anchor + d * (t * RANGE_PER_NS)[:, None], np.column_stack([ex, ey, ez]), atol=1e-6)
+    assert np.all((t * RANGE_PER_NS >= 3.3) & (t * RANGE_PER_NS <= 4.8))
+    # the AGC and the recorded gain law
+    agc = table.column("agc").to_numpy()
+    assert np.mean(agc) == pytest.approx(info["a"])
+    assert np.allclose(truth["gain"], 1 + (truth["agc"] - info["agc"]["law_a"]) * info["agc"]["law_b"])
+    assert truth["recorded"].sum() == table.num_rows
+
+
+def test_xy_error_offsets_are_horizontal_and_of_the_right_size(tmp_path):
+    p, _, still, _, _ = _planar_dataset(tmp_path / "a")
+    _, _, moved, _, truth = _planar_dataset(tmp_path / "b", xy_error=0.5)
+    dx = np.array([v[0] for v in moved.column("echo_x").to_pylist()]) - np.array(
+        [v[0] for v in still.column("echo_x").to_pylist()])
+    dz = np.array([v[0] for v in moved.column("echo_z").to_pylist()]) - np.array(
+        [v[0] for v in still.column("echo_z").to_pylist()])
+    assert np.allclose(dz, 0.0)
+    assert np.allclose(dx, truth["xy_offset_x"][truth["recorded"]])
+    assert dx.std() == pytest.approx(0.5, rel=0.15)
+    assert still.column("samples").equals(moved.column("samples"))

@@ -1,0 +1,94 @@
+"""``waveforest trace``: PLY in, sigma(t) table and plot out, clear errors."""
+
+import json
+import math
+
+import numpy as np
+import pandas as pd
+import pyarrow.parquet as pq
+import pytest
+
+from waveforest.cli import main
+from waveforest.mcrt import synthetic as syn
+from waveforest.mcrt.runner import run
+from waveforest.scene import write_ply
+
+
+@pytest.fixture()
+def plane_ply(tmp_path):
+    return write_ply(syn.plane(6.0, 0.0, rho=0.3), tmp_path / "plane.ply")
+
+
+def _run(args, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(args)
+    return exc.value.code, capsys.readouterr()
+
+
+def test_trace_plane_to_csv_and_plot(plane_ply, tmp_path, capsys):
+    out, png = tmp_path / "sigma.csv", tmp_path / "sigma.png"
+    try:
+        main(["trace", str(plane_ply), "--out", str(out), "--rays", "2000", "--orders", "3",
+              "--footprint", "0.3", "--scan-zenith", "10", "--plot", str(png), "--seed", "4"])
+    except SystemExit as exc:  # click's standalone exit
+        assert exc.code in (0, None)
+    msg = capsys.readouterr().out
+    assert f"wrote {out}" in msg and "2000 rays" in msg
+    df = pd.read_csv(out)
+    assert list(df.columns) == ["time_ns", "range_m", "sigma", "sigma_order_1", "sigma_order_2", "sigma_order_3"]
+    assert df["sigma"].sum() == pytest.approx(0.3 * math.cos(math.radians(10)) / math.pi, rel=1e-5)
+    np.testing.assert_allclose(np.diff(df["time_ns"]), 0.05, atol=1e-6)
+    peak = df.loc[df["sigma"].idxmax(), "range_m"]
+    assert peak == pytest.approx(1200.0, abs=0.02)  # default range to the target
+    assert png.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_trace_parquet_carries_metadata(plane_ply, tmp_path):
+    out = tmp_path / "sigma.parquet"
+    res = run(plane_ply, out, n_rays=500, max_order=2, range_m=800.0, divergence_mrad=0.2, seed=1,
+              effects=["hotspot=1.5"])
+    t = pq.read_table(out)
+    meta = json.loads(t.schema.metadata[b"waveforest.trace"])
+    assert meta["footprint_m"] == pytest.approx(0.16)
+    assert meta["effects"] == {"hotspot": 1.5} and meta["n_rays"] == 500
+    assert t.column("sigma").to_numpy().sum() == pytest.approx(res.sigma[0].sum())
+    assert meta["t0_ns"] == pytest.approx(res.t0_ns[0])
+
+
+@pytest.mark.parametrize(
+    "extra,match",
+    [
+        (["--out", "x.txt"], "expected a .parquet or .csv"),
+        (["--out", "x.csv", "--effect", "understory=1"], "not an MCRT effect"),
+        (["--out", "x.csv", "--effect", "specular"], "NAME=VALUE"),
+        (["--out", "x.csv", "--footprint", "0.2", "--divergence", "0.1"], "not both"),
+        (["--out", "x.csv", "--rays", "0"], "n_rays"),
+    ],
+)
+def test_trace_bad_options(plane_ply, tmp_path, capsys, extra, match):
+    extra = [str(tmp_path / e) if e.startswith("x.") else e for e in extra]
+    code, cap = _run(["trace", str(plane_ply), *extra], capsys)
+    assert code == 1
+    assert match in cap.err and cap.err.startswith("waveforest: error:")
+    assert not list(tmp_path.glob("x.*"))  # nothing half-written
+
+
+def test_trace_bad_scene_files(tmp_path, capsys):
+    code, cap = _run(["trace", str(tmp_path / "missing.ply"), "--out", str(tmp_path / "s.csv")], capsys)
+    assert code == 1 and "no such file" in cap.err
+    bad = tmp_path / "bad.ply"
+    bad.write_text("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+                   "property float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n"
+                   "0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n")
+    code, cap = _run(["trace", str(bad), "--out", str(tmp_path / "s.csv")], capsys)
+    assert code == 1 and "rho, tau, kind" in cap.err
+    code, cap = _run(["trace", "--out", str(tmp_path / "s.csv")], capsys)
+    assert code == 1 and "either a scene PLY file or --species" in cap.err
+    assert not (tmp_path / "s.csv").exists()
+
+
+def test_trace_existing_output_survives_a_failure(plane_ply, tmp_path, capsys):
+    out = tmp_path / "s.csv"
+    out.write_text("keep me")
+    code, _ = _run(["trace", str(plane_ply), "--out", str(out), "--rays", "0"], capsys)
+    assert code == 1 and out.read_text() == "keep me"

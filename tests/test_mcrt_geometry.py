@@ -1,0 +1,161 @@
+"""Intersectors (Embree and NumPy), scene preparation, stuck rays and far sensors."""
+
+import numpy as np
+import pytest
+
+from waveforest.constants import C_M_PER_NS
+from waveforest.mcrt import Beams, EmbreeIntersector, NumpyIntersector, prepare, trace
+from waveforest.mcrt import synthetic as syn
+from waveforest.scene import Scene, SceneError
+
+T_RTOL = 1e-5  # float32 Embree vs float64 NumPy hit distance
+AGREE_FRACTION = 0.999  # rays whose nearest triangle agrees (edge hits may differ by rounding)
+
+
+def _random_triangles(rng, n, size=0.3):
+    c = rng.uniform(-2, 2, (n, 1, 3))
+    return (c + rng.normal(0, size, (n, 3, 3))).astype(np.float32)
+
+
+def _random_rays(rng, m):
+    o = rng.uniform(-3, 3, (m, 3)).astype(np.float32)
+    d = rng.normal(size=(m, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return o, d.astype(np.float32)
+
+
+def test_embree_and_numpy_intersectors_agree_on_random_triangles():
+    rng = np.random.default_rng(1)
+    tri = _random_triangles(rng, 300)
+    o, d = _random_rays(rng, 3000)
+    te, pe = EmbreeIntersector(tri).intersect(o, d)
+    tn, pn = NumpyIntersector(tri).intersect(o, d)
+    hit = pn >= 0
+    assert 0.2 < hit.mean() < 0.95  # a real mix of hits and misses
+    assert np.mean(pe == pn) >= AGREE_FRACTION
+    same = (pe == pn) & hit
+    np.testing.assert_allclose(te[same], tn[same], rtol=T_RTOL, atol=1e-6)
+    assert np.all(np.isinf(te[pe < 0])) and np.all(np.isinf(tn[pn < 0]))
+
+
+@pytest.mark.parametrize("backend", ["embree", "numpy"])
+def test_intersect_against_brute_force_geometry(backend):
+    # single triangle at z = 1: rays from below straight up, inside / outside the triangle
+    tri = np.array([[[0, 0, 1], [1, 0, 1], [0, 1, 1]]], np.float32)
+    isect = prepare(Scene(tri, 0.5, 0.0, 1), backend=backend).intersector
+    bounds_centre = 0.5 * (tri.reshape(-1, 3).min(0) + tri.reshape(-1, 3).max(0))
+    o = np.array([[0.2, 0.2, 0.0], [0.8, 0.8, 0.0], [0.1, 0.1, 2.0]]) - bounds_centre
+    d = np.array([[0, 0, 1.0], [0, 0, 1.0], [0, 0, 1.0]])
+    t, p = isect.intersect(o.astype(np.float32), d.astype(np.float32))
+    assert p.tolist() == [0, -1, -1]
+    assert t[0] == pytest.approx(1.0, rel=1e-6)
+    occ = isect.occluded(o.astype(np.float32), d.astype(np.float32), np.array([2.0, 2.0, 2.0], np.float32))
+    assert occ.tolist() == [True, False, False]
+    short = isect.occluded(o[:1].astype(np.float32), d[:1].astype(np.float32), np.array([0.5], np.float32))
+    assert short.tolist() == [False]
+
+
+def test_embree_and_numpy_occlusion_agree():
+    rng = np.random.default_rng(2)
+    tri = _random_triangles(rng, 200)
+    o, d = _random_rays(rng, 2000)
+    tmax = rng.uniform(0.1, 5, 2000).astype(np.float32)
+    oe = EmbreeIntersector(tri).occluded(o, d, tmax)
+    on = NumpyIntersector(tri).occluded(o, d, tmax)
+    assert 0.05 < on.mean() < 0.95
+    assert np.mean(oe == on) >= AGREE_FRACTION
+
+
+def test_embree_split_over_threads_is_identical():
+    rng = np.random.default_rng(3)
+    tri = _random_triangles(rng, 500)
+    o, d = _random_rays(rng, 20000)
+    isect = EmbreeIntersector(tri)
+    t1, p1 = isect.intersect(o, d, threads=1)
+    t2, p2 = isect.intersect(o, d, threads=2)
+    assert np.array_equal(p1, p2) and np.array_equal(t1, t2)
+    tm = np.full(len(o), 1.0, np.float32)
+    assert np.array_equal(isect.occluded(o, d, tm, threads=1), isect.occluded(o, d, tm, threads=2))
+
+
+def test_prepare_shifts_to_box_centre_and_keeps_properties():
+    sc = syn.plane(4.0, z=2.0, rho=0.2, center=(1000.0, 2000.0))
+    ps = prepare(sc)
+    np.testing.assert_allclose(ps.shift, [1000.0, 2000.0, 2.0])
+    np.testing.assert_allclose(ps.bounds, [[-2, -2, 0], [2, 2, 0]], atol=1e-3)
+    np.testing.assert_allclose(ps.normals, [[0, 0, 1], [0, 0, 1]], atol=1e-6)
+    assert np.all(ps.rho == np.float32(0.2)) and np.all(ps.tau == 0) and np.all(ps.kind == 0)
+    assert prepare(ps) is ps
+    with pytest.raises(ValueError, match="backend"):
+        prepare(sc, backend="optix")
+    with pytest.raises(TypeError):
+        prepare("scene.ply")
+
+
+def test_intersector_input_validation():
+    with pytest.raises(ValueError, match="triangles"):
+        EmbreeIntersector(np.zeros((0, 3, 3), np.float32))
+    isect = NumpyIntersector(np.array([[[0, 0, 0], [1, 0, 0], [0, 1, 0]]], np.float32))
+    with pytest.raises(ValueError, match=r"\(m, 3\)"):
+        isect.intersect(np.zeros((2, 2)), np.zeros((2, 2)))
+
+
+@pytest.mark.parametrize("backend", ["embree", "numpy"])
+@pytest.mark.parametrize("zenith,rng_m", [(0.0, 1200.0), (15.0, 3000.0)])
+def test_no_stuck_rays_on_a_single_sheet(backend, zenith, rng_m):
+    """A ray leaving a surface must not re-hit it: a lone sheet scatters exactly once."""
+    sheet = syn.plane(6.0, 0.5, rho=0.5, tau=0.5, kind=1)
+    beams = Beams.toward([0.3, -0.2, 0.5], rng_m, zenith, 33.0, footprint_m=0.5)
+    res = trace(prepare(sheet, backend=backend), beams, n_rays=4000, max_order=4, seed=1)
+    assert res.first_hit_counts[0, 1] == 4000
+    assert res.order_totals[0, 0] > 0
+    assert np.all(res.order_totals[0, 1:] == 0)
+
+
+def test_stuck_rays_in_a_closed_box_keep_scattering():
+    """Inside a closed cube every scattered ray must hit another wall (none escapes, none
+    re-hits its own wall at t ~ 0): with rho = 1 the power is conserved order after order."""
+    faces = []
+    for axis in range(3):
+        for sgn in (-1.0, 1.0):
+            flat = syn.plane(2.0, 0.0, rho=1.0, kind=3).triangles.astype(np.float64)
+            tri = np.empty_like(flat)
+            tri[..., (axis + 1) % 3], tri[..., (axis + 2) % 3] = flat[..., 0], flat[..., 1]
+            tri[..., axis] = sgn
+            faces.append(Scene(tri.astype(np.float32), 1.0, 0.0, 3))
+    box = Scene.concat(faces)
+    ps = prepare(box)
+    from waveforest.mcrt.kernels import BeamFrame, Rays, beam_keys, scatter
+
+    m = 5000
+    rng = np.random.default_rng(0)
+    o = rng.uniform(-0.5, 0.5, (m, 3)).astype(np.float32)
+    d = rng.normal(size=(m, 3))
+    d = (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
+    rays = Rays(o, d, np.full(m, 1.0 / m), np.zeros(m), np.zeros(m, np.int32), np.arange(m, dtype=np.int32))
+    frame = BeamFrame(np.array([[0.0, 0.0, 1000.0]]), np.array([[0.0, 0.0, -1.0]]), np.array([0.0]),
+                      beam_keys(5, np.array([0])))
+    face = None
+    for order in range(1, 6):
+        t, p = ps.intersector.intersect(rays.origin, rays.direction)
+        assert np.all(p >= 0), "a ray escaped a closed box"
+        if face is not None:  # the 6 faces are 2 triangles each; a wall cannot see itself
+            assert np.all(p // 2 != face), "a ray re-hit the wall it left"
+        face = p // 2
+        out = scatter(order, False, rays, t, p, ps, frame, 10, 0.05, 5.0)
+        assert np.all(out.alive)
+        np.testing.assert_allclose(out.power.sum(), 1.0, rtol=1e-12)
+        rays = Rays(out.origin.copy(), out.direction.copy(), out.power.copy(), out.path_m.copy(),
+                    rays.beam, rays.ray)
+
+
+@pytest.mark.parametrize("rng_m", [500.0, 1500.0, 3000.0])
+def test_far_sensor_float_precision(rng_m):
+    """sigma of a plane and its return time do not depend on how far the sensor is."""
+    res = trace(syn.plane(6.0, 0.0, rho=0.3), Beams.toward([0, 0, 0], rng_m, 12.0, 200.0, footprint_m=0.05),
+                n_rays=2000, max_order=2, seed=3)
+    cos = np.cos(np.radians(12.0))
+    assert res.total[0] == pytest.approx(0.3 * cos / np.pi, rel=1e-6)
+    t = res.times_ns()[0] + 0.5 * res.bin_ns
+    mean_t = np.sum(t * res.sigma[0]) / res.sigma[0].sum()
+    assert mean_t == pytest.approx(2 * rng_m / C_M_PER_NS, abs=0.5 * res.bin_ns)

@@ -1,0 +1,113 @@
+"""Calibration (Eq. 8, METHOD.md e): S(t) of planar targets simulated through Eq. 7 is recovered."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+from scipy.special import erf
+
+from reference_sensor import target_pulses, write_campaign_tables
+from waveforest.errors import WaveforestError
+from waveforest.io.tables import list_to_padded, write_pulses
+from waveforest.sensor import (
+    SystemWaveform,
+    calibrate_system_waveform,
+    load_calibration,
+    load_system_waveform,
+    noise_stats,
+    range_correction_of,
+    read_datasets,
+    read_targets,
+)
+from waveforest.sensor import agc as agc_mod
+from waveforest.sensor import calibration as cal_mod
+
+S_L2_TOL = 0.02  # "recovered S(t) within 2 % (L2, relative)"
+FWHM_PER_SD = 2.0 * math.sqrt(2.0 * math.log(2.0))
+
+
+def true_system(peak=2.0e9, sd_ns=2.0, tail_ns=3.0):
+    """A smooth non-Gaussian system pulse: a Gaussian convolved with an exponential tail
+    (exponentially modified Gaussian, FWHM ~ 7 ns), t = 0 at its CFD time."""
+    t = 0.05 * np.arange(-400, 1000)
+    lam = 1.0 / tail_ns
+    s = np.exp(lam * (lam * sd_ns**2 / 2 - t)) * (1 + erf((t - lam * sd_ns**2) / (math.sqrt(2) * sd_ns)))
+    return SystemWaveform(t, peak * s / s.max()).aligned_to_cfd()
+
+
+def rel_l2(est: SystemWaveform, truth: SystemWaveform) -> float:
+    s_true = np.interp(est.t_ns, truth.t_ns, truth.s, left=0.0, right=0.0)
+    return float(np.linalg.norm(est.s - s_true) / np.linalg.norm(s_true))
+
+
+def test_eq8_on_arrays_recovers_s():
+    """calibrate_system_waveform on AGC-free planar pulses: S(t) within 2 % (relative L2)."""
+    truth = true_system()
+    table, tr = target_pulses(np.random.default_rng(11), truth, per_target=60, b_true=0.0, n_other=0)
+    x, lens = list_to_padded(table.column("samples"))
+    te = np.array([v[0] for v in table.column("echo_time_ns").to_pylist()])
+    hdrf = np.array([0.14, 0.21, 0.41, 0.21, 0.34, 0.45])[tr["target_index"]]
+    noise = noise_stats(x, lens, 50)
+    assert noise.mean == pytest.approx(10.0, abs=0.05)
+    assert noise.sd_analog == pytest.approx(1.5, rel=0.03) and noise.sd == pytest.approx(math.sqrt(1.5**2 + 1 / 12), rel=0.03)
+    assert noise.quantised and abs(noise.lag1) < 0.03
+    keep = x.max(axis=1) < 254.5  # the unclipped pulses
+    est = calibrate_system_waveform(x[keep], lens[keep], 1.0, te[keep], table.column("range_m").to_numpy()[keep],
+                                    hdrf[keep] / math.pi, noise.mean, window_ns=(-15.0, 45.0))
+    assert rel_l2(est, truth) < S_L2_TOL
+    assert est.fwhm_ns == pytest.approx(truth.fwhm_ns, rel=0.02)
+    assert est.energy == pytest.approx(truth.energy, rel=0.01)
+    assert np.all(est.s_sd >= 0) and est.meta["n_pulses"] == keep.sum()
+
+
+def test_calibration_stage_after_agc(tmp_path):
+    """Planar targets through Eq. 7 with a known AGC law -> agc -> calibrate: S(t) within 2 %,
+    the noise, and the CFD check of METHOD.md f on the target pulses."""
+    truth = true_system()
+    table, tr = target_pulses(np.random.default_rng(12), truth, per_target=80, b_true=0.01)
+    src = write_pulses(table, tmp_path / "pulses.parquet")
+    dpath, tpath = write_campaign_tables(tmp_path)
+    targets, datasets = read_targets(tpath), read_datasets(dpath)
+    cfg = {"agc": {"b_bounds": [0.0, 0.05]}, "calibrate": {"noise_tail": 50, "window_ns": [-15.0, 45.0]},
+           "sensor": {"digitizer_max": 255, "cfd": {"fraction": 0.5, "arming_sd": 4.0}}}
+    agc_mod.run(src, targets, datasets, tmp_path / "norm.parquet", tmp_path / "agc.json", cfg, progress=False)
+    res = cal_mod.run(tmp_path / "norm.parquet", targets, datasets, tmp_path / "S.parquet", tmp_path / "S.json", cfg,
+                      plot_path=tmp_path / "S.png", progress=False)
+    est = load_system_waveform(tmp_path / "S.parquet")
+    assert rel_l2(est, truth) < S_L2_TOL, rel_l2(est, truth)
+    assert res["fwhm_ns"] == pytest.approx(truth.fwhm_ns, rel=0.02)
+    assert res["noise_mean"] == pytest.approx(10.0, abs=0.05)
+    assert res["noise_sd_analog"] == pytest.approx(1.5, rel=0.04)  # noise of the recorded (un-normalised) tails
+    assert res["b"] == pytest.approx(0.01, rel=0.05)
+    assert set(res["n_per_target"]) == {"tarp14", "tarp21", "tarp41", "asphalt", "sand"}  # grass: AGC only
+    chk = res["cfd_check_before"]
+    assert chk["frac_within_0_10_m"] > 0.95 and abs(chk["bias_m"]) < 0.015  # the DR echoes are our own CFD's
+    loaded = load_calibration(tmp_path / "S.json")
+    assert loaded["dataset"] == "2010_12_1" and loaded["system_waveform"] == "S.parquet"
+    assert range_correction_of(loaded).is_identity or len(range_correction_of(loaded).apeak) >= 1
+    assert (tmp_path / "S.png").stat().st_size > 1000
+    assert est.s_sd is not None and est.meta["dataset"] == "2010_12_1"
+
+
+def test_calibration_stage_errors(tmp_path):
+    truth = true_system()
+    table, _ = target_pulses(np.random.default_rng(13), truth, per_target=3, b_true=0.0)
+    src = write_pulses(table, tmp_path / "few.parquet")
+    dpath, tpath = write_campaign_tables(tmp_path)
+    with pytest.raises(WaveforestError, match="calibrate.min_pulses"):
+        cal_mod.run(src, read_targets(tpath), read_datasets(dpath), tmp_path / "S.parquet", tmp_path / "S.json", {},
+                    progress=False)
+    assert not (tmp_path / "S.parquet").exists() and not (tmp_path / "S.json").exists()
+    bad = tmp_path / "targets_bad.csv"
+    bad.write_text("target_id,year,material,hdrf,calibration,agc,x,y,z,radius_m\nt1,2010,tarp,,1,0,0,0,0,2\n")
+    with pytest.raises(WaveforestError, match="needs an HDRF"):
+        read_targets(bad)
+    (tmp_path / "t2.csv").write_text("target_id,year\nx,2010\n")
+    with pytest.raises(WaveforestError, match="lacks column"):
+        read_targets(tmp_path / "t2.csv")
+    with pytest.raises(WaveforestError, match="no such calibration"):
+        load_calibration(tmp_path / "nothing.json")
+    (tmp_path / "c.json").write_text(json.dumps({"dataset": "x"}))
+    with pytest.raises(WaveforestError, match="noise_mean"):
+        load_calibration(tmp_path / "c.json")
