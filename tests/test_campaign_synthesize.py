@@ -15,7 +15,6 @@ import pytest
 import yaml
 
 from waveforest import config
-from waveforest.constants import RANGE_PER_NS
 from waveforest.effects import CATALOGUE
 
 veg = pytest.importorskip("waveforest.vegetation")
@@ -228,4 +227,3 @@ def test_existing_folder_is_replaced(base, tmp_path):
     run(small_cfg(species=["sand_road"], max_pulses_per_site=3), out, progress=False)
     assert not (out / "stale.txt").exists() and (out / "truth.json").exists()
     assert Path(out / "2010_12_1.las").stat().st_size > 0
-    _ = RANGE_PER_NS

@@ -24,7 +24,6 @@ The meaning of each column of ``sensor_truth.csv`` is in :data:`SENSOR_COLUMNS`.
 from __future__ import annotations
 
 from functools import lru_cache
-from pathlib import Path
 
 import numpy as np
 import pandas as pd

@@ -189,7 +189,6 @@ def run(cfg: dict, out_dir: str | os.PathLike, effects=None, seed: int | None = 
     seed = int(cfg["seed"] if seed is None else seed)
     camp = cfg["campaign"]
     eff = resolve_effects(cfg, effects)
-    veg_eff = {k: eff[k] for k in VEGETATION_EFFECTS}
     datasets = load_datasets(list(cfg["datasets"]))
     if datasets.empty:
         raise SynthesizeError("config datasets: no dataset to generate")
@@ -227,69 +226,13 @@ def run(cfg: dict, out_dir: str | os.PathLike, effects=None, seed: int | None = 
     allp = pd.concat(pulses.values(), ignore_index=True)
     if allp.empty:
         raise SynthesizeError("no pulse reaches any site (check density_scale and the layout)")
-    offsets = np.cumsum([0] + [len(p) for p in pulses.values()])
     allp["row"] = np.concatenate([np.arange(len(p)) for p in pulses.values()])
 
     # 4. trace every site once
-    site_info = pd.concat([
-        pd.DataFrame({"site": fields["sample_id"], "kind": "sample", "x": fields["x"], "y": fields["y"],
-                      "z": fields["ground_z"], "species": fields["species"], "height_m": fields["height_m"],
-                      "rho": np.nan, "side_m": np.nan, "on_ground_rho": np.nan, "disc_m": 0.0}),
-        pd.DataFrame({"site": targets["target_id"], "kind": "target", "x": targets["x"], "y": targets["y"],
-                      "z": targets["z"], "species": "", "height_m": 0.0, "rho": targets["true_rho"],
-                      "side_m": targets["side_m"], "on_ground_rho": pd.to_numeric(targets["on_ground_rho"]),
-                      "disc_m": targets["radius_m"] + margin}),
-    ], ignore_index=True).set_index("site")
-    kinds = site_info["kind"]
+    site_info = _site_info(fields, targets, margin)
     for p in pulses.values():
-        p["kind"] = p["site"].map(kinds).to_numpy()
-    groups = allp.groupby("site", sort=False).indices
-    site_order = [s for s in site_info.index if s in groups]
-    a0 = {ds: np.zeros(len(p)) for ds, p in pulses.items()}
-    batches = {ds: [] for ds in pulses}
-    cover_true = {}
-    vcfg = cfg["vegetation"]
-    n_orders = int(camp["max_order"])
-    viewed = float(camp["viewed_diameter_m"])
-    from ..mcrt import Beams, prepare, trace
-
-    bar = tqdm(site_order, desc="synthesize: sites", unit="site", file=sys.stderr, disable=not progress)
-    for site in bar:
-        info = site_info.loc[site]
-        idx = groups[site]
-        sub = allp.iloc[idx]
-        t_site = time.perf_counter()
-        if info["kind"] == "sample":
-            scene = sample_scene(info["species"], info["height_m"], seed, site, ground_rho=float(vcfg["ground_rho"]),
-                                 lai_jitter=float(vcfg["lai_jitter"]), vegetation_effects=veg_eff)
-            n_rays = int(camp["n_rays"])
-        else:
-            scene = target_scene(float(info["rho"]), float(info["side_m"]), float(info["on_ground_rho"]),
-                                 float(info["disc_m"]) + 1.0)
-            n_rays = min(TARGET_RAYS, int(camp["n_rays"]))
-        origin = sub[["sensor_x", "sensor_y", "sensor_z"]].to_numpy() - np.array([info["x"], info["y"], info["z"]])
-        direction = sub[["dir_x", "dir_y", "dir_z"]].to_numpy()
-        div = datasets.set_index("dataset").loc[sub["dataset"], "divergence_mrad"].to_numpy(dtype=float)
-        beams = Beams.from_divergence(origin, direction, div, sub["range_ground_m"].to_numpy())
-        prepared = prepare(scene)
-        t_trace = time.perf_counter()
-        timings["scenes"] += t_trace - t_site
-        res = trace(prepared, beams, n_rays=n_rays, max_order=n_orders, bin_ns=BIN_NS,
-                    viewed_diameter_m=viewed, seed=int_seed(seed, "trace", site),
-                    specular=eff["specular"], hotspot=eff["hotspot"])
-        if info["kind"] == "sample":
-            fh = res.first_hit_counts.astype(np.float64)
-            cover_true[site] = float(np.mean(fh[:, 1:4].sum(axis=1) / fh.sum(axis=1)))
-        for ds in sub["dataset"].unique():
-            sel = np.flatnonzero(sub["dataset"].to_numpy() == ds)
-            rows = sub["row"].to_numpy()[sel]
-            b0, sig = _trim(res.sigma[sel])
-            t0 = res.t0_ns[sel] + b0 * BIN_NS
-            rg = sub["range_ground_m"].to_numpy()[sel]
-            a0[ds][rows] = unit_gain_peaks(sensors[ds], sig, t0, rg, trigger_loss=eff["trigger_loss"])
-            batches[ds].append((site, rows, sig, t0, rg))
-        timings["trace"] += time.perf_counter() - t_trace
-    bar.close()
+        p["kind"] = p["site"].map(site_info["kind"]).to_numpy()
+    a0, batches, cover_true = _trace_sites(allp, site_info, datasets, sensors, cfg, eff, seed, timings, progress)
     t_rec = time.perf_counter()
 
     # canopy cover (visual estimate) for the marked S12 samples
@@ -312,7 +255,7 @@ def run(cfg: dict, out_dir: str | os.PathLike, effects=None, seed: int | None = 
         wkt = _crs_wkt()
         for _, row in datasets.iterrows():
             ds = row["dataset"]
-            t_ds, info_ds, rows_ds = _record_dataset(
+            _, info_ds, rows_ds = _record_dataset(
                 row, sensors[ds], plans[ds], pulses[ds], a0[ds], batches[ds], eff, seed, lay, tmp, wkt)
             truth_ds[ds] = info_ds
             truth_rows.append(rows_ds)
@@ -329,7 +272,7 @@ def run(cfg: dict, out_dir: str | os.PathLike, effects=None, seed: int | None = 
             "effects": eff,
             "active_effects": active(eff),
             "config": {"datasets": list(datasets["dataset"]), "campaign": camp,
-                       "vegetation": {k: vcfg[k] for k in ("ground_rho", "lai_jitter")}},
+                       "vegetation": {k: cfg["vegetation"][k] for k in ("ground_rho", "lai_jitter")}},
             "frame": {"origin_x": layout.frame.origin_x, "origin_y": layout.frame.origin_y,
                       "azimuth_deg": layout.frame.azimuth_deg},
             "datasets": truth_ds,
@@ -349,6 +292,77 @@ def run(cfg: dict, out_dir: str | os.PathLike, effects=None, seed: int | None = 
         raise
     summary.seconds = time.perf_counter() - t_start
     return summary
+
+
+def _site_info(fields: pd.DataFrame, targets: pd.DataFrame, margin: float) -> pd.DataFrame:
+    """One row per site (sample or target), indexed by site id: what its true scene needs."""
+    return pd.concat([
+        pd.DataFrame({"site": fields["sample_id"], "kind": "sample", "x": fields["x"], "y": fields["y"],
+                      "z": fields["ground_z"], "species": fields["species"], "height_m": fields["height_m"],
+                      "rho": np.nan, "side_m": np.nan, "on_ground_rho": np.nan, "disc_m": 0.0}),
+        pd.DataFrame({"site": targets["target_id"], "kind": "target", "x": targets["x"], "y": targets["y"],
+                      "z": targets["z"], "species": "", "height_m": 0.0, "rho": targets["true_rho"],
+                      "side_m": targets["side_m"], "on_ground_rho": pd.to_numeric(targets["on_ground_rho"]),
+                      "disc_m": targets["radius_m"] + margin}),
+    ], ignore_index=True).set_index("site")
+
+
+def _trace_sites(allp: pd.DataFrame, site_info: pd.DataFrame, datasets: pd.DataFrame, sensors: dict, cfg: dict,
+                 eff: dict, seed: int, timings: dict, progress: bool):
+    """Build each site's true scene once and trace all its pulses of all datasets in one call.
+
+    Returns the unit-gain analog peak of every pulse (per dataset, by row), the trimmed
+    sigma(t) batches per dataset ``(site, rows, sigma, t0_ns, range_m)`` and the true cover
+    (share of first hits on vegetation) of every traced sample.
+    """
+    from ..mcrt import Beams, prepare, trace
+
+    camp, vcfg = cfg["campaign"], cfg["vegetation"]
+    veg_eff = {k: eff[k] for k in VEGETATION_EFFECTS}
+    divergence = datasets.set_index("dataset")["divergence_mrad"]
+    groups = allp.groupby("site", sort=False).indices
+    names = list(datasets["dataset"])
+    a0 = {ds: np.zeros(int(np.sum(allp["dataset"] == ds))) for ds in names}
+    batches = {ds: [] for ds in names}
+    cover_true = {}
+    bar = tqdm([s for s in site_info.index if s in groups], desc="synthesize: sites", unit="site",
+               file=sys.stderr, disable=not progress)
+    for site in bar:
+        info = site_info.loc[site]
+        sub = allp.iloc[groups[site]]
+        t_site = time.perf_counter()
+        if info["kind"] == "sample":
+            scene = sample_scene(info["species"], info["height_m"], seed, site, ground_rho=float(vcfg["ground_rho"]),
+                                 lai_jitter=float(vcfg["lai_jitter"]), vegetation_effects=veg_eff)
+            n_rays = int(camp["n_rays"])
+        else:
+            scene = target_scene(float(info["rho"]), float(info["side_m"]), float(info["on_ground_rho"]),
+                                 float(info["disc_m"]) + 1.0)
+            n_rays = min(TARGET_RAYS, int(camp["n_rays"]))
+        origin = sub[["sensor_x", "sensor_y", "sensor_z"]].to_numpy() - np.array([info["x"], info["y"], info["z"]])
+        beams = Beams.from_divergence(origin, sub[["dir_x", "dir_y", "dir_z"]].to_numpy(),
+                                      divergence.loc[sub["dataset"]].to_numpy(dtype=float),
+                                      sub["range_ground_m"].to_numpy())
+        prepared = prepare(scene)
+        t_trace = time.perf_counter()
+        timings["scenes"] += t_trace - t_site
+        res = trace(prepared, beams, n_rays=n_rays, max_order=int(camp["max_order"]), bin_ns=BIN_NS,
+                    viewed_diameter_m=float(camp["viewed_diameter_m"]), seed=int_seed(seed, "trace", site),
+                    specular=eff["specular"], hotspot=eff["hotspot"])
+        if info["kind"] == "sample":
+            fh = res.first_hit_counts.astype(np.float64)
+            cover_true[site] = float(np.mean(fh[:, 1:4].sum(axis=1) / fh.sum(axis=1)))
+        for ds in sub["dataset"].unique():
+            sel = np.flatnonzero(sub["dataset"].to_numpy() == ds)
+            rows = sub["row"].to_numpy()[sel]
+            b0, sig = _trim(res.sigma[sel])
+            t0 = res.t0_ns[sel] + b0 * BIN_NS
+            rg = sub["range_ground_m"].to_numpy()[sel]
+            a0[ds][rows] = unit_gain_peaks(sensors[ds], sig, t0, rg, trigger_loss=eff["trigger_loss"])
+            batches[ds].append((site, rows, sig, t0, rg))
+        timings["trace"] += time.perf_counter() - t_trace
+    bar.close()
+    return a0, batches, cover_true
 
 
 def _jsonable(obj):

@@ -129,6 +129,12 @@ def write_pulses(table: pa.Table, path: str | Path) -> Path:
     return write_table(check_pulses(table, path), path)
 
 
+_STREAM_OPTIONS = dict(compression="lz4", use_dictionary=["dataset", "source"], write_statistics=False)
+"""Parquet options of streamed pulse tables: the waveforms are incompressible noise-like lists,
+so fast lz4 without dictionaries or statistics keeps ingest above 200,000 pulses/s per core
+(zstd with defaults halves that for a 2.4x smaller file; benchmarks/ingest.py)."""
+
+
 def write_pulse_batches(batches: Iterable[pa.Table], path: str | Path) -> int:
     """Stream pulse tables into one Parquet file atomically; return the number of rows.
 
@@ -143,11 +149,11 @@ def write_pulse_batches(batches: Iterable[pa.Table], path: str | Path) -> int:
             for batch in batches:
                 batch = check_pulses(batch, path)
                 if writer is None:
-                    writer = pq.ParquetWriter(tmp, batch.schema, compression="zstd")
+                    writer = pq.ParquetWriter(tmp, batch.schema, **_STREAM_OPTIONS)
                 writer.write_table(batch.cast(writer.schema))
                 n += batch.num_rows
             if writer is None:  # no rows: still a valid, empty table
-                writer = pq.ParquetWriter(tmp, PULSE_SCHEMA, compression="zstd")
+                writer = pq.ParquetWriter(tmp, PULSE_SCHEMA, **_STREAM_OPTIONS)
         finally:
             if writer is not None:
                 writer.close()

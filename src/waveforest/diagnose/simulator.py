@@ -1,0 +1,174 @@
+"""The study's real simulation chain as the diagnosis's ``simulate(pulses, effects, seed)``.
+
+A thin adapter over :func:`waveforest.analysis.simulate.simulate_pulses` (vegetation ->
+MCRT -> sensor -> CFD; effects routed to the module that applies each) and
+:func:`waveforest.sensor.feature_table` (first-echo features, the same code as for the real
+pulses). It adds three things:
+
+* **the seed**: ``simulate_pulses`` derives every random number from the config's master
+  seed, the dataset, the sample and the vegetation instance; the adapter passes the search's
+  seed as that master seed, so one seed gives the same plants, rays and noise for every
+  effect value (common random numbers) and another seed an independent replicate;
+* **scene reuse**: a cache of prepared (Embree) scenes keyed by species, height, scene seed
+  and vegetation keyword arguments. Effects that do not act on the plants (``mcrt``,
+  ``sensor`` and ``geometry`` stages: specular, hotspot, noise_autocorr, nonlinearity,
+  trigger_loss, xy_error) therefore trace the very same instances as the model without them
+  (no rebuild, and no extra vegetation noise between values); only the four vegetation
+  effects build new ones;
+* **the selection rules mirrored on the simulation**: real pulses were selected with their
+  first echo at least ``select.tree_min_echo_h_m`` above the ground for trees; a simulated
+  twin whose first echo is lower is dropped in the same way, and the waveform features of
+  species in ``simulate.compare_min_h_m`` (birch: 1.5 m) use only pulses whose first echo is
+  higher, for real and simulated pulses alike (:func:`apply_rules`, as ``compare`` does).
+"""
+
+from __future__ import annotations
+
+import copy
+from collections import OrderedDict
+
+import numpy as np
+import pandas as pd
+import pyarrow as pa
+import pyarrow.compute as pc
+
+from ..errors import WaveforestError
+
+WAVEFORM_FEATURES = ("Npeaks", "Apeak", "FWHM", "E")
+"""Features restricted by ``simulate.compare_min_h_m`` (all but H)."""
+
+SCENE_CACHE_SIZE = 512
+"""Most prepared scenes kept (least recently used dropped first)."""
+
+
+def apply_rules(features: pd.DataFrame, cfg: dict) -> pd.DataFrame:
+    """The selection rules of ``select`` and ``compare`` applied to a feature table.
+
+    Rows of trees (``is_tree``) whose first echo lies below ``select.tree_min_echo_h_m`` are
+    dropped (``select``'s rule, which the real pulses satisfy by construction); for species
+    in ``simulate.compare_min_h_m`` the waveform features of rows with H at or below the
+    threshold become NaN (``compare``'s rule, METHOD.md i1). Rows without a first echo
+    (H NaN) are dropped.
+
+    Parameters
+    ----------
+    features : DataFrame
+        Feature table with species, H, the waveform features and optionally is_tree.
+    cfg : dict
+        Loaded study config.
+    """
+    df = features[np.isfinite(features["H"].to_numpy(dtype=float))].copy()
+    if "is_tree" in df.columns:
+        tree = df["is_tree"].fillna(False).astype(bool).to_numpy()
+        df = df[~tree | (df["H"].to_numpy(float) >= float(cfg["select"]["tree_min_echo_h_m"]))].copy()
+    species = df["species"].astype(str).to_numpy()
+    h = df["H"].to_numpy(float)
+    for sp, lo in (cfg["simulate"].get("compare_min_h_m") or {}).items():
+        low = (species == sp) & ~(h > float(lo))
+        for f in WAVEFORM_FEATURES:
+            if f in df.columns:
+                df.loc[low, f] = np.nan
+    return df.reset_index(drop=True)
+
+
+class _SceneCache:
+    """``scene_builder`` for ``simulate_pulses`` that returns cached prepared scenes."""
+
+    def __init__(self, size: int = SCENE_CACHE_SIZE):
+        self.size = size
+        self.scenes: OrderedDict = OrderedDict()
+        self.built = 0
+        self.hits = 0
+
+    def __call__(self, species, height, seed, **kwargs):
+        from ..mcrt import prepare
+        from ..vegetation import build_scene
+
+        key = (str(species), float(height), int(seed), tuple(sorted((k, float(v)) for k, v in kwargs.items())))
+        if key in self.scenes:
+            self.scenes.move_to_end(key)
+            self.hits += 1
+            return self.scenes[key]
+        scene = prepare(build_scene(species, height, seed, **kwargs))
+        self.built += 1
+        self.scenes[key] = scene
+        if len(self.scenes) > self.size:
+            self.scenes.popitem(last=False)
+        return scene
+
+
+class StudySimulator:
+    """``simulate(pulses, effects, seed) -> feature table`` over the study's real chain.
+
+    Parameters
+    ----------
+    selected : dict
+        Dataset -> ``select`` pulse table (pa.Table) of that dataset.
+    datasets : DataFrame
+        The campaign's datasets.csv (:func:`waveforest.analysis.campaign_tables.read_datasets`).
+    calibrations : dict
+        Dataset -> (Calibration of :mod:`waveforest.analysis.simulate`, calibration JSON dict).
+    cfg : dict
+        Loaded study config.
+    n_rays : int, optional
+        MCRT rays per pulse (default ``diagnose.n_rays``, else ``mcrt.n_rays``).
+    threads : int, optional
+        Threads of each MCRT call.
+    """
+
+    def __init__(self, selected: dict, datasets: pd.DataFrame, calibrations: dict, cfg: dict, *,
+                 n_rays: int | None = None, threads: int | None = None):
+        from ..analysis.campaign_tables import dataset_row
+
+        self.selected = selected
+        self.info = {ds: dataset_row(datasets, ds) for ds in selected}
+        missing = sorted(set(selected) - set(calibrations))
+        if missing:
+            raise WaveforestError(f"diagnose: no calibration for dataset(s) {', '.join(missing)}")
+        self.calibrations = calibrations
+        self.cfg = cfg
+        self.n_rays = int(n_rays or cfg["diagnose"].get("n_rays") or cfg["mcrt"]["n_rays"])
+        self.threads = threads
+        self.scenes = _SceneCache()
+        self.pulses_simulated = 0
+
+    def _cfg(self, seed: int) -> dict:
+        c = copy.deepcopy(self.cfg)
+        c["seed"] = int(seed) % 2**63
+        c["mcrt"]["n_rays"] = self.n_rays
+        c["simulate"]["max_pulses"] = None
+        return c
+
+    def __call__(self, pulses: pd.DataFrame, effects: dict, seed: int) -> pd.DataFrame:
+        """Simulate the rows of ``pulses`` (dataset, pulse_id) under ``effects``.
+
+        Returns
+        -------
+        DataFrame
+            Feature table of the simulated pulses (dataset, pulse_id, sample_id, species,
+            is_tree, H, Npeaks, Apeak, FWHM, E, n_echoes, ...), selection rules applied.
+        """
+        from ..analysis.simulate import simulate_pulses
+        from ..sensor import CFDParams, FeatureParams, feature_table, range_correction_of
+
+        cfg = self._cfg(seed)
+        params, cfd = FeatureParams.from_config(cfg), CFDParams.from_config(cfg)
+        parts = []
+        for ds, rows in pulses.groupby("dataset", sort=True):
+            if ds not in self.selected:
+                raise WaveforestError(f"diagnose: no select table for dataset {ds}")
+            table = self.selected[ds]
+            ids = pa.array(rows["pulse_id"].to_numpy(np.int64))
+            sub = table.filter(pc.is_in(table.column("pulse_id"), value_set=ids))
+            sim, _ = simulate_pulses(sub, self.info[ds], self.calibrations[ds][0], cfg, effects=dict(effects),
+                                     progress=False, threads=self.threads, scene_builder=self.scenes)
+            self.pulses_simulated += sub.num_rows
+            if sim.num_rows == 0:
+                continue
+            meta = self.calibrations[ds][1]
+            feats = feature_table(sim, {ds: meta}, params, cfd=cfd,
+                                  range_corrections={ds: range_correction_of(meta)})
+            parts.append(feats)
+        if not parts:
+            raise WaveforestError("diagnose: the simulation produced no pulse with an echo")
+        return apply_rules(pd.concat(parts, ignore_index=True), self.cfg)
