@@ -1,17 +1,23 @@
-"""MCRT speed: ms per pulse on a 6 x 6 m random-leaf canopy, the bare-Embree floor, scene build.
+"""MCRT speed: ms per pulse on a 6 x 6 m random-leaf canopy and on the vegetation scenes, the
+bare-Embree floor, scene build.
 
-Scene: LAI 3.35 of small leaves (spherical LAD, 6.7 cm^2 each, ~180,000 triangles) between
-0 and 1.2 m over a ground; pulses: R = 1200 m, 0.15 mrad divergence (0.18 m footprint),
-scan zenith 0-15 deg, 30,000 rays, 10 orders (METHOD.md d).
+Scenes: the issue's canopy (LAI 3.35 of small leaves, spherical LAD, 6.7 cm^2 each, ~180,000
+triangles, between 0 and 1.2 m over a ground) and the paper's three species built by
+:func:`waveforest.vegetation.build_scene` (birch 3 m, raspberry 1.3 m, fireweed 1.5 m); pulses:
+R = 1200 m, 0.15 mrad divergence (0.18 m footprint), scan zenith 0-15 deg, 30,000 rays,
+10 orders (METHOD.md d).
 
-Figures (``name: value unit``):
+Figures (``name: value unit``), canopy first, then ``<species>_...`` for each species:
 
-* ``scene_triangles``, ``scene_build_ms`` (Embree BVH and per-triangle arrays, :func:`prepare`);
+* ``scene_triangles``, ``scene_build_ms`` (Embree BVH of HIGH quality and per-triangle arrays,
+  :func:`prepare`); ``scene_build_ms_medium`` (MEDIUM quality, for comparison);
 * ``trace_ms_per_pulse[_<mode>_<threads>]`` for each way of using the threads (the first is the
-  default of :func:`trace`);
+  default of :func:`trace`); ``mrays_per_s``: Embree rays (intersect + occlusion) per second
+  of the default trace;
 * ``embree_floor_ms_per_pulse``: the same rays (recorded during a trace) replayed through the
-  bare Embree calls, intersect + occlusion, on all threads;
-* ``trace_over_floor``: the ratio (target <= 2);
+  bare Embree calls, intersect + occlusion, on all threads; ``trace_over_floor``: the ratio
+  (target <= 2); ``embreex_floor_ms_per_pulse``: the same rays through embreex's ``run``
+  (split over Python threads), the path the tracer used before :mod:`waveforest.mcrt.rtc`;
 * ``ms_per_pulse_amortised_<k>``: tracing plus the scene build shared by k pulses (a pool of
   instances; target <= 100 ms);
 * ``rays_per_pulse_intersect``, ``rays_per_pulse_occluded``: Embree work per pulse;
@@ -20,7 +26,7 @@ Figures (``name: value unit``):
   jobs on a shared machine disturb far less than wall time.
 
 Wall times are the minimum of ``--repeat`` runs (the machine is shared). Run:
-``python benchmarks/mcrt.py [--pulses 16] [--repeat 3]``.
+``python benchmarks/mcrt.py [--pulses 16] [--repeat 3] [--species birch raspberry fireweed]``.
 """
 
 from __future__ import annotations
@@ -32,7 +38,7 @@ import time
 import numba
 import numpy as np
 
-from waveforest.mcrt import Beams, prepare, trace
+from waveforest.mcrt import Beams, EmbreeIntersector, prepare, trace
 from waveforest.mcrt.synthetic import random_leaves
 
 LAI, HEIGHT_M, SIZE_M, LEAF_AREA_M2 = 3.35, 1.2, 6.0, 6.7e-4
@@ -66,81 +72,102 @@ def best(fn, repeat: int, clock=time.perf_counter) -> float:
     return min(times)
 
 
+SPECIES = {"birch": 3.0, "raspberry": 1.3, "fireweed": 1.5}
+"""The paper's species and the heights they are benchmarked at, m (as benchmarks/vegetation.py)."""
+
+
+def bench_scene(prefix: str, scene, beams, args, full: bool) -> None:
+    """Print the figures of one scene (names prefixed by ``prefix``)."""
+    threads = numba.get_num_threads()
+    n = len(beams)
+
+    def out(name: str, value: float, unit: str, fmt: str = ".1f") -> None:
+        print(f"{prefix}{name}: {value:{fmt}} {unit}")
+
+    out("scene_triangles", len(scene), "triangles", "d")
+    prepared = prepare(scene)  # warm-up (Embree device, kernels)
+    build = best(lambda: prepare(scene), args.repeat)
+    out("scene_build_ms", build * 1e3, "ms")
+    out("scene_build_ms_medium", best(lambda: prepare(scene, quality="medium"), args.repeat) * 1e3, "ms")
+    kw = dict(n_rays=N_RAYS, max_order=MAX_ORDER, seed=args.seed)
+    trace(prepared, beams[:2], n_rays=500, max_order=3)  # compile / load the kernels
+
+    modes = [("pulses", threads), ("rays", threads)] if threads > 1 else [("rays", 1)]
+    if full and threads > 1:
+        modes.append(("rays", 1))
+    per_pulse = {}
+    for mode, thr in modes:
+        per_pulse[(mode, thr)] = best(lambda: trace(prepared, beams, threads=thr, parallel=mode, **kw),
+                                      args.repeat) / n
+    default = per_pulse[modes[0]]
+    out("trace_ms_per_pulse", default * 1e3, "ms")
+    for (mode, thr), v in per_pulse.items():
+        out(f"trace_ms_per_pulse_{mode}_{thr}threads", v * 1e3, "ms")
+
+    rec = Recorder(prepared.intersector)
+    traced = type(prepared)(prepared.scene, rec, prepared.shift, prepared.tri_data, prepared.bounds)
+    res = trace(traced, beams, threads=threads, parallel="rays", **kw)
+    n_isect = sum(len(o) for o, _ in rec.intersects)
+    n_occl = sum(len(o) for o, _, _ in rec.occludes)
+
+    def replay(inner, thr):
+        def run():
+            for o, d in rec.intersects:
+                inner.intersect(o, d, threads=thr)
+            for o, d, t in rec.occludes:
+                inner.occluded(o, d, t, threads=thr)
+        return run
+
+    floor = best(replay(prepared.intersector, threads), args.repeat) / n
+    out("mrays_per_s", (n_isect + n_occl) / (default * n) / 1e6, "Mrays/s", ".2f")
+    out("embree_floor_ms_per_pulse", floor * 1e3, "ms")
+    out("trace_over_floor", default / floor, "x", ".2f")
+    embreex = EmbreeIntersector((prepared.scene.triangles.astype(np.float64) - prepared.shift).astype(np.float32))
+    out("embreex_floor_ms_per_pulse", best(replay(embreex, threads), args.repeat) / n * 1e3, "ms")
+    out("rays_per_pulse_intersect", n_isect / n, "rays", ".0f")
+    out("rays_per_pulse_occluded", n_occl / n, "rays", ".0f")
+    for k in (1, 10, 30):
+        out(f"ms_per_pulse_amortised_{k}", (default + build / k) * 1e3, "ms")
+
+    if full:  # one thread, CPU time of this thread (robust to other jobs on the machine)
+        prev = numba.get_num_threads()
+        numba.set_num_threads(1)
+        try:
+            cpu = best(lambda: trace(prepared, beams, threads=1, parallel="rays", **kw), args.repeat,
+                       time.thread_time) / n
+            cpu_floor = best(replay(prepared.intersector, 1), args.repeat, time.thread_time) / n
+        finally:
+            numba.set_num_threads(prev)
+        out("trace_cpu_ms_per_pulse_serial", cpu * 1e3, "ms")
+        out("embree_floor_cpu_ms_per_pulse_serial", cpu_floor * 1e3, "ms")
+        out("trace_over_floor_cpu", cpu / cpu_floor, "x", ".2f")
+    out("mean_sigma_total", res.total.mean(), "per sr", ".4f")
+    out("mean_order1_fraction", (res.order_totals[:, 0] / res.total).mean(), "fraction", ".3f")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--pulses", type=int, default=16)
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--species", nargs="*", default=list(SPECIES), help="species to benchmark (none: canopy only)")
     args = ap.parse_args()
-    threads = numba.get_num_threads()
     print(f"cpu_count: {os.cpu_count()} cores")
-    print(f"numba_threads: {threads} threads")
+    print(f"numba_threads: {numba.get_num_threads()} threads")
     print(f"load_average_1min: {os.getloadavg()[0]:.2f} processes")
-
-    scene = random_leaves(LAI, (0.0, HEIGHT_M), SIZE_M, LEAF_AREA_M2, seed=args.seed)
-    print(f"scene_triangles: {len(scene)} triangles")
-    prepared = prepare(scene)  # warm-up (first Embree device)
-    build = best(lambda: prepare(scene), args.repeat)
-    print(f"scene_build_ms: {build * 1e3:.1f} ms")
 
     rng = np.random.default_rng(args.seed)
     n = args.pulses
     targets = np.column_stack([rng.uniform(-1, 1, n), rng.uniform(-1, 1, n), np.zeros(n)])
     beams = Beams.toward(targets, RANGE_M, rng.uniform(0, MAX_ZENITH_DEG, n), rng.uniform(0, 360, n),
                          divergence_mrad=DIVERGENCE_MRAD)
-    kw = dict(n_rays=N_RAYS, max_order=MAX_ORDER, seed=args.seed)
-    trace(prepared, beams[:2], n_rays=500, max_order=3)  # compile / load the kernels
+    canopy = random_leaves(LAI, (0.0, HEIGHT_M), SIZE_M, LEAF_AREA_M2, seed=args.seed)
+    bench_scene("", canopy, beams, args, full=True)
+    if args.species:
+        from waveforest.vegetation import build_scene
 
-    modes = [("pulses", threads), ("rays", threads), ("rays", 1)] if threads > 1 else [("rays", 1)]
-    per_pulse = {}
-    for mode, thr in modes:
-        per_pulse[(mode, thr)] = best(lambda: trace(prepared, beams, threads=thr, parallel=mode, **kw),
-                                      args.repeat) / n
-    default = per_pulse[modes[0]]
-    print(f"trace_ms_per_pulse: {default * 1e3:.1f} ms")
-    for (mode, thr), v in per_pulse.items():
-        print(f"trace_ms_per_pulse_{mode}_{thr}threads: {v * 1e3:.1f} ms")
-
-    rec = Recorder(prepared.intersector)
-    traced = type(prepared)(prepared.scene, rec, prepared.shift, prepared.tri_data, prepared.bounds)
-    res = trace(traced, beams, threads=threads, parallel="rays", **kw)
-    inner = prepared.intersector
-
-    def replay():
-        for o, d in rec.intersects:
-            inner.intersect(o, d, threads=threads)
-        for o, d, t in rec.occludes:
-            inner.occluded(o, d, t, threads=threads)
-
-    floor = best(replay, args.repeat) / n
-    print(f"embree_floor_ms_per_pulse: {floor * 1e3:.1f} ms")
-    print(f"trace_over_floor: {default / floor:.2f} x")
-    print(f"rays_per_pulse_intersect: {sum(len(o) for o, _ in rec.intersects) / n:.0f} rays")
-    print(f"rays_per_pulse_occluded: {sum(len(o) for o, _, _ in rec.occludes) / n:.0f} rays")
-    for k in (1, 10, 30):
-        print(f"ms_per_pulse_amortised_{k}: {(default + build / k) * 1e3:.1f} ms")
-
-    # one thread, CPU time of this thread (robust to other jobs on the machine)
-    prev = numba.get_num_threads()
-    numba.set_num_threads(1)
-    try:
-        cpu = best(lambda: trace(prepared, beams, threads=1, parallel="rays", **kw), args.repeat,
-                   time.thread_time) / n
-
-        def replay1():
-            for o, d in rec.intersects:
-                inner.intersect(o, d, threads=1)
-            for o, d, t in rec.occludes:
-                inner.occluded(o, d, t, threads=1)
-
-        cpu_floor = best(replay1, args.repeat, time.thread_time) / n
-    finally:
-        numba.set_num_threads(prev)
-    print(f"trace_cpu_ms_per_pulse_serial: {cpu * 1e3:.1f} ms")
-    print(f"embree_floor_cpu_ms_per_pulse_serial: {cpu_floor * 1e3:.1f} ms")
-    print(f"trace_over_floor_cpu: {cpu / cpu_floor:.2f} x")
-    print(f"mean_sigma_total: {res.total.mean():.4f} per sr")
-    print(f"mean_order1_fraction: {(res.order_totals[:, 0] / res.total).mean():.3f} fraction")
+        for sp in args.species:
+            bench_scene(f"{sp}_", build_scene(sp, SPECIES[sp], args.seed), beams, args, full=True)
     print(f"load_average_1min_end: {os.getloadavg()[0]:.2f} processes")
 
 

@@ -92,3 +92,27 @@ def test_trace_existing_output_survives_a_failure(plane_ply, tmp_path, capsys):
     out.write_text("keep me")
     code, _ = _run(["trace", str(plane_ply), "--out", str(out), "--rays", "0"], capsys)
     assert code == 1 and out.read_text() == "keep me"
+
+
+def test_trace_species_equals_the_same_scene_as_ply(tmp_path, capsys):
+    """``--species S --height H --seed K`` traces build_scene(S, H, K): same sigma as its PLY."""
+    from waveforest.vegetation import build_scene
+
+    ply = write_ply(build_scene("raspberry", 1.0, 3), tmp_path / "rasp.ply")
+    args = ["--out", None, "--rays", "400", "--orders", "4", "--seed", "3", "--scan-zenith", "8"]
+    outs = []
+    for name, scene_args in (("species.csv", ["--species", "raspberry", "--height", "1.0"]), ("ply.csv", [str(ply)])):
+        a = list(args)
+        a[1] = str(tmp_path / name)
+        try:
+            main(["trace", *scene_args, *a])
+        except SystemExit as exc:
+            assert exc.code in (0, None)
+        outs.append(pd.read_csv(tmp_path / name))
+    assert "wrote" in capsys.readouterr().out
+    a, b = outs
+    assert a["sigma"].sum() > 0.05  # a real canopy return
+    np.testing.assert_allclose(a["sigma"], b["sigma"], rtol=1e-6, atol=1e-12)
+    np.testing.assert_allclose(a["time_ns"], b["time_ns"], rtol=0, atol=1e-6)
+    code, cap = _run(["trace", "--species", "raspberry", "--out", str(tmp_path / "x.csv")], capsys)
+    assert code == 1 and "--height" in cap.err

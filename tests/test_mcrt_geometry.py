@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from waveforest.constants import C_M_PER_NS
-from waveforest.mcrt import Beams, EmbreeIntersector, NumpyIntersector, prepare, trace
+from waveforest.mcrt import Beams, DirectEmbreeIntersector, EmbreeIntersector, NumpyIntersector, prepare, trace
+from waveforest.mcrt import rtc
 from waveforest.mcrt import synthetic as syn
 from waveforest.scene import Scene, SceneError
 
@@ -24,11 +25,27 @@ def _random_rays(rng, m):
     return o, d.astype(np.float32)
 
 
-def test_embree_and_numpy_intersectors_agree_on_random_triangles():
+EMBREE_KINDS = {
+    "direct-high": lambda tri: DirectEmbreeIntersector(tri, "high"),
+    "direct-medium": lambda tri: DirectEmbreeIntersector(tri, "medium"),
+    "embreex": EmbreeIntersector,
+}
+
+
+def test_direct_embree_is_available():
+    """The default backend calls Embree from Numba (else it silently falls back, slower)."""
+    assert rtc.available(), rtc.unavailable_reason()
+    assert prepare(syn.plane()).intersector.backend == "embree"
+    assert isinstance(prepare(syn.plane()).intersector, DirectEmbreeIntersector)
+    assert isinstance(prepare(syn.plane(), backend="embreex").intersector, EmbreeIntersector)
+
+
+@pytest.mark.parametrize("kind", list(EMBREE_KINDS))
+def test_embree_and_numpy_intersectors_agree_on_random_triangles(kind):
     rng = np.random.default_rng(1)
     tri = _random_triangles(rng, 300)
     o, d = _random_rays(rng, 3000)
-    te, pe = EmbreeIntersector(tri).intersect(o, d)
+    te, pe = EMBREE_KINDS[kind](tri).intersect(o, d)
     tn, pn = NumpyIntersector(tri).intersect(o, d)
     hit = pn >= 0
     assert 0.2 < hit.mean() < 0.95  # a real mix of hits and misses
@@ -38,7 +55,7 @@ def test_embree_and_numpy_intersectors_agree_on_random_triangles():
     assert np.all(np.isinf(te[pe < 0])) and np.all(np.isinf(tn[pn < 0]))
 
 
-@pytest.mark.parametrize("backend", ["embree", "numpy"])
+@pytest.mark.parametrize("backend", ["embree", "embreex", "numpy"])
 def test_intersect_against_brute_force_geometry(backend):
     # single triangle at z = 1: rays from below straight up, inside / outside the triangle
     tri = np.array([[[0, 0, 1], [1, 0, 1], [0, 1, 1]]], np.float32)
@@ -55,22 +72,24 @@ def test_intersect_against_brute_force_geometry(backend):
     assert short.tolist() == [False]
 
 
-def test_embree_and_numpy_occlusion_agree():
+@pytest.mark.parametrize("kind", list(EMBREE_KINDS))
+def test_embree_and_numpy_occlusion_agree(kind):
     rng = np.random.default_rng(2)
     tri = _random_triangles(rng, 200)
     o, d = _random_rays(rng, 2000)
     tmax = rng.uniform(0.1, 5, 2000).astype(np.float32)
-    oe = EmbreeIntersector(tri).occluded(o, d, tmax)
+    oe = EMBREE_KINDS[kind](tri).occluded(o, d, tmax)
     on = NumpyIntersector(tri).occluded(o, d, tmax)
     assert 0.05 < on.mean() < 0.95
     assert np.mean(oe == on) >= AGREE_FRACTION
 
 
-def test_embree_split_over_threads_is_identical():
+@pytest.mark.parametrize("kind", ["direct-high", "embreex"])
+def test_embree_split_over_threads_is_identical(kind):
     rng = np.random.default_rng(3)
     tri = _random_triangles(rng, 500)
     o, d = _random_rays(rng, 20000)
-    isect = EmbreeIntersector(tri)
+    isect = EMBREE_KINDS[kind](tri)
     t1, p1 = isect.intersect(o, d, threads=1)
     t2, p2 = isect.intersect(o, d, threads=2)
     assert np.array_equal(p1, p2) and np.array_equal(t1, t2)
@@ -88,6 +107,8 @@ def test_prepare_shifts_to_box_centre_and_keeps_properties():
     assert prepare(ps) is ps
     with pytest.raises(ValueError, match="backend"):
         prepare(sc, backend="optix")
+    with pytest.raises(ValueError, match="quality"):
+        prepare(sc, quality="best")
     with pytest.raises(TypeError):
         prepare("scene.ply")
 
@@ -95,12 +116,16 @@ def test_prepare_shifts_to_box_centre_and_keeps_properties():
 def test_intersector_input_validation():
     with pytest.raises(ValueError, match="triangles"):
         EmbreeIntersector(np.zeros((0, 3, 3), np.float32))
+    with pytest.raises(ValueError, match="triangles"):
+        DirectEmbreeIntersector(np.zeros((0, 3, 3), np.float32))
+    with pytest.raises(ValueError, match="quality"):
+        DirectEmbreeIntersector(np.zeros((1, 3, 3), np.float32), "best")
     isect = NumpyIntersector(np.array([[[0, 0, 0], [1, 0, 0], [0, 1, 0]]], np.float32))
     with pytest.raises(ValueError, match=r"\(m, 3\)"):
         isect.intersect(np.zeros((2, 2)), np.zeros((2, 2)))
 
 
-@pytest.mark.parametrize("backend", ["embree", "numpy"])
+@pytest.mark.parametrize("backend", ["embree", "embreex", "numpy"])
 @pytest.mark.parametrize("zenith,rng_m", [(0.0, 1200.0), (15.0, 3000.0)])
 def test_no_stuck_rays_on_a_single_sheet(backend, zenith, rng_m):
     """A ray leaving a surface must not re-hit it: a lone sheet scatters exactly once."""
@@ -112,7 +137,8 @@ def test_no_stuck_rays_on_a_single_sheet(backend, zenith, rng_m):
     assert np.all(res.order_totals[0, 1:] == 0)
 
 
-def test_stuck_rays_in_a_closed_box_keep_scattering():
+@pytest.mark.parametrize("backend", ["embree", "embreex"])
+def test_stuck_rays_in_a_closed_box_keep_scattering(backend):
     """Inside a closed cube every scattered ray must hit another wall (none escapes, none
     re-hits its own wall at t ~ 0): with rho = 1 the power is conserved order after order."""
     faces = []
@@ -124,7 +150,7 @@ def test_stuck_rays_in_a_closed_box_keep_scattering():
             tri[..., axis] = sgn
             faces.append(Scene(tri.astype(np.float32), 1.0, 0.0, 3))
     box = Scene.concat(faces)
-    ps = prepare(box)
+    ps = prepare(box, backend=backend)
     from waveforest.mcrt.kernels import BeamFrame, Rays, beam_keys, scatter
 
     m = 5000

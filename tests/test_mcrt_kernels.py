@@ -18,6 +18,7 @@ pytestmark = pytest.mark.filterwarnings("ignore:overflow encountered:RuntimeWarn
 
 REF_RTOL = 1e-6  # float32 Embree frame vs float64 reference
 KS_P = 1e-3  # smallest accepted Kolmogorov-Smirnov p-value of a sampling law
+VAR_P = 1e-3  # two-sided tail probability of the chi-square test of a Monte Carlo variance
 N_SE = 4.0
 
 
@@ -33,7 +34,7 @@ def _beams():
                  [np.nan, np.linalg.norm(far)])
 
 
-@pytest.mark.parametrize("backend", ["numpy", "embree"])
+@pytest.mark.parametrize("backend", ["numpy", "embree", "embreex"])
 @pytest.mark.parametrize("specular,hotspot", [(0.0, 1.0), (0.3, 1.3)])
 def test_kernels_match_the_numpy_reference(small_canopy, backend, specular, hotspot):
     beams = _beams()
@@ -98,18 +99,22 @@ def test_same_seed_identical_whatever_threads_and_chunks(small_canopy):
 
 
 def test_different_seeds_differ_by_the_monte_carlo_error():
-    rho, tau, rho_g, n = 0.47, 0.5, 0.3, 20000
+    """Across seeds, the order-3 total of a sheet over a ground scatters with the binomial
+    Monte Carlo variance: its sample variance lies in the chi-square interval of that variance."""
+    rho, tau, rho_g, n, k = 0.47, 0.5, 0.3, 5000, 12
     sc = prepare(syn.sheet_over_ground(40.0, 0.05, rho, tau, rho_g))
     beams = Beams.toward([0, 0, 0.05], 1000.0, footprint_m=0.2)
-    a = trace(sc, beams, n_rays=n, max_order=3, viewed_diameter_m=30.0, seed=1)
-    b = trace(sc, beams, n_rays=n, max_order=3, viewed_diameter_m=30.0, seed=2)
-    assert not np.array_equal(a.sigma, b.sigma)
+    runs = [trace(sc, beams, n_rays=n, max_order=3, viewed_diameter_m=30.0, seed=s) for s in range(k)]
+    assert not np.array_equal(runs[0].sigma, runs[1].sigma)
     # order 3: a ray contributes c with probability p = tau / (rho + tau)
     p = tau / (rho + tau)
     c = (rho + tau) * rho_g * tau / math.pi
-    se = c * math.sqrt(p * (1 - p) / n)
-    diff = a.order_totals[0, 2] - b.order_totals[0, 2]
-    assert 0 < abs(diff) < N_SE * math.sqrt(2) * se
+    var = c**2 * p * (1 - p) / n
+    got = np.array([r.order_totals[0, 2] for r in runs])
+    assert abs(got.mean() - c * p) < N_SE * math.sqrt(var / k)
+    ratio = got.var(ddof=1) / var  # ~ chi2(k - 1) / (k - 1)
+    lo, hi = stats.chi2.ppf([VAR_P / 2, 1 - VAR_P / 2], k - 1) / (k - 1)
+    assert lo < ratio < hi, f"sample variance / binomial variance = {ratio:.3g}, expected in ({lo:.3g}, {hi:.3g})"
 
 
 def _plane_rays(m, zenith_deg=0.0):

@@ -6,6 +6,7 @@ rule diagnose:
         selected=expand(result("select", "{dataset}.parquet"), dataset=COMPARE_DATASETS),
         real=expand(result("features", "{dataset}_real.parquet"), dataset=COMPARE_DATASETS),
         calibration=expand(result("calibration", "{dataset}.json"), dataset=COMPARE_DATASETS),
+        system=expand(result("calibration", "{dataset}.parquet"), dataset=COMPARE_DATASETS),
         table3=result("compare", "table3.csv"),
         fields=campaign_file("fields.csv"),
         datasets=campaign_file("datasets.csv"),
@@ -14,9 +15,15 @@ rule diagnose:
         candidates=result("diagnose", "candidates.csv"),
         gap=result("diagnose", "gap_before_after.csv"),
         figure=result("diagnose", "gap.png"),
+        signatures=result("diagnose", "signatures.csv"),
+        summary=result("diagnose", "diagnose.md"),
     params:
         diagnose=config["diagnose"],
+        simulate=config["simulate"],
         mcrt=config["mcrt"],
+        vegetation=config["vegetation"],
+        sensor=config["sensor"],
+        seed=config["seed"],
         out=output_dir,
         campaign=campaign_dir,
         config=CONFIG_FILE,
@@ -29,5 +36,5 @@ rule diagnose:
     threads: 2
     shell:
         "waveforest diagnose --selected {input.selected} --features-real {input.real} "
-        "--calibration {input.calibration} --campaign {params.campaign} --out {params.out} "
-        "--threads {threads} --config {params.config} > {log} 2>&1"
+        "--calibration {input.calibration} --system {input.system} --campaign {params.campaign} "
+        "--out {params.out} --threads {threads} --config {params.config} > {log} 2>&1"

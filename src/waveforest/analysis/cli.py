@@ -117,7 +117,7 @@ def simulate(selected, fields, datasets, system, calibration, chunk, chunks, eff
 @click.option("--out", type=_DIR, required=True, help="Output folder (table3.csv, table3.md, fig6_*, fig7_*).")
 @stage_options
 def compare(real, sim, pulses_real, pulses_sim, out, cfg):
-    """Real vs simulated features: the Table 3 analogue and Figs. 6-7 (METHOD.md i1)."""
+    """Real vs simulated features: the Table 3 analogue and Figures 6-7 (METHOD.md i1)."""
     from .compare import run
 
     r = run(real, sim, pulses_real, pulses_sim, out, cfg)

@@ -33,7 +33,6 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import sys
 import tempfile
 import time
 from dataclasses import dataclass, field
@@ -42,10 +41,9 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pyarrow as pa
-from tqdm import tqdm
 
 from .. import __version__
-from ..constants import BIN_NS, RANGE_PER_NS
+from ..constants import RANGE_PER_NS
 from ..effects import CATALOGUE, active, parse_effects
 from ..errors import WaveforestError
 from ..io.tables import PULSE_SCHEMA, padded_to_list, write_table
@@ -54,16 +52,13 @@ from .flight import plan_flight, site_pulses
 from .layout import FIELD_COLUMNS, TARGET_COLUMNS, build_layout
 from .params import CAMPAIGN_RESOURCES, load_datasets, load_layout
 from .readme import readme_text
-from .rng import generator, int_seed
-from .scenes import TARGET_RAYS, sample_scene, target_scene
-from .truth_sensor import MAX_ECHOES, TruthSensor, record, unit_gain_peaks
+from .rng import generator
+from .site_trace import SiteJob, TraceSettings, trace_sites
+from .truth_sensor import MAX_ECHOES, TruthSensor, record
 
 VEGETATION_EFFECTS = ("understory", "clumping", "lad_shift", "leaf_albedo")
 MCRT_EFFECTS = ("specular", "hotspot")
 SENSOR_EFFECTS = ("noise_autocorr", "nonlinearity", "trigger_loss")
-
-SIGMA_TRIM_REL = 1e-6
-"""sigma(t) bins at the ends of a site's batch below this fraction of its largest bin are not kept."""
 
 DIGITIZER_GAIN, DIGITIZER_OFFSET = 1.0, 0.0
 """Waveform packet descriptor: volts per DN and volts at DN 0 (the ALS60's are not published)."""
@@ -125,15 +120,6 @@ def _sites_table(fields: pd.DataFrame, targets: pd.DataFrame, year: int, margin:
         pd.DataFrame({"site": t["target_id"].to_numpy(), "s": t["s"].to_numpy(), "w": t["w"].to_numpy(),
                       "ground_z": t["z"].to_numpy(), "disc_m": t["radius_m"].to_numpy() + margin}),
     ], ignore_index=True)
-
-
-def _trim(sigma: np.ndarray) -> tuple[int, np.ndarray]:
-    peak = sigma.max() if sigma.size else 0.0
-    if peak <= 0:
-        return 0, np.zeros((sigma.shape[0], 1), dtype=np.float32)
-    cols = np.flatnonzero(sigma.max(axis=0) > SIGMA_TRIM_REL * peak)
-    a, b = int(cols[0]), int(cols[-1]) + 1
-    return a, sigma[:, a:b].astype(np.float32)
 
 
 def _swap_in(tmp: Path, out: Path) -> None:
@@ -222,7 +208,8 @@ def run(cfg: dict, out_dir: str | os.PathLike, effects=None, seed: int | None = 
         p.insert(0, "dataset", ds)
         p["year"] = year
         pulses[ds] = p
-    timings = {"plan": time.perf_counter() - t_start, "scenes": 0.0, "trace": 0.0, "record_write": 0.0}
+    timings = {"plan": time.perf_counter() - t_start, "sites_wall": 0.0, "scenes": 0.0, "trace": 0.0,
+               "record_write": 0.0}
     allp = pd.concat(pulses.values(), ignore_index=True)
     if allp.empty:
         raise SynthesizeError("no pulse reaches any site (check density_scale and the layout)")
@@ -309,59 +296,58 @@ def _site_info(fields: pd.DataFrame, targets: pd.DataFrame, margin: float) -> pd
 
 def _trace_sites(allp: pd.DataFrame, site_info: pd.DataFrame, datasets: pd.DataFrame, sensors: dict, cfg: dict,
                  eff: dict, seed: int, timings: dict, progress: bool):
-    """Build each site's true scene once and trace all its pulses of all datasets in one call.
+    """Build each site's true scene once and trace all its pulses of all datasets in one call
+    (:mod:`.site_trace`; the sites are shared over Numba's thread count of worker threads).
 
     Returns the unit-gain analog peak of every pulse (per dataset, by row), the trimmed
-    sigma(t) batches per dataset ``(site, rows, sigma, t0_ns, range_m)`` and the true cover
-    (share of first hits on vegetation) of every traced sample.
+    sigma(t) batches per dataset ``(site, rows, sigma, t0_ns, range_m)`` in site order and
+    the true cover (share of first hits on vegetation) of every traced sample.
     """
-    from ..mcrt import Beams, prepare, trace
+    import numba
 
     camp, vcfg = cfg["campaign"], cfg["vegetation"]
-    veg_eff = {k: eff[k] for k in VEGETATION_EFFECTS}
-    divergence = datasets.set_index("dataset")["divergence_mrad"]
-    groups = allp.groupby("site", sort=False).indices
     names = list(datasets["dataset"])
+    ds_index = {ds: i for i, ds in enumerate(names)}
+    divergence = datasets.set_index("dataset")["divergence_mrad"]
+    settings = TraceSettings(
+        seed=seed, n_rays=int(camp["n_rays"]), max_order=int(camp["max_order"]),
+        viewed_diameter_m=float(camp["viewed_diameter_m"]), specular=float(eff["specular"]),
+        hotspot=float(eff["hotspot"]), trigger_loss=float(eff["trigger_loss"]),
+        ground_rho=float(vcfg["ground_rho"]), lai_jitter=float(vcfg["lai_jitter"]),
+        vegetation_effects=tuple((k, float(eff[k])) for k in VEGETATION_EFFECTS),
+        sensors=tuple(sensors[ds] for ds in names), bvh_quality=str(camp["bvh_quality"]))
+    groups = allp.groupby("site", sort=False).indices
+    sites = [s for s in site_info.index if s in groups]
+    jobs = []
+    for site in sites:
+        info = site_info.loc[site]
+        sub = allp.iloc[groups[site]]
+        origin = sub[["sensor_x", "sensor_y", "sensor_z"]].to_numpy() - np.array([info["x"], info["y"], info["z"]])
+        jobs.append(SiteJob(
+            site=site, kind=str(info["kind"]), species=str(info["species"]), height_m=float(info["height_m"]),
+            rho=float(info["rho"]), side_m=float(info["side_m"]), on_ground_rho=float(info["on_ground_rho"]),
+            reach_m=float(info["disc_m"]) + 1.0, origin=origin,
+            direction=sub[["dir_x", "dir_y", "dir_z"]].to_numpy(),
+            divergence_mrad=divergence.loc[sub["dataset"]].to_numpy(dtype=float),
+            range_m=sub["range_ground_m"].to_numpy(),
+            dataset=sub["dataset"].map(ds_index).to_numpy(np.int64), rows=sub["row"].to_numpy(np.int64)))
+    t0 = time.perf_counter()
+    results = trace_sites(jobs, settings, workers=max(1, int(numba.get_num_threads())), progress=progress)
+    timings["sites_wall"] = time.perf_counter() - t0
+    timings["scenes"] = sum(r.scene_s for r in results.values())
+    timings["trace"] = sum(r.trace_s for r in results.values())
+
     a0 = {ds: np.zeros(int(np.sum(allp["dataset"] == ds))) for ds in names}
     batches = {ds: [] for ds in names}
     cover_true = {}
-    bar = tqdm([s for s in site_info.index if s in groups], desc="synthesize: sites", unit="site",
-               file=sys.stderr, disable=not progress)
-    for site in bar:
-        info = site_info.loc[site]
-        sub = allp.iloc[groups[site]]
-        t_site = time.perf_counter()
-        if info["kind"] == "sample":
-            scene = sample_scene(info["species"], info["height_m"], seed, site, ground_rho=float(vcfg["ground_rho"]),
-                                 lai_jitter=float(vcfg["lai_jitter"]), vegetation_effects=veg_eff)
-            n_rays = int(camp["n_rays"])
-        else:
-            scene = target_scene(float(info["rho"]), float(info["side_m"]), float(info["on_ground_rho"]),
-                                 float(info["disc_m"]) + 1.0)
-            n_rays = min(TARGET_RAYS, int(camp["n_rays"]))
-        origin = sub[["sensor_x", "sensor_y", "sensor_z"]].to_numpy() - np.array([info["x"], info["y"], info["z"]])
-        beams = Beams.from_divergence(origin, sub[["dir_x", "dir_y", "dir_z"]].to_numpy(),
-                                      divergence.loc[sub["dataset"]].to_numpy(dtype=float),
-                                      sub["range_ground_m"].to_numpy())
-        prepared = prepare(scene)
-        t_trace = time.perf_counter()
-        timings["scenes"] += t_trace - t_site
-        res = trace(prepared, beams, n_rays=n_rays, max_order=int(camp["max_order"]), bin_ns=BIN_NS,
-                    viewed_diameter_m=float(camp["viewed_diameter_m"]), seed=int_seed(seed, "trace", site),
-                    specular=eff["specular"], hotspot=eff["hotspot"])
-        if info["kind"] == "sample":
-            fh = res.first_hit_counts.astype(np.float64)
-            cover_true[site] = float(np.mean(fh[:, 1:4].sum(axis=1) / fh.sum(axis=1)))
-        for ds in sub["dataset"].unique():
-            sel = np.flatnonzero(sub["dataset"].to_numpy() == ds)
-            rows = sub["row"].to_numpy()[sel]
-            b0, sig = _trim(res.sigma[sel])
-            t0 = res.t0_ns[sel] + b0 * BIN_NS
-            rg = sub["range_ground_m"].to_numpy()[sel]
-            a0[ds][rows] = unit_gain_peaks(sensors[ds], sig, t0, rg, trigger_loss=eff["trigger_loss"])
-            batches[ds].append((site, rows, sig, t0, rg))
-        timings["trace"] += time.perf_counter() - t_trace
-    bar.close()
+    for site in sites:  # site order, whatever order the workers finished in
+        r = results[site]
+        if r.cover is not None:
+            cover_true[site] = r.cover
+        for i, part in sorted(r.parts.items()):
+            ds = names[i]
+            a0[ds][part.rows] = part.a0_dn
+            batches[ds].append((site, part.rows, part.sigma, part.t0_ns, part.range_m))
     return a0, batches, cover_true
 
 

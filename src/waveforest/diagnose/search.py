@@ -286,6 +286,9 @@ class SearchResult:
         Simulator calls (each over one half, all replicates).
     halves : dict
         ``{"A": [sample ids], "B": [...]}``.
+    simulations : _Simulations
+        The cache of every simulation run (``.all(effects)`` gives all samples under a
+        model, simulating only what is not cached).
     """
 
     verdict: str
@@ -297,6 +300,7 @@ class SearchResult:
     reason: str
     n_simulations: int
     halves: dict
+    simulations: "_Simulations" = field(default=None, repr=False)
 
     @property
     def effects(self) -> dict[str, float]:
@@ -310,20 +314,36 @@ class SearchResult:
 
 
 def split_samples(keys: pd.DataFrame, seed) -> tuple[list[str], list[str]]:
-    """Random halves of the field samples, within each species (A gets the odd one).
+    """Random halves of the field samples, stratified by species and datasets.
+
+    A stratum is a species and the set of datasets its samples appear in (the samples of a
+    year are seen by that year's datasets), so every dataset x species cell gets about half
+    of its samples in each half. Odd strata give their extra sample alternately to A and B.
+
+    Parameters
+    ----------
+    keys : DataFrame
+        Pulses with dataset, sample_id and species.
 
     Returns
     -------
     a, b : list of str
-        Sample ids.
+        Sample ids, sorted.
     """
     uni = _gap.sample_universe(keys)
+    seen = keys.assign(sample_id=keys["sample_id"].astype(str), dataset=keys["dataset"].astype(str))
+    seen = seen.groupby("sample_id")["dataset"].agg(lambda d: ",".join(sorted(set(d))))
+    stratum = uni.astype(str) + "|" + seen.reindex(uni.index).fillna("").astype(str)
     rng = np.random.default_rng(seed)
     a, b = [], []
-    for sp in sorted(uni.unique()):
-        ids = np.array(sorted(uni.index[uni.to_numpy() == sp]))
+    extra_to_a = True
+    for st in sorted(stratum.unique()):
+        ids = np.array(sorted(stratum.index[stratum.to_numpy() == st]))
         rng.shuffle(ids)
-        k = (len(ids) + 1) // 2
+        k = len(ids) // 2
+        if len(ids) % 2:
+            k += int(extra_to_a)
+            extra_to_a = not extra_to_a
         a += ids[:k].tolist()
         b += ids[k:].tolist()
     return sorted(a), sorted(b)
@@ -432,7 +452,7 @@ class _Simulations:
 
     def all(self, effects: dict[str, float]) -> pd.DataFrame:
         """Simulated features of all samples (both halves) under ``effects``."""
-        return pd.concat([self.get(h, effects) for h in HALVES], ignore_index=True)
+        return pd.concat([self.get(h, effects) for h in HALVES if len(self.halves[h])], ignore_index=True)
 
 
 @dataclass
@@ -590,8 +610,8 @@ def search(
     real = real.assign(sample_id=real["sample_id"].astype(str))
     s_split, s_a, s_b, s_wa, s_wb, s_all = np.random.SeedSequence(seed).generate_state(6)
     ids = dict(zip(HALVES, split_samples(keys, s_split)))
-    if not ids["A"] or not ids["B"]:
-        raise WaveforestError("diagnose: need at least two field samples per species to split them in halves")
+    if not ids["A"] and not ids["B"]:
+        raise WaveforestError("diagnose: no field sample to diagnose")
     halves_keys = {h: keys[keys["sample_id"].isin(ids[h])].reset_index(drop=True) for h in HALVES}
     halves = {}
     for h, s_w in zip(HALVES, (s_wa, s_wb)):
@@ -612,8 +632,16 @@ def search(
     named: list[NamedEffect] = []
     rows, curves = [], []
     reason = ""
-    for rnd in range(1, settings.rounds + 1):
-        todo = [c for c in settings.candidates if c not in current]
+    thin = [h for h in HALVES if not ids[h] or not ctx.data(h, {}).valid.any()]
+    rounds = settings.rounds
+    if thin:
+        rounds = 0
+        reason = (f"half {thin[0]} of the field samples has no dataset x species cell with at least "
+                  f"{settings.min_pulses} pulses from {settings.min_samples} samples: too few field samples "
+                  "to fit and test candidates on separate halves")
+    for rnd in range(1, rounds + 1):
+        # effects that keep the plants first: they share the current model's cached scenes
+        todo = sorted((c for c in settings.candidates if c not in current), key=lambda c: not cat.reuses_vegetation(c))
         if not todo:
             reason = "every candidate is in the model"
             break
@@ -667,4 +695,5 @@ def search(
     return SearchResult(
         verdict=verdict, named=named, candidates=pd.DataFrame(rows), curves=pd.DataFrame(curves),
         baseline=baseline, residual=residual, reason=reason, n_simulations=sims.calls, halves=ids,
+        simulations=sims,
     )

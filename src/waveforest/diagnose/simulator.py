@@ -38,7 +38,11 @@ WAVEFORM_FEATURES = ("Npeaks", "Apeak", "FWHM", "E")
 """Features restricted by ``simulate.compare_min_h_m`` (all but H)."""
 
 SCENE_CACHE_SIZE = 512
-"""Most prepared scenes kept (least recently used dropped first)."""
+"""Most prepared scenes kept (least recently used dropped first) ..."""
+
+SCENE_CACHE_TRIANGLES = 12_000_000
+"""... and most triangles in them (a prepared scene with its Embree BVH takes roughly
+100 bytes per triangle; a low-species plot has ~200 000 triangles)."""
 
 
 def apply_rules(features: pd.DataFrame, cfg: dict) -> pd.DataFrame:
@@ -71,11 +75,22 @@ def apply_rules(features: pd.DataFrame, cfg: dict) -> pd.DataFrame:
     return df.reset_index(drop=True)
 
 
+def _is_tree_model(species: str) -> bool:
+    """Whether ``build_scene`` grows the understory layer under this species (tree models)."""
+    from ..vegetation import species_table
+
+    t = species_table()
+    row = t[t["slug"] == species]
+    return bool(row["model"].iloc[0] == "tree") if len(row) else True
+
+
 class _SceneCache:
     """``scene_builder`` for ``simulate_pulses`` that returns cached prepared scenes."""
 
-    def __init__(self, size: int = SCENE_CACHE_SIZE):
+    def __init__(self, size: int = SCENE_CACHE_SIZE, triangles: int = SCENE_CACHE_TRIANGLES):
         self.size = size
+        self.max_triangles = triangles
+        self.triangles = 0
         self.scenes: OrderedDict = OrderedDict()
         self.built = 0
         self.hits = 0
@@ -84,7 +99,10 @@ class _SceneCache:
         from ..mcrt import prepare
         from ..vegetation import build_scene
 
-        key = (str(species), float(height), int(seed), tuple(sorted((k, float(v)) for k, v in kwargs.items())))
+        kw = {k: float(v) for k, v in kwargs.items()}
+        if kw.get("understory", 0.0) and not _is_tree_model(str(species)):
+            kw.pop("understory")  # grows under trees only (vegetation.build_scene): same plant
+        key = (str(species), float(height), int(seed), tuple(sorted(kw.items())))
         if key in self.scenes:
             self.scenes.move_to_end(key)
             self.hits += 1
@@ -92,8 +110,10 @@ class _SceneCache:
         scene = prepare(build_scene(species, height, seed, **kwargs))
         self.built += 1
         self.scenes[key] = scene
-        if len(self.scenes) > self.size:
-            self.scenes.popitem(last=False)
+        self.triangles += len(scene.scene)
+        while len(self.scenes) > 1 and (len(self.scenes) > self.size or self.triangles > self.max_triangles):
+            _, old = self.scenes.popitem(last=False)
+            self.triangles -= len(old.scene)
         return scene
 
 
@@ -111,13 +131,19 @@ class StudySimulator:
     cfg : dict
         Loaded study config.
     n_rays : int, optional
-        MCRT rays per pulse (default ``diagnose.n_rays``, else ``mcrt.n_rays``).
+        MCRT rays per pulse (default ``diagnose.n_rays``, at most ``mcrt.n_rays``).
     threads : int, optional
         Threads of each MCRT call.
+    base_effects : dict, optional
+        Effects of the base model (``simulate.effects``), under every call's ``effects``.
+    range_correction : bool
+        Apply the calibration's CFD range correction to the features' own CFD echoes (as
+        the ``features`` stage does with ``sensor.cfd.range_correction``).
     """
 
     def __init__(self, selected: dict, datasets: pd.DataFrame, calibrations: dict, cfg: dict, *,
-                 n_rays: int | None = None, threads: int | None = None):
+                 n_rays: int | None = None, threads: int | None = None, base_effects: dict | None = None,
+                 range_correction: bool = True):
         from ..analysis.campaign_tables import dataset_row
 
         self.selected = selected
@@ -127,7 +153,9 @@ class StudySimulator:
             raise WaveforestError(f"diagnose: no calibration for dataset(s) {', '.join(missing)}")
         self.calibrations = calibrations
         self.cfg = cfg
-        self.n_rays = int(n_rays or cfg["diagnose"].get("n_rays") or cfg["mcrt"]["n_rays"])
+        self.n_rays = int(n_rays or min(cfg["diagnose"].get("n_rays") or cfg["mcrt"]["n_rays"], cfg["mcrt"]["n_rays"]))
+        self.base_effects = dict(base_effects or {})
+        self.range_correction = bool(range_correction)
         self.threads = threads
         self.scenes = _SceneCache()
         self.pulses_simulated = 0
@@ -137,6 +165,8 @@ class StudySimulator:
         c["seed"] = int(seed) % 2**63
         c["mcrt"]["n_rays"] = self.n_rays
         c["simulate"]["max_pulses"] = None
+        c["simulate"]["instances_per_sample"] = self.cfg["diagnose"].get("instances_per_sample",
+                                                                         c["simulate"]["instances_per_sample"])
         return c
 
     def __call__(self, pulses: pd.DataFrame, effects: dict, seed: int) -> pd.DataFrame:
@@ -160,14 +190,15 @@ class StudySimulator:
             table = self.selected[ds]
             ids = pa.array(rows["pulse_id"].to_numpy(np.int64))
             sub = table.filter(pc.is_in(table.column("pulse_id"), value_set=ids))
-            sim, _ = simulate_pulses(sub, self.info[ds], self.calibrations[ds][0], cfg, effects=dict(effects),
+            sim, _ = simulate_pulses(sub, self.info[ds], self.calibrations[ds][0], cfg,
+                                     effects={**self.base_effects, **effects},
                                      progress=False, threads=self.threads, scene_builder=self.scenes)
             self.pulses_simulated += sub.num_rows
             if sim.num_rows == 0:
                 continue
             meta = self.calibrations[ds][1]
-            feats = feature_table(sim, {ds: meta}, params, cfd=cfd,
-                                  range_corrections={ds: range_correction_of(meta)})
+            rc = {ds: range_correction_of(meta)} if self.range_correction else None
+            feats = feature_table(sim, {ds: meta}, params, cfd=cfd, range_corrections=rc)
             parts.append(feats)
         if not parts:
             raise WaveforestError("diagnose: the simulation produced no pulse with an echo")

@@ -9,18 +9,20 @@ Public API::
     res.sigma, res.t0_ns, res.bin_ns, res.order_totals, res.first_hit_counts
 
 Modules: :mod:`.beams` (pulses), :mod:`.embree` (intersectors, :func:`prepare`),
-:mod:`.kernels` (Numba kernels), :mod:`.tracer` (wavefront orchestration),
+:mod:`.rtc` (Embree called from Numba), :mod:`.kernels` (Numba kernels), :mod:`.tracer` (wavefront orchestration),
 :mod:`.synthetic` (scenes with analytic answers), :mod:`.runner` (the ``trace`` stage).
 """
 
 from .beams import Beams, direction_from_angles
 from .embree import EmbreeIntersector, NumpyIntersector, PreparedScene, prepare
+from .rtc import DirectEmbreeIntersector
 from .tracer import DEFAULT_WINDOW_NS, TraceResult, trace
 
 __all__ = [
     "Beams",
     "direction_from_angles",
     "EmbreeIntersector",
+    "DirectEmbreeIntersector",
     "NumpyIntersector",
     "PreparedScene",
     "prepare",

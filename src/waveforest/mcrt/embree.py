@@ -8,9 +8,9 @@ box), so that Embree's float32 arithmetic works on numbers of a few metres whate
 scene's coordinates are. Rays start at ``t = 0`` (Embree's ``tnear``); callers offset new
 origins from the surface they leave by :data:`waveforest.constants.RAY_EPS_M`.
 
-embreex runs its per-ray loop with the GIL released, so an Embree call is split over
-``threads`` Python threads (one slice of the rays each); on the 2-core machine this halves
-the wall time of a call (``benchmarks/mcrt.py`` prints both).
+The default intersector calls Embree from Numba kernels (:mod:`waveforest.mcrt.rtc`), with a
+BVH of HIGH build quality. :class:`EmbreeIntersector` uses embreex's ``run`` instead, which runs
+its per-ray loop with the GIL released, so a call is split over ``threads`` Python threads.
 """
 
 from __future__ import annotations
@@ -65,7 +65,10 @@ def _check_rays(origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray
 
 
 class EmbreeIntersector:
-    """Nearest-hit and occlusion queries on an Embree 4 BVH (embreex).
+    """Nearest-hit and occlusion queries on an Embree 4 BVH through embreex's ``run``.
+
+    The fallback of :func:`prepare` when Embree cannot be called directly
+    (:mod:`waveforest.mcrt.rtc`), and a cross-check of the direct path in the tests.
 
     Parameters
     ----------
@@ -73,7 +76,7 @@ class EmbreeIntersector:
         Triangles in the internal frame (a few metres around the origin).
     """
 
-    backend = "embree"
+    backend = "embreex"
 
     def __init__(self, triangles: np.ndarray) -> None:
         from embreex import rtcore_scene as rtcs
@@ -224,8 +227,23 @@ class NumpyIntersector:
         return out
 
 
-BACKENDS = {"embree": EmbreeIntersector, "numpy": NumpyIntersector}
-"""Intersector classes by name (:func:`prepare`'s ``backend``)."""
+def _embree(triangles: np.ndarray, quality: str):
+    """The direct Embree intersector, or embreex's ``run`` if libembree4 cannot be called."""
+    from . import rtc
+
+    if rtc.available():
+        return rtc.DirectEmbreeIntersector(triangles, quality)
+    return EmbreeIntersector(triangles)
+
+
+BACKENDS = {
+    "embree": _embree,
+    "embreex": lambda triangles, quality: EmbreeIntersector(triangles),
+    "numpy": lambda triangles, quality: NumpyIntersector(triangles),
+}
+"""Intersector factories by name (:func:`prepare`'s ``backend``): ``embree`` calls Embree from
+Numba kernels (:mod:`waveforest.mcrt.rtc`; embreex's ``run`` if that is unavailable),
+``embreex`` always uses embreex's ``run``, ``numpy`` is the brute-force reference."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -238,7 +256,7 @@ class PreparedScene:
     ----------
     scene : Scene
         The scene (local coordinates).
-    intersector : EmbreeIntersector or NumpyIntersector
+    intersector : DirectEmbreeIntersector, EmbreeIntersector or NumpyIntersector
         Works in the internal frame ``local - shift``.
     shift : (3,) float64, m
         Centre of the scene's bounding box; internal = local - shift.
@@ -281,15 +299,25 @@ class PreparedScene:
         return self.intersector.backend
 
 
-def prepare(scene: Scene | PreparedScene, backend: str = "embree") -> PreparedScene:
+def _box(triangles: np.ndarray) -> np.ndarray:
+    """(2, 3) float64 [min, max] of (n, 3, 3) vertices (axis by axis: NumPy reduces a
+    contiguous row far faster than a strided column)."""
+    v = np.ascontiguousarray(triangles.reshape(-1, 3).T)
+    return np.stack([v.min(axis=1), v.max(axis=1)]).astype(np.float64)
+
+
+def prepare(scene: Scene | PreparedScene, backend: str = "embree", quality: str | None = None) -> PreparedScene:
     """Build the intersector (Embree BVH or NumPy) and the per-triangle arrays of ``scene``.
 
     Parameters
     ----------
     scene : Scene or PreparedScene
         A prepared scene is returned unchanged.
-    backend : {"embree", "numpy"}
-        ``numpy`` is a slow brute-force intersector for small geometric tests.
+    backend : {"embree", "embreex", "numpy"}
+        See :data:`BACKENDS`; ``numpy`` is a slow brute-force intersector for small tests.
+    quality : {"low", "medium", "high"}, optional
+        Embree BVH build quality of the ``embree`` backend (default
+        :data:`waveforest.mcrt.rtc.DEFAULT_QUALITY`).
 
     Returns
     -------
@@ -303,22 +331,26 @@ def prepare(scene: Scene | PreparedScene, backend: str = "embree") -> PreparedSc
         raise SceneError("scene: no triangles")
     if backend not in BACKENDS:
         raise ValueError(f"backend: expected one of {', '.join(BACKENDS)}, got {backend!r}")
-    bounds = scene.bounds
+    from .rtc import DEFAULT_QUALITY, QUALITIES
+
+    quality = DEFAULT_QUALITY if quality is None else quality
+    if quality not in QUALITIES:
+        raise ValueError(f"quality: expected one of {', '.join(QUALITIES)}, got {quality!r}")
+    bounds = _box(scene.triangles)
     shift = 0.5 * (bounds[0] + bounds[1])
     internal = (scene.triangles.astype(np.float64) - shift).astype(np.float32)
     t = internal.astype(np.float64)
     nrm = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
-    length = np.linalg.norm(nrm, axis=1, keepdims=True)
+    length = np.sqrt(np.einsum("ij,ij->i", nrm, nrm))[:, None]
     tri_data = np.zeros((len(scene), 8))
     tri_data[:, :3] = np.where(length > 0, nrm / np.where(length > 0, length, 1.0), 0.0)
     tri_data[:, 3] = scene.rho
     tri_data[:, 4] = scene.tau
     tri_data[:, 5] = scene.kind
-    v = t.reshape(-1, 3)
     return PreparedScene(
         scene=scene,
-        intersector=BACKENDS[backend](internal),
+        intersector=BACKENDS[backend](internal, quality),
         shift=shift,
         tri_data=tri_data,
-        bounds=np.stack([v.min(axis=0), v.max(axis=0)]),
+        bounds=_box(internal),
     )

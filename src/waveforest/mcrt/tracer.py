@@ -20,12 +20,18 @@ Randomness: a counter-based generator keyed by (seed, pulse index in the call, r
 draw) (:mod:`.kernels`), so the same seed gives the identical result whatever the threads,
 the chunking and the parallel mode.
 
-Threads (``parallel``): ``pulses`` (default) runs chunks of pulses concurrently, one serial
-wavefront per thread; ``rays`` splits every Embree call (embreex releases the GIL) and Numba
-kernel (``prange``) of one wavefront. ``benchmarks/mcrt.py`` times both.
+Embree: the default intersector calls ``rtcIntersect1`` / ``rtcOccluded1`` from Numba kernels
+(:mod:`.rtc`) on a BVH of HIGH build quality; profiled on the vegetation scenes (30,000 rays,
+10 orders), the Embree calls take ~80 % of the CPU time of a pulse, the scattering kernel
+~13 %, emission, compaction, binning and Python the rest.
 
-Scene reuse: building the Embree BVH of a ~180,000-triangle canopy costs about as much as
-tracing two or three pulses; trace many pulses per :func:`prepare` d scene where that is
+Threads (``parallel``): ``pulses`` (default) runs chunks of pulses concurrently, one serial
+wavefront per thread (Embree calls and kernels are ``nogil``); ``rays`` splits every Embree
+call and Numba kernel of one wavefront over the threads (``prange``). ``benchmarks/mcrt.py``
+times both: ``pulses`` is the faster on 2 cores (less synchronisation per order).
+
+Scene reuse: building the Embree BVH of a ~200,000-triangle scene costs about as much as
+tracing three to five pulses; trace many pulses per :func:`prepare` d scene where that is
 statistically sound (a pool of instances with random placement), as the calling stage decides.
 """
 
@@ -41,6 +47,7 @@ from ..effects import CATALOGUE, SPECULAR_PHONG_EXPONENT
 from ..scene import Scene
 from .beams import Beams
 from .embree import PreparedScene, prepare
+from .rtc import NumbaThreads
 from .kernels import (MISS_KIND, BeamFrame, Scattered, accumulate, beam_keys, compact, emit_rays,
                       scatter)
 
@@ -56,6 +63,14 @@ START_MARGIN_M = 0.05
 
 CHUNK_RAYS = 240_000
 """Rays per wavefront (pulses are traced in chunks of ``CHUNK_RAYS // n_rays``)."""
+
+HIGH_QUALITY_MIN_PULSES = 12
+"""``trace`` of an unprepared scene builds a HIGH-quality BVH from this many pulses on, else a
+MEDIUM one (on the vegetation scenes HIGH costs ~0.3 s more CPU to build and saves ~20 ms
+of CPU per pulse, ``benchmarks/mcrt.py``)."""
+
+CHUNKS_PER_WORKER = 4
+"""In ``parallel="pulses"``, pulses are split into about this many chunks per thread."""
 
 PARALLEL_MODES = ("pulses", "rays")
 """How ``trace`` uses its threads: whole chunks of pulses per thread, or every call split."""
@@ -258,7 +273,8 @@ def trace(scene: Scene | PreparedScene, beams: Beams, n_rays: int = 30000, max_o
     Parameters
     ----------
     scene : Scene or PreparedScene
-        Triangles with rho, tau, kind; prepare it once (:func:`prepare`) to trace it often.
+        Triangles with rho, tau, kind; prepare it once (:func:`prepare`) to trace it often
+        (a Scene is prepared here, its BVH quality chosen by :data:`HIGH_QUALITY_MIN_PULSES`).
     beams : Beams
         The pulses: sensor positions, unit directions, 1/e footprints.
     n_rays : int
@@ -301,7 +317,10 @@ def trace(scene: Scene | PreparedScene, beams: Beams, n_rays: int = 30000, max_o
     if not isinstance(beams, Beams):
         raise TypeError(f"beams: expected waveforest.mcrt.Beams, got {type(beams).__name__}")
     _check(n_rays, max_order, bin_ns, viewed_diameter_m, window_ns, specular, hotspot)
-    prepared = prepare(scene)
+    if isinstance(scene, PreparedScene):
+        prepared = scene
+    else:  # a HIGH-quality BVH pays for its longer build only over enough pulses
+        prepared = prepare(scene, quality="high" if len(beams) >= HIGH_QUALITY_MIN_PULSES else "medium")
     key = master_key(seed)
     n = len(beams)
     n_bins = int(math.ceil(window_ns / bin_ns - 1e-9))
@@ -315,8 +334,8 @@ def trace(scene: Scene | PreparedScene, beams: Beams, n_rays: int = 30000, max_o
     if parallel not in PARALLEL_MODES:
         raise ValueError(f"parallel: expected one of {', '.join(PARALLEL_MODES)}, got {parallel!r}")
     by_pulses = parallel == "pulses" and threads > 1 and n > 1
-    if by_pulses:  # at least one chunk per worker
-        per_chunk = min(per_chunk, -(-n // threads))
+    if by_pulses:  # several chunks per worker, handed out as workers free up (load balance)
+        per_chunk = min(per_chunk, max(1, -(-n // (threads * CHUNKS_PER_WORKER))))
     chunks = [(a, min(n, a + per_chunk)) for a in range(0, n, per_chunk)]
 
     def run_chunk(ab, embree_threads):
@@ -333,8 +352,9 @@ def trace(scene: Scene | PreparedScene, beams: Beams, n_rays: int = 30000, max_o
         from tqdm import tqdm
 
         results = tqdm(results, total=len(chunks), desc="trace", unit="chunk", leave=False)
-    for (a, b), (acc, drop, tot, fh, t0c) in zip(chunks, results):
-        sigma[a:b], dropped[a:b], totals[a:b], first[a:b], t0[a:b] = acc, drop, tot, fh, t0c
+    with NumbaThreads(None if by_pulses else threads):  # the kernels' prange threads
+        for (a, b), (acc, drop, tot, fh, t0c) in zip(chunks, results):
+            sigma[a:b], dropped[a:b], totals[a:b], first[a:b], t0[a:b] = acc, drop, tot, fh, t0c
     return TraceResult(
         sigma=sigma.sum(axis=1),
         t0_ns=t0,

@@ -25,7 +25,7 @@ _EXISTING = click.Path(exists=True, dir_okay=False)
 @click.option("--plot", "plot", type=_FILE, default=None, help="Optional PNG of CV(b).")
 @stage_options
 def agc(pulses, targets_csv, datasets_csv, out, fit, plot, cfg):
-    """Fit b of Eq. 1 on AGC targets and normalise waveforms and intensities (METHOD b).
+    """Fit the AGC law on AGC targets; normalise waveforms and intensities (METHOD b, Eq. 1).
 
     PULSES is the pulse table of one dataset (`waveforest ingest` output).
     """

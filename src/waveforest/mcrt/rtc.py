@@ -1,0 +1,314 @@
+"""Embree 4 called directly from Numba kernels (the library embreex ships), METHOD.md d.
+
+embreex's ``EmbreeScene.run`` traces a batch of rays one ``rtcIntersect1`` at a time from a
+Cython loop, on a BVH of MEDIUM build quality it gives no way to change. Here the same Embree
+library is driven through its C API: the scene is built with ctypes (build quality chosen by
+the caller), and the per-ray ``rtcIntersect1`` / ``rtcOccluded1`` calls are made from
+``@njit(parallel=True, nogil=True)`` kernels over blocks of rays (``prange``: both cores, no
+Python threads, no GIL). ``benchmarks/mcrt.py`` prints both paths on the same rays; on the
+vegetation scenes the direct path at HIGH quality needs about 0.55 of the CPU time of
+embreex's ``run`` (same BVH library, same hits).
+
+The library is the ``libembree4`` bundled with the installed embreex wheel
+(``embreex.libs``), else one found by :func:`ctypes.util.find_library`; :func:`available`
+says whether it loaded. Numba links the kernels against its symbols by name
+(``llvmlite.binding.load_library_permanently``), so they are cached like any other kernel.
+
+Structure layouts (embree4/rtcore_ray.h, x86-64): ``RTCRay`` = org_x, org_y, org_z, tnear,
+dir_x, dir_y, dir_z, time, tfar (float32), mask, id, flags (uint32): 48 bytes;
+``RTCRayHit`` = ``RTCRay`` + ``RTCHit`` (Ng_x, Ng_y, Ng_z, u, v, primID, geomID, instID...),
+16-byte aligned. Each block of rays uses one 128-byte slot (its float32 and uint32 views).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import glob
+import os
+import threading
+
+import numpy as np
+from numba import njit, prange, types
+
+QUALITIES = {"low": 0, "medium": 1, "high": 2}
+"""Embree BVH build qualities (RTC_BUILD_QUALITY_*)."""
+
+DEFAULT_QUALITY = "high"
+"""BVH quality of :func:`waveforest.mcrt.prepare`: HIGH builds take ~4x longer than MEDIUM but
+trace foliage ~20 % faster, which pays after a few pulses per scene (``benchmarks/mcrt.py``)."""
+
+BLOCK_RAYS = 512
+"""Rays per ``prange`` task (one RTCRayHit slot each)."""
+
+SLOT_FLOATS = 32
+"""Slot size in float32 (128 bytes, room for an RTCRayHit of 96 bytes)."""
+
+_RTC_GEOMETRY_TYPE_TRIANGLE = 0
+_RTC_BUFFER_TYPE_INDEX, _RTC_BUFFER_TYPE_VERTEX = 0, 1
+_RTC_FORMAT_UINT3, _RTC_FORMAT_FLOAT3 = 0x5003, 0x9003
+_INVALID_ID = 0xFFFFFFFF
+
+# RTCRayHit field offsets in float32 / uint32 units
+_ORG, _TNEAR, _DIR, _TIME, _TFAR, _MASK, _ID, _FLAGS = 0, 3, 4, 7, 8, 9, 10, 11
+_PRIM, _GEOM, _INST = 17, 18, 19
+
+_LIB = None
+_DEVICE = None
+_LOCK = threading.Lock()
+_ERROR: str | None = None
+
+
+def _library_path() -> str | None:
+    try:
+        import embreex
+    except ImportError:
+        embreex = None
+    if embreex is not None:
+        site = os.path.dirname(os.path.dirname(os.path.abspath(embreex.__file__)))
+        found = sorted(glob.glob(os.path.join(site, "embreex.libs", "libembree4*.so*")))
+        if found:
+            return found[0]
+    return ctypes.util.find_library("embree4")
+
+
+def _load():
+    """Load libembree4 (once): ctypes handle for the build calls, symbols for Numba."""
+    global _LIB, _DEVICE, _ERROR
+    with _LOCK:
+        if _LIB is not None or _ERROR is not None:
+            return _LIB
+        path = _library_path()
+        if path is None:
+            _ERROR = "libembree4 not found (neither in embreex.libs nor on the library path)"
+            return None
+        try:
+            import llvmlite.binding as llvm
+
+            lib = ctypes.CDLL(path)
+            llvm.load_library_permanently(path)
+        except OSError as exc:
+            _ERROR = f"libembree4 could not be loaded: {exc}"
+            return None
+        p = ctypes.c_void_p
+        for name, res, args in (
+            ("rtcNewDevice", p, [ctypes.c_char_p]),
+            ("rtcGetDeviceError", ctypes.c_int, [p]),
+            ("rtcNewScene", p, [p]),
+            ("rtcSetSceneBuildQuality", None, [p, ctypes.c_int]),
+            ("rtcNewGeometry", p, [p, ctypes.c_int]),
+            ("rtcSetGeometryBuildQuality", None, [p, ctypes.c_int]),
+            ("rtcSetNewGeometryBuffer", p, [p, ctypes.c_int, ctypes.c_uint, ctypes.c_int, ctypes.c_size_t,
+                                            ctypes.c_size_t]),
+            ("rtcCommitGeometry", None, [p]),
+            ("rtcAttachGeometry", ctypes.c_uint, [p, p]),
+            ("rtcReleaseGeometry", None, [p]),
+            ("rtcCommitScene", None, [p]),
+            ("rtcReleaseScene", None, [p]),
+        ):
+            fn = getattr(lib, name)
+            fn.restype, fn.argtypes = res, args
+        device = lib.rtcNewDevice(None)
+        if not device:
+            _ERROR = f"rtcNewDevice failed (error {lib.rtcGetDeviceError(None)})"
+            return None
+        _LIB, _DEVICE = lib, device
+        return lib
+
+
+def available() -> bool:
+    """True if libembree4 could be loaded for direct calls."""
+    return _load() is not None
+
+
+def unavailable_reason() -> str | None:
+    """Why :func:`available` is False (None when it is True)."""
+    _load()
+    return _ERROR
+
+
+_rtc_intersect1 = types.ExternalFunction("rtcIntersect1", types.void(types.uintp, types.uintp, types.uintp))
+_rtc_occluded1 = types.ExternalFunction("rtcOccluded1", types.void(types.uintp, types.uintp, types.uintp))
+
+
+@njit(cache=True, parallel=True, nogil=True)
+def _intersect_kernel(scene, org, dirs, tfar, prim, slot_f, slot_u):
+    m = org.shape[0]
+    n_blocks = (m + BLOCK_RAYS - 1) // BLOCK_RAYS
+    for c in prange(n_blocks):
+        f = slot_f[c]
+        u = slot_u[c]
+        addr = f.ctypes.data
+        for i in range(c * BLOCK_RAYS, min(m, (c + 1) * BLOCK_RAYS)):
+            f[0], f[1], f[2], f[_TNEAR] = org[i, 0], org[i, 1], org[i, 2], 0.0
+            f[4], f[5], f[6], f[_TIME] = dirs[i, 0], dirs[i, 1], dirs[i, 2], 0.0
+            f[_TFAR] = np.inf
+            u[_MASK], u[_ID], u[_FLAGS] = _INVALID_ID, 0, 0
+            u[_PRIM], u[_GEOM], u[_INST] = _INVALID_ID, _INVALID_ID, _INVALID_ID
+            _rtc_intersect1(scene, addr, 0)
+            if u[_GEOM] == _INVALID_ID:
+                tfar[i] = np.inf
+                prim[i] = -1
+            else:
+                tfar[i] = f[_TFAR]
+                prim[i] = np.int32(u[_PRIM])
+
+
+@njit(cache=True, parallel=True, nogil=True)
+def _occluded_kernel(scene, org, dirs, tmax, out, slot_f, slot_u):
+    m = org.shape[0]
+    n_blocks = (m + BLOCK_RAYS - 1) // BLOCK_RAYS
+    for c in prange(n_blocks):
+        f = slot_f[c]
+        u = slot_u[c]
+        addr = f.ctypes.data
+        for i in range(c * BLOCK_RAYS, min(m, (c + 1) * BLOCK_RAYS)):
+            f[0], f[1], f[2], f[_TNEAR] = org[i, 0], org[i, 1], org[i, 2], 0.0
+            f[4], f[5], f[6], f[_TIME] = dirs[i, 0], dirs[i, 1], dirs[i, 2], 0.0
+            f[_TFAR] = tmax[i]
+            u[_MASK], u[_ID], u[_FLAGS] = _INVALID_ID, 0, 0
+            _rtc_occluded1(scene, addr, 0)
+            out[i] = f[_TFAR] == -np.inf  # Embree sets tfar = -inf on an occluded ray
+
+
+def _slots(m: int) -> tuple[np.ndarray, np.ndarray]:
+    """64-byte aligned RTCRayHit slots for the blocks of ``m`` rays (float32 and uint32 views)."""
+    n = max(1, -(-m // BLOCK_RAYS))
+    raw = np.empty(n * SLOT_FLOATS + 16, np.float32)
+    skip = (-raw.ctypes.data % 64) // 4
+    f = raw[skip:skip + n * SLOT_FLOATS].reshape(n, SLOT_FLOATS)
+    return f, f.view(np.uint32)
+
+
+def _check_rays(origins, directions):
+    o = np.ascontiguousarray(origins, dtype=np.float32)
+    d = np.ascontiguousarray(directions, dtype=np.float32)
+    if o.ndim != 2 or o.shape[1] != 3 or d.shape != o.shape:
+        raise ValueError(f"origins, directions: expected two (m, 3) arrays, got {o.shape} and {d.shape}")
+    return o, d
+
+
+class NumbaThreads:
+    """Context: Numba's (thread-local) thread count set to ``threads`` (None: unchanged)."""
+
+    def __init__(self, threads: int | None) -> None:
+        self.threads = threads
+
+    def __enter__(self):
+        import numba
+
+        self.prev = numba.get_num_threads()
+        if self.threads is not None:
+            numba.set_num_threads(max(1, min(int(self.threads), numba.config.NUMBA_NUM_THREADS)))
+
+    def __exit__(self, *exc):
+        import numba
+
+        numba.set_num_threads(self.prev)
+
+
+class DirectEmbreeIntersector:
+    """Nearest-hit and occlusion queries on an Embree 4 BVH, called from Numba kernels.
+
+    Same contract as :class:`waveforest.mcrt.embree.EmbreeIntersector`.
+
+    Parameters
+    ----------
+    triangles : (n, 3, 3) float32, m
+        Triangles in the internal frame (a few metres around the origin).
+    quality : {"low", "medium", "high"}
+        Embree BVH build quality.
+    """
+
+    backend = "embree"
+
+    def __init__(self, triangles: np.ndarray, quality: str = DEFAULT_QUALITY) -> None:
+        lib = _load()
+        if lib is None:
+            raise RuntimeError(f"direct Embree calls unavailable: {_ERROR}")
+        if quality not in QUALITIES:
+            raise ValueError(f"quality: expected one of {', '.join(QUALITIES)}, got {quality!r}")
+        tri = np.ascontiguousarray(triangles, dtype=np.float32)
+        if tri.ndim != 3 or tri.shape[1:] != (3, 3) or len(tri) == 0:
+            raise ValueError(f"triangles: expected a non-empty (n, 3, 3) array, got {tri.shape}")
+        n = len(tri)
+        q = QUALITIES[quality]
+        self._lib = lib
+        scene = lib.rtcNewScene(_DEVICE)
+        lib.rtcSetSceneBuildQuality(scene, q)
+        geom = lib.rtcNewGeometry(_DEVICE, _RTC_GEOMETRY_TYPE_TRIANGLE)
+        lib.rtcSetGeometryBuildQuality(geom, q)
+        vptr = lib.rtcSetNewGeometryBuffer(geom, _RTC_BUFFER_TYPE_VERTEX, 0, _RTC_FORMAT_FLOAT3, 12, 3 * n)
+        iptr = lib.rtcSetNewGeometryBuffer(geom, _RTC_BUFFER_TYPE_INDEX, 0, _RTC_FORMAT_UINT3, 12, n)
+        if not vptr or not iptr:
+            lib.rtcReleaseGeometry(geom)
+            lib.rtcReleaseScene(scene)
+            raise MemoryError(f"Embree could not allocate buffers for {n} triangles")
+        ctypes.memmove(vptr, tri.ctypes.data, tri.nbytes)
+        idx = np.arange(3 * n, dtype=np.uint32)
+        ctypes.memmove(iptr, idx.ctypes.data, idx.nbytes)
+        lib.rtcCommitGeometry(geom)
+        lib.rtcAttachGeometry(scene, geom)
+        lib.rtcReleaseGeometry(geom)
+        lib.rtcCommitScene(scene)  # builds the BVH (Embree's own threads)
+        err = lib.rtcGetDeviceError(_DEVICE)
+        if err:
+            lib.rtcReleaseScene(scene)
+            raise RuntimeError(f"Embree error {err} while building a scene of {n} triangles")
+        self._scene = scene
+        self.n_triangles = n
+        self.quality = quality
+
+    def __del__(self) -> None:
+        scene, self._scene = getattr(self, "_scene", None), None
+        if scene:
+            self._lib.rtcReleaseScene(scene)
+
+    def intersect(self, origins, directions, threads: int | None = None):
+        """Nearest hit of each ray.
+
+        Parameters
+        ----------
+        origins, directions : (m, 3) float32
+            Ray origins (internal frame, m) and directions (unit, so that t is in metres).
+        threads : int, optional
+            Numba threads of the call (default: the current Numba thread count).
+
+        Returns
+        -------
+        tfar : (m,) float32, m
+            Distance to the hit; ``inf`` for a miss.
+        prim : (m,) int32
+            Index of the triangle hit; -1 for a miss.
+        """
+        o, d = _check_rays(origins, directions)
+        m = len(o)
+        tfar = np.empty(m, np.float32)
+        prim = np.empty(m, np.int32)
+        if m:
+            with NumbaThreads(threads):
+                _intersect_kernel(self._scene, o, d, tfar, prim, *_slots(m))
+        return tfar, prim
+
+    def occluded(self, origins, directions, tmax, threads: int | None = None):
+        """Whether anything lies on each ray between ``t = 0`` and ``tmax``.
+
+        Parameters
+        ----------
+        origins, directions : (m, 3) float32
+        tmax : (m,) float32, m
+            Length of each visibility ray.
+        threads : int, optional
+
+        Returns
+        -------
+        (m,) bool
+        """
+        o, d = _check_rays(origins, directions)
+        m = len(o)
+        tm = np.ascontiguousarray(np.broadcast_to(np.asarray(tmax, np.float32), (m,)))
+        out = np.empty(m, np.bool_)
+        if m:
+            with NumbaThreads(threads):
+                _occluded_kernel(self._scene, o, d, tm, out, *_slots(m))
+        return out

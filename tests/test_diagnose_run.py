@@ -1,0 +1,161 @@
+"""Outputs of the diagnose stage: model.yaml, tables, figure; the CLI; the real chain (slow)."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pandas as pd
+import pytest
+import yaml
+from click.testing import CliRunner
+
+from waveforest.diagnose.model import model_dict, read_model, write_model
+from waveforest.diagnose.run import OUTPUT_NAMES, diagnose, write_outputs
+from waveforest.diagnose.search import NamedEffect, SearchSettings
+from waveforest.diagnose.synthetic import SyntheticStudy
+from waveforest.effects import CATALOGUE
+from waveforest.errors import WaveforestError
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _synthetic_outputs(tmp_path, effects):
+    study = SyntheticStudy(samples_per_species=12, pulses_per_sample=8, seed=1)
+    settings = SearchSettings(rounds=2, n_boot=100)
+    result, gap, cand, sigs = diagnose(study.keys, study.real(effects), study.simulate, settings, seed=5)
+    paths = write_outputs(tmp_path, result, gap, cand, sigs, settings=settings, base_effects={},
+                          datasets=sorted(study.datasets), keys=study.keys, seconds=1.0)
+    return result, paths
+
+
+def test_outputs_of_a_named_effect(tmp_path):
+    result, paths = _synthetic_outputs(tmp_path, {"hotspot": 1.3})
+    assert {p.name for p in tmp_path.iterdir()} == set(OUTPUT_NAMES.values())
+    m = read_model(paths["model"])
+    assert m["verdict"] == "named"
+    assert [e["name"] for e in m["effects"]] == ["hotspot"]
+    e = m["effects"][0]
+    assert e["ci_low"] <= 1.3 <= e["ci_high"] and e["gap_reduction"] > 0
+    assert m["simulate_effects"] == {"hotspot": e["value"]}
+    gap = pd.read_csv(paths["gap"])
+    tot = gap[gap["level"] == "total"].iloc[0]
+    # "after" is a fresh simulation with the named model: the gap at least halves
+    assert tot["gap_after"] <= 0.5 * tot["gap_before"] and tot["reduction_ci_low"] > 0
+    assert set(gap.loc[gap["level"] == "feature", "feature"]) == {"H", "Npeaks", "Apeak", "FWHM", "E"}
+    cand = pd.read_csv(paths["candidates"])
+    for col in ("round", "name", "value", "ci_low", "ci_high", "gap_reduction", "reduction_ci_low",
+                "reduction_ci_high", "significant", "named"):
+        assert col in cand.columns
+    assert cand.loc[cand["named"], "name"].tolist() == ["hotspot"]
+    sig = pd.read_csv(paths["signatures"])
+    # hotspot's toy signature: Apeak up, FWHM down, H untouched (common random numbers)
+    h = sig[sig["effect"] == "hotspot"]
+    hs = h.groupby("feature")["shift_sd"].mean()
+    assert hs["Apeak"] > 0.3 and hs["FWHM"] < 0 and abs(hs["H"]) < 1e-9
+    fwhm = h[h["feature"] == "FWHM"]  # the toy's FWHM shift is exactly -0.8 (k - 1)
+    assert (fwhm["mean_on"] - fwhm["mean_off"]).to_numpy() == pytest.approx(-0.8 * (h["value"].iloc[0] - 1.0))
+    assert paths["figure"].stat().st_size > 10_000
+    assert "hotspot" in paths["markdown"].read_text()
+
+
+def test_outputs_when_nothing_is_named(tmp_path):
+    result, paths = _synthetic_outputs(tmp_path, {})
+    m = yaml.safe_load(paths["model"].read_text())
+    assert m["verdict"] == "none" and m["effects"] == []
+    gap = pd.read_csv(paths["gap"])
+    assert (gap["reduction"] == 0).all()  # after = before
+
+
+def test_model_yaml_round_trip_and_checks(tmp_path):
+    e = NamedEffect(name="nonlinearity", value=150.0, ci_low=120.0, ci_high=float("inf"), gap_reduction=0.2,
+                    reduction_ci_low=0.1, reduction_ci_high=0.3, relative_reduction=0.8, round=1)
+    p = write_model(tmp_path / "model.yaml", model_dict("named", [e], reason="r"))
+    m = read_model(p)
+    assert m["effects_dict"] == {"nonlinearity": 150.0} and m["effects"][0]["ci_high"] == float("inf")
+    with pytest.raises(WaveforestError, match="verdict"):
+        model_dict("maybe", [])
+    with pytest.raises(WaveforestError, match="named effect"):
+        model_dict("named", [])
+    (tmp_path / "bad.yaml").write_text("verdict: named\neffects: [{name: gremlins, value: 1}]\n")
+    with pytest.raises(WaveforestError, match="lacks"):
+        read_model(tmp_path / "bad.yaml")
+
+
+def test_cli_is_registered_and_documents_its_options():
+    from waveforest.cli import cli
+
+    r = CliRunner().invoke(cli, ["diagnose", "--help"])
+    assert r.exit_code == 0, r.output
+    for opt in ("--selected", "--features-real", "--calibration", "--system", "--campaign", "--out", "--config"):
+        assert opt in r.output
+
+
+def test_cli_missing_input_is_a_clear_error(tmp_path):
+    from waveforest.cli import cli
+
+    r = CliRunner().invoke(cli, ["diagnose", "--selected", str(tmp_path / "nope.parquet"), "--features-real",
+                                 str(tmp_path / "x.parquet"), "--calibration", str(tmp_path / "c.json"),
+                                 "--campaign", str(tmp_path), "--out", str(tmp_path / "out")])
+    assert r.exit_code != 0 and "does not exist" in r.output
+
+
+# --- the real chain (virtual campaign with hidden effects): slow ------------------------------------
+
+SLOW_CONFIG = {
+    "seed": 11,
+    "data": None,
+    "datasets": ["2010_12_1", "2012_10_1"],
+    "campaign": {"samples_per_species": 8, "n_rays": 2000},
+    "mcrt": {"n_rays": 3000, "max_order": 5},
+    "select": {"min_pulses": 5},
+    "simulate": {"chunks": 1},
+    "sensitivity": {"pulses": 20},
+    "sensor_study": {"pulses": 20},
+    "diagnose": {"rounds": 2, "bootstrap": 200},
+}
+"""A small study on which each hidden effect is diagnosed (a few minutes per campaign)."""
+
+
+def _diagnose_campaign(tmp_path, effects: dict) -> dict:
+    """Run the workflow up to ``diagnose`` on a virtual campaign with ``effects`` hidden in it."""
+    if shutil.which("snakemake") is None:
+        pytest.skip("snakemake not installed")
+    for name in ("Snakefile", "workflow", "config"):
+        src = ROOT / name
+        (shutil.copytree(src, tmp_path / name, symlinks=False) if src.is_dir()
+         else shutil.copy(src, tmp_path / name))
+    cfg = dict(SLOW_CONFIG)
+    cfg["campaign"] = {**cfg["campaign"], "effects": effects}
+    (tmp_path / "config" / "slow.yaml").write_text(yaml.safe_dump(cfg))
+    subprocess.run([sys.executable, "-m", "snakemake", "--cores", "2", "--configfile", "config/slow.yaml",
+                    "results/diagnose/model.yaml"], cwd=tmp_path, check=True, capture_output=True)
+    return read_model(tmp_path / "results" / "diagnose" / "model.yaml")
+
+
+@pytest.mark.slow
+def test_real_chain_no_effect_names_nothing(tmp_path):
+    m = _diagnose_campaign(tmp_path, {})
+    assert m["effects"] == [] and m["verdict"] in ("none", "unexplained")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", list(CATALOGUE))
+def test_real_chain_names_the_hidden_effect(tmp_path, name):
+    truth = CATALOGUE[name].test_value
+    m = _diagnose_campaign(tmp_path, {name: truth})
+    assert m["verdict"] == "named"
+    first = m["effects"][0]
+    assert first["name"] == name
+    assert first["ci_low"] <= truth <= first["ci_high"]
+    assert m["gap"]["after"] <= 0.5 * m["gap"]["before"]
+
+
+@pytest.mark.slow
+def test_real_chain_two_effects_over_two_rounds(tmp_path):
+    truth = {"hotspot": 1.3, "understory": 1.5}
+    m = _diagnose_campaign(tmp_path, truth)
+    assert {e["name"] for e in m["effects"]} == set(truth)
+    assert sorted(e["round"] for e in m["effects"]) == [1, 2]

@@ -1,0 +1,150 @@
+"""The search of waveforest.diagnose on the cheap synthetic study with known signatures."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from waveforest.diagnose import catalogue as cat
+from waveforest.diagnose.search import SearchSettings, parabolic_vertex, refinement_step, search, split_samples
+from waveforest.diagnose.synthetic import SyntheticStudy
+from waveforest.effects import CATALOGUE
+from waveforest.errors import WaveforestError
+
+SETTINGS = SearchSettings(rounds=3, n_boot=200)
+
+
+def run_search(effects, *, seed=1, search_seed=3, perturb=None, settings=SETTINGS, samples=12):
+    study = SyntheticStudy(samples_per_species=samples, pulses_per_sample=8, seed=seed, perturb=perturb or {})
+    return search(study.keys, study.real(effects), study.simulate, settings, seed=search_seed)
+
+
+def assert_named(result, truth: dict):
+    assert result.verdict == "named"
+    assert {e.name for e in result.named} == set(truth)
+    for e in result.named:
+        assert e.ci_low <= truth[e.name] <= e.ci_high, (e.name, e.value, e.ci_low, e.ci_high)
+    # the total gap shrinks by at least half (residual and baseline on the same samples)
+    assert result.residual.total <= 0.5 * result.baseline.total
+
+
+# --- catalogue ------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", list(CATALOGUE))
+def test_search_coordinate_round_trip_and_grid(name):
+    e = CATALOGUE[name]
+    for v in (e.bounds[0], e.test_value, e.bounds[1]):
+        assert cat.from_u(name, cat.to_u(name, v)) == pytest.approx(v)
+    g = cat.grid(name, 5)
+    assert np.any(np.isclose(g, cat.off_u(name)))  # the current model is a grid point
+    assert np.all(np.diff(g) > 0) and g[0] >= 0 and g[-1] <= 1
+    assert cat.with_effect({}, name, e.off) == {}  # canonical: off = absent
+    assert cat.with_effect({}, name, e.test_value) == {name: e.test_value}
+
+
+def test_nonlinearity_search_coordinate_is_inverse_level():
+    assert cat.to_u("nonlinearity", 0.0) == 0.0  # off = no saturation = L -> infinity
+    assert cat.to_u("nonlinearity", 100.0) == pytest.approx(50.0 / 100.0)
+    assert cat.value_interval("nonlinearity", 0.0, 0.5) == (100.0, np.inf)
+
+
+def test_parabolic_vertex_and_refinement_known_answer():
+    u = np.array([0.0, 0.25, 0.5, 0.75, 1.0])
+    g = (u - 0.4) ** 2 + 1.0
+    assert parabolic_vertex(u, g) == pytest.approx(0.4)
+    reps = np.stack([(u - c) ** 2 for c in (0.3, 0.6)])
+    assert np.allclose(parabolic_vertex(u, reps), [0.3, 0.6])
+    assert refinement_step(u, g) == pytest.approx(0.4)
+    # a linear curve (minimum at the edge): the best point itself, no extrapolation
+    assert parabolic_vertex(u, 1 - u) == 1.0
+
+
+def test_split_is_stratified_disjoint_and_seeded():
+    study = SyntheticStudy(samples_per_species=5, pulses_per_sample=2)
+    a, b = split_samples(study.keys, 4)
+    assert not set(a) & set(b) and set(a) | set(b) == set(study.keys["sample_id"])
+    assert (a, b) == split_samples(study.keys, 4)
+    sp = study.samples.set_index("sample_id")
+    for (species, year), grp in sp.groupby(["species", "year"]):
+        n_a = len(set(grp.index) & set(a))
+        assert abs(n_a - (len(grp) - n_a)) <= 1  # each species x year cell split in halves
+
+
+def test_synthetic_simulator_has_common_random_numbers():
+    study = SyntheticStudy(samples_per_species=3, pulses_per_sample=4)
+    a = study.simulate(study.keys, {"hotspot": 1.5}, 9)
+    b = study.simulate(study.keys.iloc[::-1], {"hotspot": 1.5}, 9).sort_values(["dataset", "pulse_id"])
+    a = a.sort_values(["dataset", "pulse_id"])
+    assert np.allclose(a["H"].to_numpy(), b["H"].to_numpy())  # subset/order independent
+    off = study.simulate(study.keys, {}, 9).sort_values(["dataset", "pulse_id"])
+    assert np.allclose(off["H"].to_numpy(), a["H"].to_numpy())  # hotspot does not move H
+
+
+# --- the search -----------------------------------------------------------------------
+
+
+def test_single_hidden_effect_is_named_with_covering_interval_and_gap_halved():
+    res = run_search({"understory": 1.5})
+    assert_named(res, {"understory": 1.5})
+    cand = res.candidates
+    first = cand[cand["round"] == 1].sort_values("rank")
+    assert first.iloc[0]["name"] == "understory" and bool(first.iloc[0]["significant"])
+    assert len(first) == len(CATALOGUE)
+
+
+def test_no_effect_names_nothing():
+    res = run_search({})
+    assert res.verdict == "none"
+    assert res.named == [] and res.effects == {}
+    assert not res.baseline.significant
+
+
+def test_two_effects_are_named_over_two_rounds():
+    # fixed seeds; a 95 % interval misses in 1 of 20 data sets (test_value_interval_coverage)
+    res = run_search({"hotspot": 1.3, "clumping": 0.3}, seed=0, search_seed=10)
+    assert_named(res, {"hotspot": 1.3, "clumping": 0.3})
+    assert sorted(e.round for e in res.named) == [1, 2]
+
+
+def test_unproducible_disagreement_is_unexplained():
+    # a shift of FWHM for every species together with a wider FWHM spread: no toy effect makes it
+    res = run_search({}, perturb={"FWHM": 1.0, "H": -1.0})
+    assert res.baseline.significant
+    assert res.verdict == "unexplained", [(e.name, e.value) for e in res.named]
+    assert res.named == []
+
+
+def test_search_is_deterministic():
+    a = run_search({"hotspot": 1.3}, settings=SearchSettings(rounds=1, n_boot=50, crossfit=False))
+    b = run_search({"hotspot": 1.3}, settings=SearchSettings(rounds=1, n_boot=50, crossfit=False))
+    pd.testing.assert_frame_equal(a.candidates, b.candidates)
+
+
+def test_settings_are_checked():
+    with pytest.raises(WaveforestError, match="unknown"):
+        SearchSettings(candidates=("gremlins",))
+    with pytest.raises(WaveforestError):
+        SearchSettings(values=2)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", list(CATALOGUE))
+def test_every_effect_is_named_synthetic(name):
+    """Each effect at its realistic value, hidden in the toy study, is named and covered."""
+    truth = {name: CATALOGUE[name].test_value}
+    res = run_search(truth, samples=16)
+    assert_named(res, truth)
+
+
+@pytest.mark.slow
+def test_value_interval_coverage():
+    """Over independent toy data sets, the fitted value's 95 % interval covers the truth."""
+    hits = 0
+    for seed in range(12):
+        res = run_search({"hotspot": 1.3}, seed=100 + seed, search_seed=seed,
+                         settings=SearchSettings(rounds=1, n_boot=200))
+        e = {x.name: x for x in res.named}.get("hotspot")
+        hits += bool(e is not None and e.ci_low <= 1.3 <= e.ci_high)
+    assert hits >= 9  # binomial(12, 0.95): P(hits < 9) < 0.3 %
