@@ -15,7 +15,7 @@ Figures (``name: value unit``), canopy first, then ``<species>_...`` for each sp
   default of :func:`trace`); ``mrays_per_s``: Embree rays (intersect + occlusion) per second
   of the default trace;
 * ``embree_floor_ms_per_pulse``: the same rays (recorded during a trace) replayed through the
-  bare Embree calls, intersect + occlusion, on all threads; ``trace_over_floor``: the ratio
+  bare Embree calls, intersect + occlusion, the calls dealt out to one worker thread per core; ``trace_over_floor``: the ratio
   (target <= 2); ``embreex_floor_ms_per_pulse``: the same rays through embreex's ``run``
   (split over Python threads), the path the tracer used before :mod:`waveforest.mcrt.rtc`;
 * ``ms_per_pulse_amortised_<k>``: tracing plus the scene build shared by k pulses (a pool of
@@ -34,6 +34,7 @@ from __future__ import annotations
 import argparse
 import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 
 import numba
 import numpy as np
@@ -60,6 +61,17 @@ class Recorder:
     def occluded(self, o, d, t, threads=None):
         self.occludes.append((o.copy(), d.copy(), np.array(t, np.float32)))
         return self.inner.occluded(o, d, t, threads=threads)
+
+
+def interleaved(fns: dict, repeat: int, clock=time.perf_counter) -> dict:
+    """Shortest time of each of ``fns`` over ``repeat`` rounds that run each once, s."""
+    times = {k: float("inf") for k in fns}
+    for _ in range(repeat):
+        for k, fn in fns.items():
+            t = clock()
+            fn()
+            times[k] = min(times[k], clock() - t)
+    return times
 
 
 def best(fn, repeat: int, clock=time.perf_counter) -> float:
@@ -95,14 +107,6 @@ def bench_scene(prefix: str, scene, beams, args, full: bool) -> None:
     modes = [("pulses", threads), ("rays", threads)] if threads > 1 else [("rays", 1)]
     if full and threads > 1:
         modes.append(("rays", 1))
-    per_pulse = {}
-    for mode, thr in modes:
-        per_pulse[(mode, thr)] = best(lambda: trace(prepared, beams, threads=thr, parallel=mode, **kw),
-                                      args.repeat) / n
-    default = per_pulse[modes[0]]
-    out("trace_ms_per_pulse", default * 1e3, "ms")
-    for (mode, thr), v in per_pulse.items():
-        out(f"trace_ms_per_pulse_{mode}_{thr}threads", v * 1e3, "ms")
 
     rec = Recorder(prepared.intersector)
     traced = type(prepared)(prepared.scene, rec, prepared.shift, prepared.tri_data, prepared.bounds)
@@ -111,19 +115,41 @@ def bench_scene(prefix: str, scene, beams, args, full: bool) -> None:
     n_occl = sum(len(o) for o, _, _ in rec.occludes)
 
     def replay(inner, thr):
+        """Replay every recorded call: on ``thr`` worker threads (one Numba thread each, calls
+        dealt out in turn, as ``trace(parallel="pulses")`` runs its chunks), or serially."""
+        calls = [(inner.intersect, (o, d)) for o, d in rec.intersects]
+        calls += [(inner.occluded, (o, d, t)) for o, d, t in rec.occludes]
+
+        def part(k):
+            numba.set_num_threads(1)
+            for fn, a in calls[k::thr]:
+                fn(*a, threads=1)
+
         def run():
-            for o, d in rec.intersects:
-                inner.intersect(o, d, threads=thr)
-            for o, d, t in rec.occludes:
-                inner.occluded(o, d, t, threads=thr)
+            if thr == 1:
+                part(0)
+                return
+            with ThreadPoolExecutor(thr) as pool:
+                list(pool.map(part, range(thr)))
         return run
 
-    floor = best(replay(prepared.intersector, threads), args.repeat) / n
+    embreex = EmbreeIntersector((prepared.scene.triangles.astype(np.float64) - prepared.shift).astype(np.float32))
+    # every round runs every variant once, so that all see the same load of the shared machine
+    fns = {(mode, thr): (lambda mode=mode, thr=thr: trace(prepared, beams, threads=thr, parallel=mode, **kw))
+           for mode, thr in modes}
+    fns["floor"] = replay(prepared.intersector, threads)
+    fns["embreex"] = replay(embreex, threads)
+    times = interleaved(fns, args.repeat)
+    per_pulse = {k: times[k] / n for k in modes}
+    default = per_pulse[modes[0]]
+    floor = times["floor"] / n
+    out("trace_ms_per_pulse", default * 1e3, "ms")
+    for (mode, thr), v in per_pulse.items():
+        out(f"trace_ms_per_pulse_{mode}_{thr}threads", v * 1e3, "ms")
     out("mrays_per_s", (n_isect + n_occl) / (default * n) / 1e6, "Mrays/s", ".2f")
     out("embree_floor_ms_per_pulse", floor * 1e3, "ms")
     out("trace_over_floor", default / floor, "x", ".2f")
-    embreex = EmbreeIntersector((prepared.scene.triangles.astype(np.float64) - prepared.shift).astype(np.float32))
-    out("embreex_floor_ms_per_pulse", best(replay(embreex, threads), args.repeat) / n * 1e3, "ms")
+    out("embreex_floor_ms_per_pulse", times["embreex"] / n * 1e3, "ms")
     out("rays_per_pulse_intersect", n_isect / n, "rays", ".0f")
     out("rays_per_pulse_occluded", n_occl / n, "rays", ".0f")
     for k in (1, 10, 30):
@@ -133,9 +159,9 @@ def bench_scene(prefix: str, scene, beams, args, full: bool) -> None:
         prev = numba.get_num_threads()
         numba.set_num_threads(1)
         try:
-            cpu = best(lambda: trace(prepared, beams, threads=1, parallel="rays", **kw), args.repeat,
-                       time.thread_time) / n
-            cpu_floor = best(replay(prepared.intersector, 1), args.repeat, time.thread_time) / n
+            cpu_t = interleaved({"trace": lambda: trace(prepared, beams, threads=1, parallel="rays", **kw),
+                                 "floor": replay(prepared.intersector, 1)}, args.repeat, time.thread_time)
+            cpu, cpu_floor = cpu_t["trace"] / n, cpu_t["floor"] / n
         finally:
             numba.set_num_threads(prev)
         out("trace_cpu_ms_per_pulse_serial", cpu * 1e3, "ms")

@@ -227,3 +227,39 @@ def test_existing_folder_is_replaced(base, tmp_path):
     run(small_cfg(species=["sand_road"], max_pulses_per_site=3), out, progress=False)
     assert not (out / "stale.txt").exists() and (out / "truth.json").exists()
     assert Path(out / "2010_12_1.las").stat().st_size > 0
+
+
+def test_waveforest_info_summarises_the_las_files(base, truth):
+    """``waveforest info`` (lasinfo-style): version, point format, the 8-bit descriptor, counts."""
+    from click.testing import CliRunner
+
+    from waveforest.cli import cli
+
+    for ds in SMALL["datasets"]:
+        d = truth["datasets"][ds]
+        res = CliRunner().invoke(cli, ["info", str(base[0] / f"{ds}.las")])
+        assert res.exit_code == 0, res.output
+        text = res.output
+        assert "LAS version:           1.4" in text
+        assert "point format:          9 " in text
+        assert f"points:                {d['n_points']:,} (header: {d['n_points']:,})" in text
+        assert f"pulses (GPS times):    {d['n_pulses']:,}" in text
+        assert f"packets:               {d['n_pulses']:,}" in text
+        assert "1 defined, 1 in use" in text
+        spacing_ps = int(round(1000 * {"2010_12_1": 1.0, "2012_10_1": 1.0}[ds]))
+        assert any(line.split()[:5] == ["1", "8", "0", "256", str(spacing_ps)] for line in text.splitlines())
+        assert "AGC attribute:         user_data" in text
+
+
+def test_las_files_do_not_depend_on_the_thread_count(base, tmp_path):
+    """Sites are traced ``--threads`` at a time; one at a time gives the same bytes."""
+    import numba
+
+    before = numba.get_num_threads()
+    numba.set_num_threads(1)
+    try:
+        run(small_cfg(), tmp_path / "serial", progress=False)
+    finally:
+        numba.set_num_threads(before)
+    for name in [f"{d}.las" for d in SMALL["datasets"]] + ["truth_pulses.parquet"]:
+        assert (base[0] / name).read_bytes() == (tmp_path / "serial" / name).read_bytes(), name

@@ -6,7 +6,8 @@ CSVs; schema in :mod:`.readme`) plus ``truth.json``, which no analysis step read
 
 Modules: :mod:`.params` (the parameter files in ``resources/campaign``), :mod:`.rng`
 (seeded streams), :mod:`.layout` (stands, samples, targets), :mod:`.flight` (strips, scan
-pattern, trajectories, pulses near the sites), :mod:`.scenes` (the true scenes),
+pattern, trajectories, pulses near the sites), :mod:`.scenes` (the true scenes), :mod:`.site_trace` (every site's pulses
+traced on its scene, sites in parallel threads),
 :mod:`.system_pulse` (the true S(t)), :mod:`.agc_loop` (the true AGC), :mod:`.dr_cfd` (the
 sensor's DR discriminator), :mod:`.truth_sensor` (the sensor as it really behaves),
 :mod:`.synthesize` (orchestration), :mod:`.cli` (the command).

@@ -6,9 +6,11 @@ Order of work (each step's randomness has its own seeded stream, :mod:`.rng`):
    dataset (:class:`.truth_sensor.TruthSensor`);
 2. the layout of stands, field samples and targets (:func:`.layout.build_layout`);
 3. per dataset: strips and the pulses near its year's sites (:mod:`.flight`);
-4. per site (progress bar): its one true scene (:mod:`.scenes`), every pulse of every
-   dataset over it traced in one batched :func:`waveforest.mcrt.trace` call; the noise-free
-   peak of each pulse at unit gain (for the AGC loop) and sigma(t) kept (trimmed, float32);
+4. per site (progress bar; :mod:`.site_trace`, ``--threads`` sites at a time): its one true
+   scene (:mod:`.scenes`), every pulse of every dataset over it traced in one batched
+   :func:`waveforest.mcrt.trace` call; the noise-free peak of each pulse at unit gain (for
+   the AGC loop) and sigma(t) kept (trimmed, float32). The result does not depend on the
+   thread count;
 5. per dataset: the AGC loop over its pulses in time order (:mod:`.agc_loop`), the sensor
    records each pulse (:func:`.truth_sensor.record`), the recorded geometry gets the per-strip
    positioning errors and the ``xy_error`` effect, and the pulse table goes to a LAS 1.4 file
@@ -155,7 +157,7 @@ def run(cfg: dict, out_dir: str | os.PathLike, effects=None, seed: int | None = 
     cfg : dict
         A loaded study config (:func:`waveforest.config.load`): ``datasets``, ``seed``,
         ``campaign`` (effects, samples_per_species, density_scale, n_rays, max_order,
-        viewed_diameter_m, disc_margin_m, max_pulses_per_site), ``vegetation`` (ground_rho,
+        viewed_diameter_m, disc_margin_m, max_pulses_per_site, species, bvh_quality), ``vegetation`` (ground_rho,
         lai_jitter), ``select.tree_radius_m``.
     out_dir : path
         Campaign folder to write (replaced atomically if it exists).

@@ -21,6 +21,7 @@ import numpy as np
 from numba import njit, prange
 
 from ..constants import C_M_PER_NS, KIND_GROUND, KIND_LEAF, RAY_EPS_M
+from .rtc import MIN_PARALLEL_RAYS, NumbaThreads
 
 GOLDEN = np.uint64(0x9E3779B97F4A7C15)
 """SplitMix64 increment (2^64 / golden ratio)."""
@@ -519,6 +520,15 @@ def scatter(order: int, last: bool, rays: Rays, tfar: np.ndarray, prim: np.ndarr
     elif len(out) < m:
         raise ValueError(f"out: buffers for {len(out)} rays, need {m}")
     o = out.head(m)
+    with NumbaThreads(1 if m < MIN_PARALLEL_RAYS else None):
+        _scatter(order, last, rays, tfar, prim, tri, frame, n_bins, bin_ns, viewed_diameter_m, specular,
+                 phong_n, hotspot, eps, o)
+    return o
+
+
+def _scatter(order, last, rays, tfar, prim, tri, frame, n_bins, bin_ns, viewed_diameter_m, specular,
+             phong_n, hotspot, eps, o):
+    """Call :func:`_scatter_kernel` on validated inputs (``o``: the output views)."""
     _scatter_kernel(int(order), bool(last), rays.origin, rays.direction, rays.power, rays.path_m,
                     rays.beam, rays.ray, tfar, prim, tri,
                     frame.sensor, frame.axis, frame.t0_ns, frame.key,
@@ -526,7 +536,6 @@ def scatter(order: int, last: bool, rays: Rays, tfar: np.ndarray, prim: np.ndarr
                     float(specular), float(phong_n), float(hotspot), float(eps),
                     o.value, o.bin, o.shadow_origin, o.shadow_direction, o.shadow_tmax,
                     o.origin, o.direction, o.power, o.path_m, o.alive)
-    return o
 
 
 @njit(cache=True, nogil=True)

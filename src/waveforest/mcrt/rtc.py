@@ -5,9 +5,10 @@ Cython loop, on a BVH of MEDIUM build quality it gives no way to change. Here th
 library is driven through its C API: the scene is built with ctypes (build quality chosen by
 the caller), and the per-ray ``rtcIntersect1`` / ``rtcOccluded1`` calls are made from
 ``@njit(parallel=True, nogil=True)`` kernels over blocks of rays (``prange``: both cores, no
-Python threads, no GIL). ``benchmarks/mcrt.py`` prints both paths on the same rays; on the
-vegetation scenes the direct path at HIGH quality needs about 0.55 of the CPU time of
-embreex's ``run`` (same BVH library, same hits).
+Python threads, no GIL). ``benchmarks/mcrt.py`` prints both paths on the same rays: on the
+vegetation scenes the direct path (HIGH quality) needs about 0.6 of the CPU time of
+embreex's ``run`` (raspberry 104 vs 169 ms, birch 7.7 vs 12.3 ms per pulse of 30,000 rays
+and 10 orders), with the same hits; of the gain, ~1/3 is the BVH quality.
 
 The library is the ``libembree4`` bundled with the installed embreex wheel
 (``embreex.libs``), else one found by :func:`ctypes.util.find_library`; :func:`available`
@@ -35,11 +36,17 @@ QUALITIES = {"low": 0, "medium": 1, "high": 2}
 """Embree BVH build qualities (RTC_BUILD_QUALITY_*)."""
 
 DEFAULT_QUALITY = "high"
-"""BVH quality of :func:`waveforest.mcrt.prepare`: HIGH builds take ~4x longer than MEDIUM but
-trace foliage ~20 % faster, which pays after a few pulses per scene (``benchmarks/mcrt.py``)."""
+"""BVH quality of :func:`waveforest.mcrt.prepare`: a HIGH build takes ~4x the time of a MEDIUM
+one (raspberry, 227,000 triangles: ~0.38 vs ~0.10 s) but its Embree calls need ~20 % less CPU
+(~110 vs ~135 ms per pulse), which pays from about a dozen pulses per scene
+(``benchmarks/mcrt.py``; :func:`waveforest.mcrt.trace` of an unprepared scene chooses)."""
 
 BLOCK_RAYS = 512
 """Rays per ``prange`` task (one RTCRayHit slot each)."""
+
+MIN_PARALLEL_RAYS = 8192
+"""Calls with fewer rays run on one thread (thread start-up and barriers cost more than they
+save, and far more when other jobs occupy the cores)."""
 
 SLOT_FLOATS = 32
 """Slot size in float32 (128 bytes, room for an RTCRayHit of 96 bytes)."""
@@ -108,6 +115,13 @@ def _load():
         ):
             fn = getattr(lib, name)
             fn.restype, fn.argtypes = res, args
+        global _rtc_intersect1, _rtc_occluded1
+        import numba
+
+        if numba.config.DISABLE_JIT:  # kernels run as Python: call Embree through ctypes
+            proto = ctypes.CFUNCTYPE(None, ctypes.c_size_t, ctypes.c_size_t, ctypes.c_size_t)
+            _rtc_intersect1 = proto(("rtcIntersect1", lib))
+            _rtc_occluded1 = proto(("rtcOccluded1", lib))
         device = lib.rtcNewDevice(None)
         if not device:
             _ERROR = f"rtcNewDevice failed (error {lib.rtcGetDeviceError(None)})"
@@ -286,7 +300,7 @@ class DirectEmbreeIntersector:
         tfar = np.empty(m, np.float32)
         prim = np.empty(m, np.int32)
         if m:
-            with NumbaThreads(threads):
+            with NumbaThreads(1 if m < MIN_PARALLEL_RAYS else threads):
                 _intersect_kernel(self._scene, o, d, tfar, prim, *_slots(m))
         return tfar, prim
 
@@ -309,6 +323,6 @@ class DirectEmbreeIntersector:
         tm = np.ascontiguousarray(np.broadcast_to(np.asarray(tmax, np.float32), (m,)))
         out = np.empty(m, np.bool_)
         if m:
-            with NumbaThreads(threads):
+            with NumbaThreads(1 if m < MIN_PARALLEL_RAYS else threads):
                 _occluded_kernel(self._scene, o, d, tm, out, *_slots(m))
         return out
