@@ -6,10 +6,11 @@ stages (``ingest``, ``agc``, ``calibrate``); about 10 s.
 A target flown by two strips is seen at two ranges and incidence angles (a few % of
 amplitude) and, independently, at two AGC levels (the loop follows each strip's own
 terrain). The pooled within-target CV of METHOD.md (b) reads that amplitude difference as
-AGC gain and biases b (about -10 % in 2010_12_1). Nesting the strips within the targets
-(groups = target x strip, strips told apart by the gaps in GPS time) removes the bias:
-:func:`test_nested_cv_with_strips_recovers_the_true_b` checks that the truth is recoverable
-with the sensor module's own ``fit_b``.
+AGC gain and biases b (about -11 % in 2010_12_1 at seed 3). The ``agc`` stage nests the
+strips within the targets (groups = target passes, told apart by gaps in GPS time,
+``agc.pass_gap_s``), which removes the bias (:func:`test_agc_stage_recovers_the_true_b`);
+:func:`test_nested_cv_with_strips_recovers_the_true_b` checks the same with the sensor
+module's ``fit_b`` and an independent strip split of the whole dataset.
 """
 
 from __future__ import annotations
@@ -60,13 +61,7 @@ def recovered(tmp_path_factory):
     return truth, out
 
 
-STAGE_BIAS = pytest.mark.xfail(
-    strict=True, reason="waveforest agc pools each target over strips; a target flown by two strips at "
-    "different ranges and AGC levels biases b by -10 % (needs strips nested within targets in "
-    "sensor/agc.py, see the module docstring)")
-
-
-@pytest.mark.parametrize("ds", [pytest.param("2010_12_1", marks=STAGE_BIAS), "2012_10_1"])
+@pytest.mark.parametrize("ds", DATASETS)
 def test_agc_stage_recovers_the_true_b(recovered, ds):
     truth, out = recovered
     fit = out[ds][0]

@@ -6,11 +6,13 @@ import math
 import numpy as np
 import pytest
 
-from reference_sensor import nested_cv_reference, target_pulses, write_campaign_tables
+from reference_sensor import H, TARGETS_2010, make_pulse_table, nested_cv_reference, target_pulses, write_campaign_tables
+from waveforest.constants import RANGE_PER_NS
 from waveforest.errors import WaveforestError
 from waveforest.io.tables import list_to_padded, read_pulses, write_pulses
 from waveforest.sensor import (
     agc_gain,
+    render,
     fit_b,
     gaussian_system_waveform,
     nested_cv,
@@ -142,6 +144,73 @@ def test_agc_stage_without_agc_and_errors(tmp_path):
         agc_mod.run(src2, read_targets(tpath), read_datasets(dpath), tmp_path / "x.parquet", tmp_path / "x.json", {},
                     progress=False)
     assert not (tmp_path / "x.parquet").exists() and not (tmp_path / "x.json").exists()
+
+
+def test_target_passes_known_answer():
+    t = np.array([0.0, 1.0, 100.0, 2.0, 50.0, 200.0, 101.0, 0.5, np.nan])
+    k = np.array([0, 0, 0, 1, 1, 1, 0, 0, 2])
+    assert agc_mod.target_passes(t, k, 30.0).tolist() == [0, 0, 1, 0, 1, 2, 1, 0, 0]
+    assert agc_mod.target_passes(t, k, 1e9).tolist() == [0] * 9
+    with pytest.raises(ValueError, match="gap_s"):
+        agc_mod.target_passes(t, k, 0.0)
+
+
+def _two_strip_pulses(rng, b_true, per_pass=80):
+    """Lambertian target pulses (Eq. 7) from two strips 300 s apart: strip 0 at 1300 m and
+    nadir, strip 1 at 1600 m and 14 degrees (amplitude x 0.64 from 1/R^2 and cos); the AGC loop
+    runs each strip at its own terrain level (+12 units in strip 1, jitter +-10 within a strip)."""
+    tg = TARGETS_2010[:4]
+    n = len(tg) * 2 * per_pass
+    tk = np.repeat(np.arange(len(tg)), 2 * per_pass)
+    strip = np.tile(np.repeat([0, 1], per_pass), len(tg))
+    rng_m = np.where(strip == 0, 1300.0, 1600.0) + rng.normal(0.0, 0.3, n)
+    zen = np.radians(np.where(strip == 0, 0.0, 14.0))
+    d = np.column_stack([np.sin(zen), np.zeros(n), -np.cos(zen)])
+    agc = (100.0 + 12.0 * strip + rng.integers(-10, 11, n)).astype(float)
+    a = agc.mean()
+    rho = np.array([t[2] for t in tg])[tk]
+    sig = np.zeros((n, 200))
+    sig[:, 100] = rho * np.cos(zen) / np.pi
+    rend = render(sig, rng_m / RANGE_PER_NS - 100.5 * H, rng_m, SYSTEM, 10.0, 1.5, 1.0, rng,
+                  gain=1 + (agc - a) * b_true)
+    te = rend.trigger_ns - rend.first_sample_ns
+    r = np.sqrt(rng.uniform(0, 1.0, n))
+    phi = rng.uniform(0, 2 * np.pi, n)
+    xy = np.column_stack([np.array([t[5] for t in tg])[tk] + r * np.cos(phi), np.array([t[6] for t in tg])[tk] + r * np.sin(phi)])
+    anchor = np.column_stack([xy, np.full(n, 100.0)]) - d * te[:, None] * RANGE_PER_NS
+    table = make_pulse_table(rend.samples, echo_time_ns=te, echo_xy=xy, anchor=anchor, direction=d, range_m=rng_m,
+                             agc=agc, intensity=rend.samples.max(axis=1) - 10.0)
+    gps = 1000.0 + 300.0 * strip + 0.002 * np.arange(n)  # each pass lasts < 1 s
+    return table.set_column(table.schema.get_field_index("gps_time"), "gps_time", pa_array(gps)), a
+
+
+def test_agc_stage_nests_strips_within_targets(tmp_path):
+    """A target seen by two strips at different ranges, incidences and AGC levels: pooled over
+    the strips the CV reads the range/incidence difference as AGC gain and b is far off; with
+    one group per target pass (``agc.pass_gap_s``) b is recovered within 5 %."""
+    b_true = 0.01
+    table, a = _two_strip_pulses(np.random.default_rng(7), b_true)
+    src = write_pulses(table, tmp_path / "pulses.parquet")
+    dpath, tpath = write_campaign_tables(tmp_path)
+    targets, datasets = read_targets(tpath), read_datasets(dpath)
+    res = {}
+    for gap in (30.0, 1e9):  # 1e9 s: every target one group, the strips pooled
+        cfg = {"agc": {"b_bounds": [0.0, 0.05], "pass_gap_s": gap}}
+        res[gap] = agc_mod.run(src, targets, datasets, tmp_path / "n.parquet", tmp_path / "f.json", cfg,
+                               progress=False)
+    nested, pooled = res[30.0], res[1e9]
+    assert nested.a == pytest.approx(a)
+    assert len(nested.n_per_pass) == 8 and set(nested.n_per_pass.values()) == {80}
+    assert len(pooled.n_per_pass) == 4 and sum(pooled.n_per_target.values()) == 640
+    assert nested.b == pytest.approx(b_true, rel=B_TOL)
+    assert abs(pooled.b / b_true - 1) > 3 * B_TOL, pooled.b
+    assert nested.cv_after < pooled.cv_after
+
+
+def pa_array(v):
+    import pyarrow as pa
+
+    return pa.array(v)
 
 
 def pq_array_nan(n):

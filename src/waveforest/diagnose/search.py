@@ -634,7 +634,10 @@ def search(
     reason = ""
     thin = [h for h in HALVES if not ids[h] or not ctx.data(h, {}).valid.any()]
     rounds = settings.rounds
-    if thin:
+    if not baseline.significant:  # nothing to explain: no search (and no spurious candidate)
+        rounds = 0
+        reason = "the base model's gap is within the noise floor"
+    elif thin:
         rounds = 0
         reason = (f"half {thin[0]} of the field samples has no dataset x species cell with at least "
                   f"{settings.min_pulses} pulses from {settings.min_samples} samples: too few field samples "

@@ -12,10 +12,26 @@ targets (targets.csv rows with agc = 1):
 
     CV(b) = sqrt( sum_k sum_i (A_ki / mean_i(A_ki) - 1)^2 / (N - K) ),  A_ki = (max V - n0) / g_ki(b)
 
-k = target, i = pulse, N pulses, K targets; a coarse grid over the bounded interval
+k = fit group, i = pulse, N pulses, K groups; a coarse grid over the bounded interval
 ``agc.b_bounds`` followed by a bounded Brent refinement around the best grid point. The
 interval is narrowed so that every pulse keeps a gain of at least :data:`GAIN_MIN`; pulses
 whose waveform reaches the digitiser maximum (clipped peaks) are left out of the fit.
+
+The fit groups are target *passes*, not targets: a target flown by two strips is seen at two
+ranges (1/R^2 of Eq. 7) and incidence angles (sigma = rho cos(gamma)/pi for a Lambertian
+target, plus the peak broadening of an inclined footprint) -- a few % of amplitude -- and,
+independently, at two AGC levels, because the loop follows each strip's own terrain. Pooled
+over strips, the CV would read that amplitude difference as AGC gain and bias b (about -10 %
+on the virtual campaign). Within one pass the sensor sees the target from (nearly) one
+position: its range varies by r sin(theta) / R < 0.2 % (target radius r <= 5 m, scan zenith
+theta <= 15 degrees, R ~ 1 km) and its incidence by less than a degree, far below the noise
+of a peak amplitude, so a pass is truly homogeneous and only the AGC changes within it (the
+loop's jitter and its reaction to the signal). Passes are told apart by the GPS time: pulses
+of one target more than ``agc.pass_gap_s`` apart (default 30 s; an aircraft crosses a target
+in < 1 s and turns between strips take ~90 s) belong to different passes (:func:`target_passes`;
+the pulse table carries no LAS point_source_id). Each pass is a group of its own
+(``agc.min_pulses_per_target`` applies per pass); the per-target counts and CVs in the JSON
+report the targets, the per-pass ones the groups.
 
 Pulses with no AGC (NaN) are not normalised (gain 1). A dataset with no AGC at all is passed
 through unnormalised with a warning and b = NaN (the AGC is not faked).
@@ -121,6 +137,40 @@ def nested_cv(amplitudes, agc, groups, a: float, b: float) -> float:
     return float(math.sqrt(np.sum((A / means[inv] - 1.0) ** 2) / (N - K)))
 
 
+def target_passes(gps_time, targets, gap_s: float) -> np.ndarray:
+    """Pass index of each pulse within its target: a new pass wherever the target's pulses are
+    more than ``gap_s`` apart in GPS time (a new flight strip over the same target).
+
+    Parameters
+    ----------
+    gps_time : (N,) float, s (NaN times join the target's last pass; all NaN -> one pass).
+    targets : (N,) int target labels.
+    gap_s : float > 0, s.
+
+    Returns
+    -------
+    (N,) int64, 0, 1, ... in time order within each target.
+    """
+    t = np.asarray(gps_time, dtype=np.float64)
+    k = np.asarray(targets)
+    if t.shape != k.shape or t.ndim != 1:
+        raise ValueError("gps_time and targets must be 1-D arrays of equal length")
+    if not gap_s > 0:
+        raise ValueError(f"gap_s must be > 0, got {gap_s}")
+    out = np.zeros(t.size, dtype=np.int64)
+    if t.size == 0:
+        return out
+    order = np.lexsort((np.where(np.isfinite(t), t, np.inf), k))
+    ts, ks = t[order], k[order]
+    same = ks[1:] == ks[:-1]
+    new_pass = np.concatenate([[False], same & (np.diff(ts) > gap_s)])  # NaN gaps compare False
+    cum = np.cumsum(new_pass)
+    start = np.concatenate([[True], ~same])  # first pulse of each target
+    base = np.maximum.accumulate(np.where(start, cum, 0))
+    out[order] = cum - base
+    return out
+
+
 def cv_per_group(amplitudes, agc, groups, a: float, b: float) -> dict:
     """Relative SD of the normalised amplitude within each target: {label: cv}."""
     A = np.asarray(amplitudes, dtype=np.float64) / agc_gain(agc, a, b)
@@ -209,6 +259,10 @@ class AGCFit:
     n_per_target: dict = field(default_factory=dict)
     cv_per_target_before: dict = field(default_factory=dict)
     cv_per_target_after: dict = field(default_factory=dict)
+    pass_gap_s: float = float("nan")
+    n_per_pass: dict = field(default_factory=dict)
+    cv_per_pass_before: dict = field(default_factory=dict)
+    cv_per_pass_after: dict = field(default_factory=dict)
     b_grid: list = field(default_factory=list)
     cv_grid: list = field(default_factory=list)
     fixed_b: bool = False
@@ -251,7 +305,7 @@ def normalise_pulses(pulses: pa.Table, a: float, b: float, n0: float) -> pa.Tabl
 
 
 # -- the `agc` stage ------------------------------------------------------------------------
-_PASS1_COLUMNS = ["dataset", "agc", "echo_x", "echo_y", "samples"]
+_PASS1_COLUMNS = ["dataset", "gps_time", "agc", "echo_x", "echo_y", "samples"]
 
 
 def _single_dataset(names: set, path) -> str:
@@ -287,6 +341,7 @@ def run(pulses_path, targets, datasets, out_path, fit_path, cfg: dict, *, plot_p
     tail = int(cfg.get("calibrate", {}).get("noise_tail", 50))
     dmax = float(cfg.get("sensor", {}).get("digitizer_max", 255))
     min_per_target = int(sec.get("min_pulses_per_target", 5))
+    gap_s = float(sec.get("pass_gap_s", 30.0))
     names: set = set()
     agc_sum = agc_n = 0.0
     agc_min, agc_max = np.inf, -np.inf
@@ -321,7 +376,8 @@ def run(pulses_path, targets, datasets, out_path, fit_path, cfg: dict, *, plot_p
         on[on] = targets["agc"].to_numpy(dtype=bool)[tidx[on]]
         if on.any():
             raw_max = peak_amplitudes(samples[on], lens[on], 0.0)
-            fit_rows.append((raw_max, agc[on], tidx[on]))
+            gps = batch.column("gps_time").to_numpy(zero_copy_only=False).astype(np.float64)
+            fit_rows.append((raw_max, agc[on], tidx[on], gps[on]))
     if not names:
         raise WaveforestError(f"{pulses_path}: the pulse table is empty")
     name = _single_dataset(names, pulses_path)
@@ -333,15 +389,20 @@ def run(pulses_path, targets, datasets, out_path, fit_path, cfg: dict, *, plot_p
 
     raw_max = np.concatenate([r[0] for r in fit_rows]) if fit_rows else np.empty(0)
     fagc = np.concatenate([r[1] for r in fit_rows]) if fit_rows else np.empty(0)
-    fgrp = np.concatenate([r[2] for r in fit_rows]) if fit_rows else np.empty(0, dtype=np.int64)
+    ftgt = np.concatenate([r[2] for r in fit_rows]) if fit_rows else np.empty(0, dtype=np.int64)
+    fgps = np.concatenate([r[3] for r in fit_rows]) if fit_rows else np.empty(0)
+    fpass = target_passes(fgps, ftgt, gap_s)  # passes from all target pulses, clipped ones included
     sat = raw_max >= dmax
     keep = ~sat & np.isfinite(fagc) & np.isfinite(raw_max)
-    amps, fagc, fgrp = raw_max[keep] - n0, fagc[keep], fgrp[keep]
+    amps, fagc, ftgt, fpass = raw_max[keep] - n0, fagc[keep], ftgt[keep], fpass[keep]
+    fgrp = ftgt * (int(fpass.max()) + 1 if fpass.size else 1) + fpass  # one group per target pass
     ids, counts = np.unique(fgrp, return_counts=True)
     good = np.isin(fgrp, ids[counts >= min_per_target])
-    amps, fagc, fgrp = amps[good], fagc[good], fgrp[good]
+    amps, fagc, ftgt, fpass, fgrp = amps[good], fagc[good], ftgt[good], fpass[good], fgrp[good]
     tid = targets["target_id"].to_numpy()
-    n_per_target = {str(tid[k]): int(c) for k, c in zip(*np.unique(fgrp, return_counts=True))}
+    n_per_target = {str(tid[k]): int(c) for k, c in zip(*np.unique(ftgt, return_counts=True))}
+    pass_label = {int(g): f"{tid[k]}#{p}" for g, k, p in zip(fgrp, ftgt, fpass)}
+    n_per_pass = {pass_label[int(g)]: int(c) for g, c in zip(*np.unique(fgrp, return_counts=True))}
 
     fixed = sec.get("b")
     bounds = tuple(sec.get("b_bounds", (0.0, 0.05)))
@@ -372,13 +433,18 @@ def run(pulses_path, targets, datasets, out_path, fit_path, cfg: dict, *, plot_p
         cv_before = nested_cv(amps, fagc, fgrp, a, 0.0) if amps.size else float("nan")
 
     label = lambda d: {str(tid[k]): v for k, v in d.items()}  # noqa: E731
+    plabel = lambda d: {pass_label[int(g)]: v for g, v in d.items()}  # noqa: E731
+    have_a, have_b = amps.size and np.isfinite(a), amps.size and np.isfinite(b)
     fit = AGCFit(
         dataset=str(name), year=int(year), a=float(a), b=float(b), n0=float(n0), noise_sd=float(noise_sd),
         b_bounds=tuple(float(v) for v in eff_bounds), cv_before=float(cv_before), cv_after=float(cv_after),
         n_pulses_total=int(n_total), n_fit_pulses=int(amps.size), n_missing_agc=int(n_missing),
         n_saturated=int(sat.sum()), n_per_target=n_per_target,
-        cv_per_target_before=label(cv_per_group(amps, fagc, fgrp, a, 0.0)) if amps.size and np.isfinite(a) else {},
-        cv_per_target_after=label(cv_per_group(amps, fagc, fgrp, a, b)) if amps.size and np.isfinite(b) else {},
+        cv_per_target_before=label(cv_per_group(amps, fagc, ftgt, a, 0.0)) if have_a else {},
+        cv_per_target_after=label(cv_per_group(amps, fagc, ftgt, a, b)) if have_b else {},
+        pass_gap_s=gap_s, n_per_pass=n_per_pass,
+        cv_per_pass_before=plabel(cv_per_group(amps, fagc, fgrp, a, 0.0)) if have_a else {},
+        cv_per_pass_after=plabel(cv_per_group(amps, fagc, fgrp, a, b)) if have_b else {},
         b_grid=grid.tolist(), cv_grid=curve.tolist(), fixed_b=fixed is not None,
     )
 
