@@ -16,6 +16,9 @@ import numpy as np
 
 RANGE_PER_NS = 299_792_458.0e-9 / 2.0  # m per ns of two-way time, written out independently
 
+RIEGL = Path(__file__).parent / "data" / "real" / "riegl_fwf.las"
+"""A real RIEGL waveform LAS nobody here wrote (tests/data/real/README.md), with its .wdp."""
+
 # per point format: struct of the fields before the wave packet, and their names
 _CORE = {
     4: ("<lllHBBbBHd", ["X", "Y", "Z", "intensity", "bits", "cls", "scan", "user_data", "psid", "gps"]),

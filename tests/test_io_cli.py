@@ -1,17 +1,14 @@
 """``waveforest ingest`` and ``waveforest info`` through click."""
 
-from pathlib import Path
 
 import numpy as np
-import pytest
 from click.testing import CliRunner
+from reference_io import RIEGL
 
 from waveforest.cli import cli
-from waveforest.io.tables import read_pulses
 from waveforest.io.las_write import write_waveform_las
 from waveforest.io.synthetic import synthetic_pulses
-
-RIEGL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "riegl_fwf.las"
+from waveforest.io.tables import read_pulses
 
 
 def test_commands_are_registered():
@@ -76,7 +73,6 @@ def test_info_on_written_file(tmp_path):
     assert "AGC attribute:         user_data" in out
 
 
-@pytest.mark.skipif(not RIEGL.exists(), reason=f"real test data absent: {RIEGL}")
 def test_info_summarises_the_real_riegl_file():
     result = CliRunner().invoke(cli, ["info", str(RIEGL)])
     assert result.exit_code == 0, result.output

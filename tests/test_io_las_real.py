@@ -1,23 +1,16 @@
 """A real file nobody here wrote: RIEGL LAS 1.4 point format 9, 16-bit samples in a .wdp.
 
-See shared/data/real/README.md. Every waveform sample, echo and geometry value of our
+See tests/data/real/README.md. Every waveform sample, echo and geometry value of our
 reader is compared with an independent struct-based reading (tests/reference_io.py).
 """
 
-from pathlib import Path
-
 import numpy as np
 import pytest
+from reference_io import RIEGL, reference_points, reference_pulses
 
-from reference_io import reference_points, reference_pulses
 from waveforest.constants import RANGE_PER_NS
-from waveforest.io.las_format import LasWaveformWarning
 from waveforest.io.las import WaveformPulseReader, open_waveform_las, read_waveform_las
-
-REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
-RIEGL = REAL / "riegl_fwf.las"
-
-pytestmark = pytest.mark.skipif(not RIEGL.exists(), reason=f"real test data absent: {RIEGL} (shared/ beside the repo)")
+from waveforest.io.las_format import LasWaveformWarning
 
 QUANT_M = 0.001
 """Coordinate scale of the RIEGL file, m."""

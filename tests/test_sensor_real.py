@@ -1,26 +1,23 @@
-"""The sensor processing on a real full-waveform LAS file (RIEGL, /work/shared/data/real)."""
-
-from pathlib import Path
+"""The sensor processing on a real full-waveform LAS file (RIEGL, tests/data/real)."""
 
 import numpy as np
 import pytest
+from reference_io import RIEGL
 
 from waveforest.constants import RANGE_PER_NS
 from waveforest.io.tables import list_to_padded, read_pulses
 from waveforest.sensor import CFDParams, detect_echoes, feature_table
 
-REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "riegl_fwf.las"
 HEAD = 8  # RIEGL records start a few ns before the first return: their first samples are noise
 
 
-@pytest.mark.skipif(not REAL.exists(), reason=f"real data not found at {REAL}")
 def test_features_and_cfd_on_real_waveforms(tmp_path):
     from click.testing import CliRunner
 
     from waveforest.cli import cli
 
     out = tmp_path / "pulses.parquet"
-    res = CliRunner().invoke(cli, ["ingest", str(REAL), "--out", str(out), "--nominal-range", "600"])
+    res = CliRunner().invoke(cli, ["ingest", str(RIEGL), "--out", str(out), "--nominal-range", "600"])
     assert res.exit_code == 0, res.output
     pulses = read_pulses(out)
     x, lens = list_to_padded(pulses.column("samples"))
