@@ -115,6 +115,19 @@ def test_cluster_bootstrap_is_wider_than_a_pulse_bootstrap_would_be():
     assert half_width > 3 * 1.96 * naive_se
 
 
+def test_robust_sd_is_the_sd_of_normal_replicates_and_ignores_a_wild_one():
+    """One replicate with a degenerate cell (a huge d^2) must not blow up an interval."""
+    r = np.random.default_rng(3).normal(0.0, 2.0, (4000, 2))
+    assert np.allclose(G.robust_sd(r), 2.0, rtol=0.05)
+    r[0, 0] = 1e6
+    assert G.robust_sd(r)[0] == pytest.approx(G.robust_sd(r[1:])[0], rel=0.01)
+    lo, hi = G.wald_interval(np.zeros(2), r, df=30)
+    assert hi[0] < 5.0 and lo[0] > -5.0
+    lo, hi = G.recentred_interval(1.0, r[:, 0])
+    assert lo < 1.0 < hi and hi - lo < 10.0
+    assert np.isnan(G.robust_sd(np.array([[1.0], [np.nan]])))[0]
+
+
 def test_bootstrap_weights_are_stratified_rescaled_and_seeded():
     uni = pd.Series(["a"] * 5 + ["b"] * 3, index=[f"s{i}" for i in range(8)])
     w = G.bootstrap_weights(uni, 40, seed=3)

@@ -31,10 +31,10 @@ Pulses of one field sample see the same plant and are correlated, so every boots
 resamples *field samples* (clusters), stratified by species, and takes each drawn sample's
 real and simulated pulses together (a paired cluster bootstrap). Even a perfect model has
 E[d^2] = Var(d) > 0: the *noise floor* ``F = mean of (Var*(d) + Var*(l))`` (bootstrap
-variances) is the gap expected from sampling noise alone, and the *excess gap* is
-``G - F``. The gap is *significant* when the lower bound of the excess gap's interval is
+variances, from interquartile ranges: :func:`robust_sd`) is the gap expected from sampling
+noise alone, and the *excess gap* is ``G - F``. The gap is *significant* when the lower bound of the excess gap's interval is
 above 0. Intervals of G (and of differences of G) are bootstrap percentile intervals
-recentred on the estimate (G + quantiles of G* - mean G*): the bootstrap adds its own
+recentred on the estimate (G + quantiles of G* - median G*): the bootstrap adds its own
 noise to d*, shifting G* upwards by about F; recentring removes that shift and keeps the
 skewness of a sum of squares. Intervals of d and l are ``estimate -+ t * SE*`` (bootstrap
 standard error, Student t with samples - 1 degrees of freedom), as are those of a
@@ -194,7 +194,7 @@ class GapData:
         floors: dict[str, float] | None = None,
         min_pulses: int = MIN_CELL_PULSES,
         min_samples: int = MIN_CELL_SAMPLES,
-    ) -> "GapData":
+    ) -> GapData:
         """Reduce two feature tables to per-sample sums.
 
         Parameters
@@ -384,21 +384,22 @@ def total_gap(
 def recentred_interval(estimate: float, replicates: np.ndarray, alpha: float = DEFAULT_ALPHA) -> tuple[float, float]:
     """Bootstrap percentile interval of ``replicates`` shifted so its centre is ``estimate``.
 
-    ``[estimate + q(alpha/2) - mean, estimate + q(1 - alpha/2) - mean]`` of the finite
+    ``[estimate + q(alpha/2) - median, estimate + q(1 - alpha/2) - median]`` of the finite
     replicates: the bootstrap's shape, without the upward bias that resampling adds to
-    squared statistics (module docstring).
+    squared statistics (module docstring). The median, not the mean, is the centre: a few
+    replicates with a near-degenerate cell have huge squared terms (:func:`robust_sd`).
     """
     r = np.asarray(replicates, dtype=np.float64)
     r = r[np.isfinite(r)]
     if r.size < 2:
         return (np.nan, np.nan)
-    lo, hi = np.quantile(r, [alpha / 2, 1 - alpha / 2])
-    m = r.mean()
+    lo, m, hi = np.quantile(r, [alpha / 2, 0.5, 1 - alpha / 2])
     return (float(estimate + lo - m), float(estimate + hi - m))
 
 
 def wald_interval(estimate: np.ndarray, replicates: np.ndarray, df, alpha: float = DEFAULT_ALPHA) -> np.ndarray:
-    """``estimate -+ t(1 - alpha/2, df) * SE*``, SE* the SD of the bootstrap replicates.
+    """``estimate -+ t(1 - alpha/2, df) * SE*``, SE* the (robust, :func:`robust_sd`) SD of the
+    bootstrap replicates.
 
     Used for d and l (nearly unbiased, nearly symmetric): with the ~10 field samples per
     species of a campaign it keeps its nominal coverage where the percentile interval of
@@ -416,10 +417,36 @@ def wald_interval(estimate: np.ndarray, replicates: np.ndarray, df, alpha: float
     (2, ...) float64
         Lower and upper bounds.
     """
-    with np.errstate(invalid="ignore"):
-        se = np.nanstd(replicates, axis=0, ddof=1)
-    half = student_t.ppf(1 - alpha / 2, df) * se
+    half = student_t.ppf(1 - alpha / 2, df) * robust_sd(replicates)
     return np.stack([estimate - half, estimate + half])
+
+
+IQR_PER_SD = 1.3489795003921634
+"""Interquartile range of a normal distribution in SDs (2 * Phi^-1(0.75))."""
+
+
+def robust_sd(replicates: np.ndarray) -> np.ndarray:
+    """SD of bootstrap replicates estimated as IQR / 1.349 (over axis 0, ignoring NaN).
+
+    A replicate that draws one or two field samples into a cell can give a near-zero pooled
+    SD and so a huge d (and d^2); one such replicate in a few hundred blew the plain SD of a
+    gap difference up a thousandfold on the virtual campaign. The IQR ignores those tails
+    and equals the SD for normal replicates, which d, l and gap differences nearly are.
+
+    Parameters
+    ----------
+    replicates : (B, ...) float64
+
+    Returns
+    -------
+    (...) float64; NaN where fewer than 2 replicates are finite.
+    """
+    r = np.asarray(replicates, dtype=np.float64)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN slices
+        q1, q3 = np.nanquantile(r, [0.25, 0.75], axis=0)
+    out = (q3 - q1) / IQR_PER_SD
+    return np.where(np.sum(np.isfinite(r), axis=0) >= 2, out, np.nan)
 
 
 def cluster_df(universe: pd.Series) -> int:
@@ -433,11 +460,11 @@ def noise_floor(data: GapData, weights: np.ndarray, valid: np.ndarray | None = N
     Returns
     -------
     (C, F) float64
-        ``Var*(d) + Var*(l)``; NaN where invalid. Its mean over the valid cells is F.
+        ``Var*(d) + Var*(l)`` (each the square of :func:`robust_sd`); NaN where invalid. Its
+        mean over the valid cells is F.
     """
     stats = cell_statistics(data, weights)
-    with np.errstate(invalid="ignore"):
-        out = np.nanvar(stats["d"], axis=0, ddof=1) + np.nanvar(stats["log_sd_ratio"], axis=0, ddof=1)
+    out = robust_sd(stats["d"]) ** 2 + robust_sd(stats["log_sd_ratio"]) ** 2
     mask = data.valid if valid is None else valid
     return np.where(mask, out, np.nan)
 
