@@ -108,7 +108,7 @@ SLOW_CONFIG = {
     "seed": 11,
     "data": None,
     "datasets": ["2010_12_1", "2012_10_1"],
-    "campaign": {"samples_per_species": 8, "n_rays": 2000},
+    "campaign": {"samples_per_species": 8, "n_rays": 2000, "max_order": 5},
     "mcrt": {"n_rays": 3000, "max_order": 5},
     "select": {"min_pulses": 5},
     "simulate": {"chunks": 1},
@@ -116,7 +116,9 @@ SLOW_CONFIG = {
     "sensor_study": {"pulses": 20},
     "diagnose": {"rounds": 2, "bootstrap": 200},
 }
-"""A small study on which each hidden effect is diagnosed (a few minutes per campaign)."""
+"""A small study on which each hidden effect is diagnosed (a few minutes per campaign). The
+campaign and the analysis trace the same orders: orders 6-10 carry ~8 % of a raspberry
+canopy's sigma, a gap of its own that no catalogue effect is meant to explain."""
 
 
 def _diagnose_campaign(tmp_path, effects: dict) -> dict:
@@ -130,8 +132,9 @@ def _diagnose_campaign(tmp_path, effects: dict) -> dict:
     cfg = dict(SLOW_CONFIG)
     cfg["campaign"] = {**cfg["campaign"], "effects": effects}
     (tmp_path / "config" / "slow.yaml").write_text(yaml.safe_dump(cfg))
-    subprocess.run([sys.executable, "-m", "snakemake", "--cores", "2", "--configfile", "config/slow.yaml",
-                    "results/diagnose/model.yaml"], cwd=tmp_path, check=True, capture_output=True)
+    # the target goes first: Snakemake's --configfile takes every value that follows it
+    subprocess.run([sys.executable, "-m", "snakemake", "results/diagnose/model.yaml", "--cores", "2",
+                    "--configfile", "config/slow.yaml"], cwd=tmp_path, check=True, capture_output=True)
     return read_model(tmp_path / "results" / "diagnose" / "model.yaml")
 
 
@@ -150,7 +153,8 @@ def test_real_chain_names_the_hidden_effect(tmp_path, name):
     first = m["effects"][0]
     assert first["name"] == name
     assert first["ci_low"] <= truth <= first["ci_high"]
-    assert m["gap"]["after"] <= 0.5 * m["gap"]["before"]
+    gap = m["gap"]  # the excess over the noise floor (a perfect model's gap) at least halves
+    assert gap["after"] - gap["noise_floor"] <= 0.5 * (gap["before"] - gap["noise_floor"])
 
 
 @pytest.mark.slow

@@ -70,7 +70,7 @@ CATALOGUE: dict[str, Effect] = {
     e.name: e
     for e in [
         Effect("understory", 0.0, 2.5, (0.0, 3.0), "vegetation", "LAI of a grass/seedling layer under trees"),
-        Effect("clumping", 0.0, 0.15, (0.0, 0.8), "vegetation", "shoot cluster radius, m"),
+        Effect("clumping", 0.0, 0.15, (0.05, 0.8), "vegetation", "shoot cluster radius, m"),
         Effect("xy_error", 0.0, 0.25, (0.0, 0.6), "geometry", "horizontal georeferencing error SD, m"),
         Effect("specular", 0.0, 0.3, (0.0, 0.8), "mcrt", "specular fraction of the leaf reflectance"),
         Effect("hotspot", 1.0, 1.3, (1.0, 2.0), "mcrt", "first-order enhancement factor of vegetation"),

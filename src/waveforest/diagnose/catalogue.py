@@ -4,9 +4,12 @@
 bounds, and where the physics lives. This module adds what the diagnosis needs:
 
 * a *search coordinate* u in [0, 1] per effect, on which the 1-D search runs. It is linear
-  in the value over the effect's bounds, except for ``nonlinearity`` whose value is a
-  saturation level L (off = no saturation = L -> infinity): there u = L_min / L, so u = 0 is
-  "off" and the effect grows smoothly with u (v -> L tanh(v / L) departs from v as 1 / L^2);
+  in the value over the effect's bounds, except for the effects whose strength falls as
+  their value grows and whose "off" lies at infinity (:data:`INVERSE_SCALE`), searched on
+  u = v_min / v, so that u = 0 is "off" and the effect grows smoothly with u:
+  ``nonlinearity`` (saturation level L: v -> L tanh(v / L) departs from v as 1 / L^2) and
+  ``clumping`` (Thomas cluster radius r: a small radius is tight clumping, a radius much
+  larger than the plant spacing is uniform placement again; the value 0 stands for "off");
 * the grid of values of a candidate (always containing the off value, which is the
   current model itself and needs no extra simulation);
 * which stage of the simulation each effect acts in, and therefore whether a candidate
@@ -31,7 +34,7 @@ from . import gap as _gap
 VEGETATION_EFFECTS = tuple(n for n, e in CATALOGUE.items() if e.stage == "vegetation")
 """Effects that change the plants (a new value needs new vegetation instances)."""
 
-INVERSE_SCALE = {"nonlinearity"}
+INVERSE_SCALE = {"nonlinearity", "clumping"}
 """Effects searched on u = lower bound / value (off value 0 = infinitely far)."""
 
 

@@ -29,6 +29,7 @@ import numpy as np
 import pandas as pd
 
 from ..effects import CATALOGUE
+from .catalogue import to_u
 from .gap import FEATURES
 
 SPECIES: dict[str, dict] = {
@@ -87,8 +88,8 @@ def apply_effects(keys: pd.DataFrame, effects: dict[str, float]) -> tuple[dict, 
     shift["H"] -= np.where(birch, 0.20 * u, 0.0)
     scale["E"] *= np.where(birch, 1.0 / (1.0 + 0.4 * u), 1.0)
 
-    r = e["clumping"]  # low species: more heterogeneous, more so at small footprints
-    widen = 1.0 + 3.0 * r * (_REF_FOOTPRINT_M / fp)
+    r = to_u("clumping", e["clumping"])  # strength: 0 off, 1 at the tightest radius (catalogue)
+    widen = 1.0 + 3.0 * r * (_REF_FOOTPRINT_M / fp)  # low species: more heterogeneous at small footprints
     scale["H"] *= np.where(low, widen, 1.0)
     scale["Apeak"] *= np.where(low, widen, 1.0)
 
