@@ -42,8 +42,9 @@ def test_config_values_effects_and_options_reach_the_scene(tmp_path):
     ref = build_scene("birch", 3.0, 3, ground_rho=0.2, lai_jitter=0.0, understory=0.5, leaf_area_scale=0.5)
     np.testing.assert_array_equal(back.triangles, ref.triangles)
     np.testing.assert_array_equal(back.rho, ref.rho)
-    # half the allometric birch leaf area (0.20 h^2) plus an understory of LAI 0.5
-    assert back.areas[back.kind == 1].sum() == pytest.approx(0.5 * 0.20 * 9.0 + 0.5 * 36, rel=1e-4)
+    # half the allometric leaf area of a 3-m birch (3.251 m2, tests/test_vegetation_structure.py)
+    # plus an understory of LAI 0.5 on the 36-m2 plot
+    assert back.areas[back.kind == 1].sum() == pytest.approx(0.5 * 3.251 + 0.5 * 36, rel=1e-4)
     assert np.allclose(back.rho[back.kind == 0], 0.2)
 
 

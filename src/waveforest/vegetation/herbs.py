@@ -53,6 +53,7 @@ from .placement import positions, wrap
 from .plant import Plant, horizontal, piecewise_profile
 from .wood import prisms
 
+
 def _layout(p: SpeciesParams, hs: np.ndarray):
     """Nodes and leaflets of shoots of heights ``hs`` (structure only, no randomness).
 

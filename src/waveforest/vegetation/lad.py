@@ -111,7 +111,7 @@ _TABLE_SIZE = 1024
 """Intervals of the inverse-CDF table that gives the Newton start."""
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _inverse_table(k: int) -> np.ndarray:
     u = np.linspace(0.0, 1.0, _TABLE_SIZE + 1)
     return _invert_dewit(u, np.empty(1), float(_SIGN[k]), float(_FREQ[k]))
@@ -188,7 +188,7 @@ class LeafAngleDistribution:
 
     # --- constructors -------------------------------------------------------------------------
     @staticmethod
-    def beta_with_mean(mean_deg: float, concentration: float) -> "LeafAngleDistribution":
+    def beta_with_mean(mean_deg: float, concentration: float) -> LeafAngleDistribution:
         """Beta LAD with mean inclination ``mean_deg`` and mu + nu = ``concentration``.
 
         The mean is clipped to [0, 90]; at the ends the distribution is ``fixed``.
@@ -202,11 +202,11 @@ class LeafAngleDistribution:
         t = mean_deg / 90.0
         return LeafAngleDistribution("beta", mu=concentration * (1.0 - t), nu=concentration * t)
 
-    def with_mean(self, mean_deg: float) -> "LeafAngleDistribution":
+    def with_mean(self, mean_deg: float) -> LeafAngleDistribution:
         """The beta form with this LAD's concentration and the given mean, degrees."""
         return LeafAngleDistribution.beta_with_mean(mean_deg, self.concentration)
 
-    def shifted(self, shift_deg: float) -> "LeafAngleDistribution":
+    def shifted(self, shift_deg: float) -> LeafAngleDistribution:
         """This LAD with its mean moved by ``shift_deg`` (beta form; no-op for a zero shift)."""
         if shift_deg == 0.0:
             return self
@@ -302,7 +302,7 @@ class LeafAngleDistribution:
         return _g_integral(self, view)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _dewit_moments(name: str) -> tuple[float, float]:
     lad = LeafAngleDistribution(name)
     m1 = integrate.quad(lambda th: (th / HALF_PI) * lad.pdf(th), 0, HALF_PI, epsabs=1e-13)[0]

@@ -113,7 +113,7 @@ class Outline:
         return np.sqrt(np.asarray(area, dtype=np.float64) / (self.area * width_factor))
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def load_outline(name: str) -> Outline:
     """The outline ``outlines/<name>.csv`` (columns x, y; '#' comment lines give the source)."""
     path = RES / "outlines" / f"{name}.csv"

@@ -42,7 +42,7 @@ PAPER_MODELS = ("birch", "raspberry", "fireweed")
 """The three species modelled by Hovi & Korpela (2014)."""
 
 _TREE = (
-    "foliage_area_a foliage_area_b crown_base_frac stem_base_diameter_per_h stem_top_diameter_m "
+    "crown_base_frac stem_base_diameter_per_h stem_top_diameter_m "
     "whorl_spacing_m branches_per_whorl whorl_divergence_deg branch_azimuth_jitter_deg "
     "branch_length_frac branch_length_cv crown_widest_depth crown_top_exponent crown_base_length_rel "
     "branch_zenith_top_deg branch_zenith_base_deg branch_bend_deg branch_diameter_base_m "
@@ -77,7 +77,15 @@ REQUIRED: dict[str, tuple[str, ...]] = {
     "surface": tuple(_SURFACE.split()),
     "residue": tuple(_RESIDUE.split()),
 }
-"""Structural parameters (structure.csv) that each model family needs, no more, no less."""
+"""Structural parameters (structure.csv) that each model family needs, no more, no less ..."""
+
+TREE_LEAF_AREA: dict[str, tuple[str, ...]] = {
+    "young_tree_chain": ("naslund_a", "naslund_b", "stump_d0_cm", "stump_d1", "leaf_mass_a", "leaf_mass_b",
+                         "sla_m2_per_kg"),
+    "power_law": ("foliage_area_a", "foliage_area_b"),
+}
+"""... plus, for a tree, exactly one of these groups: its total leaf area allometry
+(:func:`waveforest.vegetation.tree.allometric_leaf_area`)."""
 
 _NEEDS_LEAVES = {"tree", "shoots", "tufts", "layer", "residue"}
 _NEEDS_WOOD = {"tree", "shoots", "layer", "residue"}
@@ -185,6 +193,8 @@ def _tables() -> tuple[pd.DataFrame, dict[str, SpeciesParams]]:
         rows = st[st["slug"] == row.slug]
         got = set(rows["param"])
         need = set(REQUIRED[row.model])
+        if row.model == "tree":  # plus the one leaf-area group the row gives
+            need |= next((set(g) for g in TREE_LEAF_AREA.values() if set(g) <= got), set(TREE_LEAF_AREA["power_law"]))
         if got != need:
             raise ParameterFileError(
                 f"{path_st}: {row.slug} ({row.model}): missing {sorted(need - got)}, "
@@ -195,7 +205,7 @@ def _tables() -> tuple[pd.DataFrame, dict[str, SpeciesParams]]:
             raise ParameterFileError(f"{path_st}: {row.slug}: non-numeric value")
         structure = dict(zip(rows["param"], values.tolist()))
 
-        def num(col: str, needed: bool) -> float:
+        def num(col: str, needed: bool, row=row) -> float:
             v = getattr(row, col)
             v = float(v) if pd.notna(v) else float("nan")
             if needed and not (np.isfinite(v) and 0.0 <= v <= 1.0):

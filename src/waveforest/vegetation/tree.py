@@ -21,8 +21,9 @@ One tree stands at the origin of the 6 x 6 m plot (METHOD.md g). From the height
    at ``sub_angle_deg`` from the parent with a random roll.
 7. **Shoots** on the foliage axes (upper stem in the crown, the outer part of the branches,
    sub-branches), uniformly by length; ``leaves_per_shoot`` leaves per shoot on average.
-8. **Leaves**: total one-sided area from the allometry A = ``foliage_area_a`` h^
-   ``foliage_area_b`` (times the per-instance jitter), individual areas lognormal around
+8. **Leaves**: total one-sided area from the allometry (:func:`allometric_leaf_area`: for
+   birch a published young-birch chain, h -> diameter -> leaf mass -> area; times the
+   per-instance jitter), individual areas lognormal around
    ``leaf_area_cm2`` (CV ``leaf_area_cv``) rescaled to sum exactly to A; each leaf on a
    petiole of ``petiole_m`` in an isotropic random direction, pointing away from it; normal
    from the species' LAD with uniform azimuth.
@@ -66,9 +67,32 @@ TOP_CLEARANCE = 0.9
 """A branch rises at most this fraction of its distance to the tree top."""
 
 
+BREAST_HEIGHT_M = 1.3
+"""Height of the breast-height diameter, m."""
+
+
 def allometric_leaf_area(p: SpeciesParams, height: float) -> float:
-    """Total one-sided leaf (needle-shoot) area of a tree of height ``height``, m^2."""
-    return p["foliage_area_a"] * height ** p["foliage_area_b"]
+    """Total one-sided leaf (needle-shoot) area of a tree of height ``height``, m^2.
+
+    Trees whose parameters give the published young-tree chain (birch, and as in Majasalmi
+    et al. 2013 the other broadleaves; ``structure.csv`` cites each number):
+
+    1. breast-height diameter from the Naslund (1936) height curve of the Finnish NFI,
+       h = 1.3 + (d / (a + b d))^2, inverted: d = a s / (1 - b s), s = sqrt(h - 1.3), cm
+       (0 below breast height);
+    2. stump diameter d_s = d0 + d1 d, cm (Laasasenaho 1975);
+    3. dry leaf mass W = c (10 d_s)^e, kg, d_s in mm (Johansson 1999, as given by
+       Majasalmi et al. 2013, Eq. 8; young birches on abandoned farmland);
+    4. A = SLA W, SLA in m^2 kg^-1 (Lintunen et al. 2011).
+
+    Other trees: an assumed power law A = a h^b (``foliage_area_a``, ``foliage_area_b``).
+    """
+    if "leaf_mass_a" not in p.structure:
+        return p["foliage_area_a"] * height ** p["foliage_area_b"]
+    s = math.sqrt(max(height - BREAST_HEIGHT_M, 0.0))
+    d_cm = p["naslund_a"] * s / (1.0 - p["naslund_b"] * s)
+    stump_mm = 10.0 * (p["stump_d0_cm"] + p["stump_d1"] * d_cm)
+    return p["sla_m2_per_kg"] * p["leaf_mass_a"] * stump_mm ** p["leaf_mass_b"]
 
 
 def _along(p0, d1, d2, length, s):
