@@ -103,7 +103,7 @@ def reference_trace(scene, origin, direction, footprint_m, range_m, n_rays, max_
         sd = footprint_m[b] / (2 * math.sqrt(2))
         bkey = mix(key + b * GOLDEN)
 
-        def add(order, value, total_path):
+        def add(order, value, total_path, b=b, t0=t0):
             totals[b, order - 1] += value
             k = math.floor((total_path / C - t0) / bin_ns)
             if 0 <= k < n_bins:

@@ -140,7 +140,7 @@ def test_plan_cap_and_instances():
     assert p.groupby("species").size().to_dict() == {"birch": 4, "fireweed": 4, "raspberry": 4}
     assert set(p["instance"]) <= {0, 1} and (p["chunk_hash"] >= 0).all()
     # the same pulses whatever the chunking; the groups are whole in a chunk
-    for chunks in (2, 3):
+    for _chunks in (2, 3):
         assert (p.groupby("group")["chunk_hash"].nunique() == 1).all()
     one = plan(sel, _cfg(instances_per_sample=None), "2010_12_1")
     assert one["group"].nunique() == len(one)  # the paper's rule: an instance per pulse

@@ -63,7 +63,8 @@ def _cfg(**campaign) -> dict:
 
 def _real_features(tmp, cfg, effects=None, simulate=False):
     """Synthesize a campaign and run the real-data stages; optionally simulate its selection."""
-    from waveforest.analysis import select, simulate as sim_stage
+    from waveforest.analysis import select
+    from waveforest.analysis import simulate as sim_stage
     from waveforest.analysis.classify import attach_selection
     from waveforest.campaign import run as synthesize
     from waveforest.io.ingest import run as ingest

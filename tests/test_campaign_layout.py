@@ -10,8 +10,7 @@ from scipy.spatial.distance import pdist
 
 from waveforest.campaign.flight import mean_secant, plan_flight, site_pulses
 from waveforest.campaign.layout import FIELD_COLUMNS, Frame, build_layout, species_for_year
-from waveforest.campaign.params import (CampaignParamsError, load_datasets, load_design_counts, load_layout,
-                                        load_targets)
+from waveforest.campaign.params import CampaignParamsError, load_datasets, load_design_counts, load_layout, load_targets
 from waveforest.io.trajectory import Trajectory
 
 SEED = 2014

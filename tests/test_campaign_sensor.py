@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from reference_campaign import agc_loop_reference, dr_cfd_reference, sample_reference
 from scipy.integrate import quad
 
-from reference_campaign import agc_loop_reference, dr_cfd_reference, sample_reference
 from waveforest.campaign.agc_loop import AGCParams, agc_sequence
 from waveforest.campaign.dr_cfd import AMP_POST_FWHM, AMP_PRE_FWHM, SEARCH_FWHM, dr_cfd
 from waveforest.campaign.params import load_datasets

@@ -2,8 +2,8 @@
 
 import numpy as np
 import pytest
-
 from reference_io import reference_gather
+
 from waveforest.io.gather import gather_samples
 
 

@@ -3,8 +3,8 @@
 import numpy as np
 import pyarrow.parquet as pq
 import pytest
-
 from test_io_las_roundtrip import assert_round_trip, assert_tables_equal
+
 from waveforest.errors import WaveforestError
 from waveforest.io.ingest import run
 from waveforest.io.las import read_waveform_las, summarise, write_waveform_las

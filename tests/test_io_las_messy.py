@@ -12,9 +12,9 @@ import numpy as np
 import pyarrow as pa
 import pytest
 from laspy.vlrs.known import WaveformPacketStruct, WaveformPacketVlr
-
 from reference_io import patch, point_field_position, reference_header, vlr_body_position
 from test_io_las_roundtrip import assert_round_trip, assert_tables_equal
+
 from waveforest.constants import RANGE_PER_NS
 from waveforest.io.las_format import LasWaveformWarning
 from waveforest.io.las_info import format_summary, summarise

@@ -10,8 +10,8 @@ import laspy
 import numpy as np
 import pyarrow as pa
 import pytest
-
 from reference_io import reference_pulses
+
 from waveforest.constants import RANGE_PER_NS
 from waveforest.io.las import WaveformPulseReader, open_waveform_las, read_waveform_las
 from waveforest.io.las_write import WaveformLasWriter, write_waveform_las

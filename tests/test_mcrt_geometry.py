@@ -4,10 +4,9 @@ import numpy as np
 import pytest
 
 from waveforest.constants import C_M_PER_NS
-from waveforest.mcrt import Beams, DirectEmbreeIntersector, EmbreeIntersector, NumpyIntersector, prepare, trace
-from waveforest.mcrt import rtc
+from waveforest.mcrt import Beams, DirectEmbreeIntersector, EmbreeIntersector, NumpyIntersector, prepare, rtc, trace
 from waveforest.mcrt import synthetic as syn
-from waveforest.scene import Scene, SceneError
+from waveforest.scene import Scene
 
 T_RTOL = 1e-5  # float32 Embree vs float64 NumPy hit distance
 AGREE_FRACTION = 0.999  # rays whose nearest triangle agrees (edge hits may differ by rounding)

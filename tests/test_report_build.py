@@ -7,14 +7,13 @@ import re
 
 import numpy as np
 import pandas as pd
+from test_analysis_classify import _features
 
 from waveforest import config
 from waveforest.analysis import plots
 from waveforest.analysis.classify import classify_dataset
 from waveforest.cli import main
 from waveforest.report.build import run
-
-from test_analysis_classify import _features
 
 
 def _results(tmp_path):

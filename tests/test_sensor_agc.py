@@ -5,14 +5,21 @@ import math
 
 import numpy as np
 import pytest
+from reference_sensor import (
+    TARGETS_2010,
+    H,
+    make_pulse_table,
+    nested_cv_reference,
+    target_pulses,
+    write_campaign_tables,
+)
 
-from reference_sensor import H, TARGETS_2010, make_pulse_table, nested_cv_reference, target_pulses, write_campaign_tables
 from waveforest.constants import RANGE_PER_NS
 from waveforest.errors import WaveforestError
 from waveforest.io.tables import list_to_padded, read_pulses, write_pulses
+from waveforest.sensor import agc as agc_mod
 from waveforest.sensor import (
     agc_gain,
-    render,
     fit_b,
     gaussian_system_waveform,
     nested_cv,
@@ -21,9 +28,9 @@ from waveforest.sensor import (
     peak_amplitudes,
     read_datasets,
     read_targets,
+    render,
     target_membership,
 )
-from waveforest.sensor import agc as agc_mod
 
 B_TOL = 0.05  # "fitted b within 5 %"
 CV_NOISE_TOL = 0.10  # CV after normalisation within 10 % of the noise-only CV

@@ -5,9 +5,9 @@ import math
 
 import numpy as np
 import pytest
+from reference_sensor import target_pulses, write_campaign_tables
 from scipy.special import erf
 
-from reference_sensor import target_pulses, write_campaign_tables
 from waveforest.errors import WaveforestError
 from waveforest.io.tables import list_to_padded, write_pulses
 from waveforest.sensor import (

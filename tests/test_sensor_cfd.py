@@ -4,8 +4,8 @@ import math
 
 import numpy as np
 import pytest
-
 from reference_sensor import cfd_reference
+
 from waveforest.constants import RANGE_PER_NS
 from waveforest.sensor import (
     CFDParams,

@@ -6,8 +6,8 @@ import numpy as np
 import pandas as pd
 import pytest
 from click.testing import CliRunner
-
 from reference_sensor import target_pulses, write_campaign_tables
+
 from waveforest.cli import cli, main
 from waveforest.io.tables import write_pulses
 from waveforest.sensor import gaussian_system_waveform

@@ -4,9 +4,9 @@ import math
 
 import numpy as np
 import pytest
+from reference_sensor import features_reference, make_pulse_table
 from scipy.special import erf
 
-from reference_sensor import features_reference, make_pulse_table
 from waveforest.constants import RANGE_PER_NS
 from waveforest.sensor import FeatureParams, feature_table, first_echo_features
 

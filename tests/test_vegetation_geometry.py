@@ -4,8 +4,8 @@ import math
 
 import numpy as np
 import pytest
-
 from reference_vegetation import coverage_reference, place_leaves_reference
+
 from waveforest.scene import Scene
 from waveforest.vegetation.gaps import _coverage_kernel, nadir_coverage, nadir_gap_fraction
 from waveforest.vegetation.ground import ground_plane, heightfield_triangles, relief_field

@@ -4,9 +4,9 @@ import math
 
 import numpy as np
 import pytest
+from reference_vegetation import invert_dewit_bisection
 from scipy import integrate, stats
 
-from reference_vegetation import invert_dewit_bisection
 from waveforest.vegetation.lad import (
     DEWIT,
     LAD_NAMES,

@@ -85,17 +85,17 @@ class Scene:
         v = self.triangles.reshape(-1, 3)
         return np.stack([v.min(axis=0), v.max(axis=0)]).astype(np.float64)
 
-    def translated(self, offset) -> "Scene":
+    def translated(self, offset) -> Scene:
         """The scene moved by ``offset`` (3,), m."""
         off = np.asarray(offset, dtype=np.float32).reshape(1, 1, 3)
         return Scene(self.triangles + off, self.rho, self.tau, self.kind)
 
-    def subset(self, mask) -> "Scene":
+    def subset(self, mask) -> Scene:
         """The triangles selected by a boolean mask or index array."""
         return Scene(self.triangles[mask], self.rho[mask], self.tau[mask], self.kind[mask])
 
     @staticmethod
-    def concat(scenes: list["Scene"]) -> "Scene":
+    def concat(scenes: list[Scene]) -> Scene:
         """One scene holding the triangles of all ``scenes``, in order."""
         if not scenes:
             raise SceneError("concat: no scenes")

@@ -132,7 +132,7 @@ class SensorSetup:
 
     @classmethod
     def from_config(cls, cfg: dict, system, noise_mean: float, noise_sd: float, sampling_ns: float,
-                    render_effects: dict | None = None, range_correction=None) -> "SensorSetup":
+                    render_effects: dict | None = None, range_correction=None) -> SensorSetup:
         """The setup of the config's ``sensor`` section with a given S(t), noise and sampling."""
         from ..sensor import CFDParams, FeatureParams
 
@@ -147,7 +147,7 @@ class SensorSetup:
             range_correction=range_correction,
         )
 
-    def with_system(self, system, cfg: dict) -> "SensorSetup":
+    def with_system(self, system, cfg: dict) -> SensorSetup:
         """The same setup with another S(t) (the CFD delay and dead time follow its FWHM)."""
         from ..sensor import CFDParams
 
@@ -165,7 +165,7 @@ class MCRTSetup:
     effects: dict = field(default_factory=dict)
 
     @classmethod
-    def from_config(cls, cfg: dict, n_rays: int | None = None, effects: dict | None = None) -> "MCRTSetup":
+    def from_config(cls, cfg: dict, n_rays: int | None = None, effects: dict | None = None) -> MCRTSetup:
         m = cfg["mcrt"]
         return cls(n_rays=int(n_rays or m["n_rays"]), max_order=int(m["max_order"]),
                    bin_ns=float(m["bin_ns"]), viewed_diameter_m=float(m["viewed_diameter_m"]),

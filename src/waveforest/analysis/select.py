@@ -53,7 +53,7 @@ class SelectRules:
     height_range_m: dict = field(default_factory=lambda: {"birch": (2.5, 5.0)})
 
     @classmethod
-    def from_config(cls, cfg: dict) -> "SelectRules":
+    def from_config(cls, cfg: dict) -> SelectRules:
         """Rules from a loaded study config."""
         sel, sim = cfg["select"], cfg["simulate"]
         return cls(

@@ -47,8 +47,16 @@ from ..constants import RANGE_PER_NS
 from ..errors import WaveforestError
 from ..io.tables import PULSE_SCHEMA, padded_to_list
 from .campaign_tables import dataset_row, divergence_mrad, read_datasets
-from .pulse_sim import (MCRTSetup, SensorSetup, hash_ids, int_seed, seed_sequence, split_effects,
-                        stable_hash, trace_and_render)
+from .pulse_sim import (
+    MCRTSetup,
+    SensorSetup,
+    hash_ids,
+    int_seed,
+    seed_sequence,
+    split_effects,
+    stable_hash,
+    trace_and_render,
+)
 
 SIM_COLUMNS = ("sim_instance", "sigma_total")
 """Columns a simulated pulse table has beyond the pulse schema and the select columns."""
@@ -212,7 +220,7 @@ def simulate_pulses(selected: pa.Table, dataset_info: pd.Series, calibration: Ca
         from tqdm import tqdm
 
         bar = tqdm(total=len(p), desc=f"simulate {dataset} chunk {chunk}", unit="pulse", leave=False)
-    for group, g in groups:
+    for _, g in groups:
         rows = g.sort_values("pulse_id").index.to_numpy()
         d = scal.loc[rows]
         first = d.iloc[0]

@@ -55,7 +55,7 @@ class AGCParams:
     jitter_sd: float
 
     @classmethod
-    def from_row(cls, row) -> "AGCParams":
+    def from_row(cls, row) -> AGCParams:
         """From a row of :func:`waveforest.campaign.params.load_datasets`."""
         return cls(*(float(row[f"agc_{k}"]) for k in (
             "law_a", "law_b", "bg_mean", "bg_sd", "bg_tau_s", "loop_tau_s", "loop_gain",

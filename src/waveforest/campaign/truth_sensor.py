@@ -83,7 +83,7 @@ class TruthSensor:
 
     @classmethod
     def from_row(cls, row, *, record_ns: float = RECORD_NS, pre_trigger_m=(3.3, 4.8),
-                 digitizer_max: int = 255) -> "TruthSensor":
+                 digitizer_max: int = 255) -> TruthSensor:
         """The sensor of a row of :func:`waveforest.campaign.params.load_datasets`."""
         fwhm = float(row["pulse_width_fwhm_ns"])
         peak = float(row["ground_amplitude_dn"]) * float(row["mean_range_m"]) ** 2 * np.pi / REFERENCE_RHO

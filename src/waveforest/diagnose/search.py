@@ -48,8 +48,8 @@ runners-up were: ``vs_best_ci_low/high``).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from typing import Callable
 
 import numpy as np
 import pandas as pd
@@ -143,7 +143,7 @@ class SearchSettings:
             raise WaveforestError(f"diagnose.alpha must be in (0, 1), got {self.alpha}")
 
     @classmethod
-    def from_config(cls, cfg: dict) -> "SearchSettings":
+    def from_config(cls, cfg: dict) -> SearchSettings:
         """Settings from a loaded study config (section ``diagnose``)."""
         d = cfg["diagnose"]
         return cls(
@@ -208,7 +208,7 @@ class Estimate:
     ci_high: float
 
     @classmethod
-    def combine(cls, fits: list[Fit], alpha: float) -> "Estimate":
+    def combine(cls, fits: list[Fit], alpha: float) -> Estimate:
         """Mean of the folds' fits; interval from the replicate-wise means."""
         name = fits[0].name
         u_hat = float(np.mean([f.u_hat for f in fits]))
@@ -300,7 +300,7 @@ class SearchResult:
     reason: str
     n_simulations: int
     halves: dict
-    simulations: "_Simulations" = field(default=None, repr=False)
+    simulations: _Simulations = field(default=None, repr=False)
 
     @property
     def effects(self) -> dict[str, float]:

@@ -37,6 +37,7 @@ from .las_format import (
     warn,
 )
 
+
 @dataclass(frozen=True)
 class WaveformData:
     """Where the waveform packets of a file are.

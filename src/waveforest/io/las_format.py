@@ -240,7 +240,7 @@ class WavePacketDescriptor:
         return rec.tobytes()
 
     @classmethod
-    def from_body(cls, index: int, body: bytes) -> "WavePacketDescriptor":
+    def from_body(cls, index: int, body: bytes) -> WavePacketDescriptor:
         rec = np.frombuffer(body[: WPD_BODY.itemsize], WPD_BODY)[0]
         return cls(
             index=int(index),

@@ -129,7 +129,7 @@ def format_summary(s: LasSummary) -> str:
         f"packets:               {_n(s.n_packets)} ({_n(s.n_split_pulses)} pulses with returns in several packets)",
         "returns by number:     " + ", ".join(f"{int(k)}: {_n(v)}" for k, v in sorted(s.returns_by_number.items())),
         "samples per packet:    " + ", ".join(f"{int(k)}: {_n(v)} packets" for k, v in sorted(s.packets_by_samples.items())),
-        f"AGC attribute:         "
+        "AGC attribute:         "
         + (
             f"{s.agc_dimension} (range {s.agc_range[0]:g} .. {s.agc_range[1]:g})"
             if s.agc_dimension

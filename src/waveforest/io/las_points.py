@@ -8,8 +8,8 @@ the waveform data). :func:`sort_points` groups records into pulses without copyi
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Iterator
 
 import laspy
 import numpy as np

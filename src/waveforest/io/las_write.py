@@ -250,7 +250,7 @@ class WaveformLasWriter:
 
     # -- context manager ---------------------------------------------------------------
 
-    def __enter__(self) -> "WaveformLasWriter":
+    def __enter__(self) -> WaveformLasWriter:
         return self
 
     def __exit__(self, exc_type, exc, tb) -> None:

@@ -106,8 +106,8 @@ def synthetic_pulses(
     wave += rng.normal(0.0, 1.5, wave.shape)
     wave = np.clip(np.round(wave), 0, 2**bits - 1).astype(np.float32)
 
-    def lists(values: np.ndarray, type_=pa.float64()) -> pa.ListArray:
-        return padded_to_list(values, n_echo, type_)
+    def lists(values: np.ndarray, type_=None) -> pa.ListArray:
+        return padded_to_list(values, n_echo, type_ or pa.float64())
 
     cols = {
         "dataset": pa.array([dataset]).take(pa.array(np.zeros(n, np.int32))),

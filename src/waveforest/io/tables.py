@@ -33,8 +33,8 @@ functional_group (string), ground_z (float64, m: GNSS ground elevation of the sa
 
 from __future__ import annotations
 
+from collections.abc import Iterable, Iterator
 from pathlib import Path
-from typing import Iterable, Iterator
 
 import numpy as np
 import pyarrow as pa

@@ -116,7 +116,7 @@ class Beams:
     def __len__(self) -> int:
         return len(self.direction)
 
-    def __getitem__(self, index) -> "Beams":
+    def __getitem__(self, index) -> Beams:
         idx = np.arange(len(self))[index]
         idx = np.atleast_1d(idx)
         return Beams(self.origin[idx], self.direction[idx], self.footprint_m[idx], self.range_m[idx])
@@ -127,7 +127,7 @@ class Beams:
         return np.isfinite(self.range_m)
 
     @classmethod
-    def from_divergence(cls, origin, direction, divergence_mrad, range_m) -> "Beams":
+    def from_divergence(cls, origin, direction, divergence_mrad, range_m) -> Beams:
         """Diverging beams whose 1/e footprint at ``range_m`` is ``range_m * divergence``.
 
         Parameters
@@ -149,7 +149,7 @@ class Beams:
 
     @classmethod
     def toward(cls, target, range_m, scan_zenith_deg=0.0, azimuth_deg=0.0, *,
-               footprint_m=None, divergence_mrad=None) -> "Beams":
+               footprint_m=None, divergence_mrad=None) -> Beams:
         """Beams aimed at ``target`` from ``range_m`` away, at the given scan zenith and azimuth.
 
         Give exactly one of ``footprint_m`` (collimated beams of that 1/e diameter) or

@@ -148,12 +148,12 @@ class Rays:
     def __len__(self) -> int:
         return len(self.power)
 
-    def take(self, index: np.ndarray) -> "Rays":
+    def take(self, index: np.ndarray) -> Rays:
         """The rays selected by an index array."""
         return Rays(self.origin[index], self.direction[index], self.power[index],
                     self.path_m[index], self.beam[index], self.ray[index])
 
-    def head(self, m: int) -> "Rays":
+    def head(self, m: int) -> Rays:
         """Views of the first ``m`` rays."""
         return Rays(self.origin[:m], self.direction[:m], self.power[:m], self.path_m[:m],
                     self.beam[:m], self.ray[:m])
@@ -437,7 +437,7 @@ class Scattered:
     alive: np.ndarray
 
     @classmethod
-    def empty(cls, m: int) -> "Scattered":
+    def empty(cls, m: int) -> Scattered:
         """Buffers for ``m`` rays."""
         return cls(np.empty(m), np.empty(m, np.int64), np.empty((m, 3), np.float32),
                    np.empty((m, 3), np.float32), np.empty(m, np.float32),
@@ -447,7 +447,7 @@ class Scattered:
     def __len__(self) -> int:
         return len(self.value)
 
-    def head(self, m: int) -> "Scattered":
+    def head(self, m: int) -> Scattered:
         """Views of the first ``m`` entries."""
         return Scattered(*(getattr(self, f)[:m] for f in self.__dataclass_fields__))
 

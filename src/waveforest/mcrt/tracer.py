@@ -47,9 +47,8 @@ from ..effects import CATALOGUE, SPECULAR_PHONG_EXPONENT
 from ..scene import Scene
 from .beams import Beams
 from .embree import PreparedScene, prepare
+from .kernels import MISS_KIND, BeamFrame, Scattered, accumulate, beam_keys, compact, emit_rays, scatter
 from .rtc import NumbaThreads
-from .kernels import (MISS_KIND, BeamFrame, Scattered, accumulate, beam_keys, compact, emit_rays,
-                      scatter)
 
 DEFAULT_WINDOW_NS = 100.0
 """Default sigma window, ns of two-way time after t0 (15 m of one-way range: a 6 x 6 m scene
@@ -89,8 +88,9 @@ def _map_serial_workers(fn, items, workers: int):
     the ``nogil`` kernels release the GIL, so the workers run concurrently. Yields results
     in the order of ``items``.
     """
-    import numba
     from concurrent.futures import ThreadPoolExecutor
+
+    import numba
 
     def work(item):
         numba.set_num_threads(1)

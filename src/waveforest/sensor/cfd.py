@@ -217,7 +217,7 @@ class Echoes(NamedTuple):
 
 def detect_echoes(samples, lengths, sampling_ns, noise_mean, noise_sd, cfd: CFDParams | None = None,
                   max_echoes: int = 4, *, fwhm_ns: float | None = None,
-                  range_correction: "RangeCorrection | None" = None) -> Echoes:
+                  range_correction: RangeCorrection | None = None) -> Echoes:
     """Echoes of every waveform by the constant fraction discriminator (METHOD.md f).
 
     Parameters
@@ -286,7 +286,7 @@ class RangeCorrection:
             raise ValueError("RangeCorrection: apeak nodes must increase")
 
     @classmethod
-    def identity(cls) -> "RangeCorrection":
+    def identity(cls) -> RangeCorrection:
         return cls()
 
     @property
@@ -316,7 +316,7 @@ class RangeCorrection:
         return {"apeak": [float(v) for v in self.apeak], "delta_m": [float(v) for v in self.delta_m]}
 
     @classmethod
-    def from_dict(cls, d: dict | None) -> "RangeCorrection":
+    def from_dict(cls, d: dict | None) -> RangeCorrection:
         if not d:
             return cls()
         return cls(tuple(float(v) for v in d.get("apeak", ())), tuple(float(v) for v in d.get("delta_m", ())))

@@ -106,7 +106,7 @@ class CFDParams:
         """True when delay and dead time are numbers (not tied to a pulse width)."""
         return self.delay_ns is not None and self.dead_time_ns is not None
 
-    def resolved(self, fwhm_ns: float | None) -> "CFDParams":
+    def resolved(self, fwhm_ns: float | None) -> CFDParams:
         """Fill the pulse-width defaults: delay = FWHM / 2, dead time = FWHM."""
         if self.is_resolved:
             return self
@@ -129,7 +129,7 @@ class CFDParams:
         return int(round(self.dead_time_ns / FINE_NS))
 
     @classmethod
-    def from_config(cls, cfg: dict) -> "CFDParams":
+    def from_config(cls, cfg: dict) -> CFDParams:
         """From the ``sensor.cfd`` section of a loaded config (or the whole config)."""
         sec = cfg.get("sensor", {}).get("cfd", {}) if "sensor" in cfg else cfg
         return cls(
@@ -165,7 +165,7 @@ class FeatureParams:
                 raise ValueError(f"feature parameter {name} must be >= 0, got {getattr(self, name)}")
 
     @classmethod
-    def from_config(cls, cfg: dict) -> "FeatureParams":
+    def from_config(cls, cfg: dict) -> FeatureParams:
         """From the ``sensor.features`` section of a loaded config (or the whole config)."""
         sec = cfg.get("sensor", {}).get("features", {}) if "sensor" in cfg else cfg
         return cls(

@@ -48,7 +48,6 @@ from .noise import gaussian_noise
 from .params import FINE_NS, CFDParams
 from .system_waveform import SystemWaveform
 
-
 _CHUNK = 1024
 """Pulses per block of fine-grid signals in :func:`render` (~1024 x a few thousand float64)."""
 

@@ -115,7 +115,7 @@ class SystemWaveform:
         return float(self.t_ns[int(np.argmax(self.s))])
 
     # -- transformations ----------------------------------------------------------------
-    def stretched(self, fwhm_ns: float) -> "SystemWaveform":
+    def stretched(self, fwhm_ns: float) -> SystemWaveform:
         """The same pulse shape with FWHM ``fwhm_ns`` at constant energy (METHOD.md i3).
 
         ``s'(t) = s(t / k) / k`` with ``k = fwhm_ns / self.fwhm_ns``; t = 0 stays at 0 (for a
@@ -135,12 +135,12 @@ class SystemWaveform:
             sd_new = np.interp(t_new / k, self.t_ns, self.s_sd, left=np.nan, right=np.nan) / k
         return SystemWaveform(t_new, s_new, sd_new, dict(self.meta, stretched_from_fwhm_ns=w0))
 
-    def scaled(self, factor: float) -> "SystemWaveform":
+    def scaled(self, factor: float) -> SystemWaveform:
         """S(t) times ``factor`` (e.g. a different peak power)."""
         sd = None if self.s_sd is None else self.s_sd * abs(factor)
         return SystemWaveform(self.t_ns.copy(), self.s * factor, sd, dict(self.meta))
 
-    def shifted(self, dt_ns: float) -> "SystemWaveform":
+    def shifted(self, dt_ns: float) -> SystemWaveform:
         """The same table with its time axis moved by ``dt_ns`` (S'(t) = S(t - dt))."""
         sd = None if self.s_sd is None else self.s_sd.copy()
         return SystemWaveform(self.t_ns + dt_ns, self.s.copy(), sd, dict(self.meta))
@@ -163,7 +163,7 @@ class SystemWaveform:
             raise ValueError("cfd_time_ns: the CFD finds no echo in S(t)")
         return float(self.t_ns[0] + t[0])
 
-    def aligned_to_cfd(self, cfd: CFDParams | None = None) -> "SystemWaveform":
+    def aligned_to_cfd(self, cfd: CFDParams | None = None) -> SystemWaveform:
         """The table shifted so that its CFD time is 0 (the convention of this class)."""
         return self.shifted(-self.cfd_time_ns(cfd))
 
