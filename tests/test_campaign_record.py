@@ -67,14 +67,44 @@ def test_pulse_table_geometry_and_dropped_pulses(tmp_path):
     assert truth["recorded"].sum() == table.num_rows
 
 
-def test_xy_error_offsets_are_horizontal_and_of_the_right_size(tmp_path):
+def test_xy_error_moves_each_recorded_beam_as_a_whole(tmp_path):
     p, _, still, _, _ = _planar_dataset(tmp_path / "a")
     _, _, moved, _, truth = _planar_dataset(tmp_path / "b", xy_error=0.5)
-    dx = np.array([v[0] for v in moved.column("echo_x").to_pylist()]) - np.array(
-        [v[0] for v in still.column("echo_x").to_pylist()])
-    dz = np.array([v[0] for v in moved.column("echo_z").to_pylist()]) - np.array(
-        [v[0] for v in still.column("echo_z").to_pylist()])
+    rec = truth[truth["recorded"]]
+    first = {c: np.array([v[0] for v in t.column(c).to_pylist()]) for t in (still,) for c in ("echo_x", "echo_z")}
+    dx = np.array([v[0] for v in moved.column("echo_x").to_pylist()]) - first["echo_x"]
+    dz = np.array([v[0] for v in moved.column("echo_z").to_pylist()]) - first["echo_z"]
     assert np.allclose(dz, 0.0)
-    assert np.allclose(dx, truth["xy_offset_x"][truth["recorded"]])
-    assert dx.std() == pytest.approx(0.5, rel=0.15)
+    assert np.allclose(dx, rec["xy_offset_x"])
+    # the recorded sensor moves with the points: the recorded beam is the true one displaced
+    for c, o in (("sensor_x", "xy_offset_x"), ("sensor_y", "xy_offset_y")):
+        assert np.allclose(moved.column(c).to_numpy() - still.column(c).to_numpy(), rec[o], atol=1e-9)
+    assert np.allclose(moved.column("sensor_z").to_numpy(), still.column("sensor_z").to_numpy())
+    # a pass over the plane (one strip) lasts well under the correlation time: its pulses share
+    # the offset; the strips' offsets are independent draws
+    strip = rec["strip"].to_numpy()
+    assert len(np.unique(strip)) >= 2
+    assert all(dx[strip == k].std() < 0.2 * 0.5 for k in np.unique(strip))  # iid would give 0.5
+    assert np.ptp([dx[strip == k].mean() for k in np.unique(strip)]) > 0.0
     assert still.column("samples").equals(moved.column("samples"))
+
+
+def test_georeferencing_error_is_a_gauss_markov_process():
+    """Stationary SD, correlation exp(-lag / tau) and pulses on the trajectory's interpolation."""
+    from waveforest.campaign.flight import georeferencing_error
+
+    hz, tau, sd = 10.0, 5.0, 0.25
+    t = np.arange(200_000) / hz
+    traj = pd.DataFrame({"gps_time": np.concatenate([t, t + 1e5]), "strip": np.repeat([0, 1], t.size)})
+    tp = np.array([0.05, 17.33, 1e5 + 3.21])
+    off, at_pulses = georeferencing_error(traj, np.array([0, 0, 1]), tp, sd, tau, np.random.default_rng(4))
+    a = off[: t.size]
+    assert a.std(axis=0) == pytest.approx([sd, sd], rel=0.05)
+    lag = int(tau * hz)
+    rho = np.mean(a[lag:] * a[:-lag], axis=0) / a.var(axis=0)
+    assert rho == pytest.approx([np.exp(-1.0)] * 2, abs=0.03)
+    assert abs(np.corrcoef(a[:, 0], a[:, 1])[0, 1]) < 0.02  # axes independent
+    assert abs(np.corrcoef(a[:, 0], off[t.size:, 0])[0, 1]) < 0.02  # strips independent
+    for i, (k, tt) in enumerate(zip([0, 0, 1], tp)):
+        rows = traj["strip"].to_numpy() == k
+        assert at_pulses[i, 0] == pytest.approx(np.interp(tt, traj["gps_time"][rows], off[rows, 0]))

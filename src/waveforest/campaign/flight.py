@@ -33,6 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import pandas as pd
+from scipy.signal import lfilter
 
 from .layout import Frame
 from .params import azimuths
@@ -111,6 +112,48 @@ class FlightPlan:
             parts.append(pd.DataFrame({"gps_time": t, "x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2],
                                        "strip": st.index}))
         return pd.concat(parts, ignore_index=True)
+
+
+def georeferencing_error(trajectory: pd.DataFrame, pulse_strip: np.ndarray, pulse_time: np.ndarray,
+                         sd_m: float, tau_s: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Horizontal georeferencing error of the recorded geometry (hidden effect ``xy_error``).
+
+    The drift of a GNSS/INS solution: per strip and axis a stationary Gauss-Markov (AR(1))
+    process of SD ``sd_m`` and correlation time ``tau_s``, drawn at the trajectory's times
+    and linearly interpolated to the pulses' GPS times. Added to the written trajectory and
+    to the recorded points alike, it shifts each recorded beam as a whole, so that the
+    recorded beam passes a plant where the real one did not (METHOD.md j), and a trajectory
+    read back with linear interpolation gives exactly the pulses' recorded sensor positions.
+
+    Parameters
+    ----------
+    trajectory : DataFrame
+        :meth:`FlightPlan.trajectory` (gps_time, strip; rows in time order within a strip).
+    pulse_strip, pulse_time : (n,) int, float64
+        Strip index and GPS time of each pulse, s.
+    sd_m, tau_s : float
+        SD per axis, m; correlation time, s.
+    rng : Generator
+
+    Returns
+    -------
+    trajectory_offset : (m, 2) float64, m
+    pulse_offset : (n, 2) float64, m
+    """
+    t = trajectory["gps_time"].to_numpy(np.float64)
+    strip = trajectory["strip"].to_numpy()
+    traj_off = np.zeros((len(t), 2))
+    pulse_off = np.zeros((len(pulse_time), 2))
+    for k in np.unique(strip):  # per strip; its trajectory samples are evenly spaced in time
+        rows = np.flatnonzero(strip == k)
+        phi = float(np.exp(-(t[rows[1]] - t[rows[0]]) / tau_s)) if len(rows) > 1 else 0.0
+        e = rng.standard_normal((len(rows), 2))
+        e[1:] *= np.sqrt(1.0 - phi**2)  # x_0 = e_0 ~ N(0, 1) (stationary), x_i = phi x_(i-1) + e_i
+        traj_off[rows] = sd_m * lfilter([1.0], [1.0, -phi], e, axis=0)
+        on = np.flatnonzero(pulse_strip == k)
+        for a in range(2):
+            pulse_off[on, a] = np.interp(pulse_time[on], t[rows], traj_off[rows, a])
+    return traj_off, pulse_off
 
 
 def plan_flight(row: pd.Series, frame: Frame, layout: dict, density_scale: float, seed: int,

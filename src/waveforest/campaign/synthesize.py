@@ -25,9 +25,10 @@ The folder is built beside ``out_dir`` and renamed onto it at the end: a failure
 Hidden effects (src/waveforest/effects.py) act where their physics does: ``understory``,
 ``clumping``, ``lad_shift``, ``leaf_albedo`` in the vegetation instances; ``specular``,
 ``hotspot`` in the MCRT; ``noise_autocorr``, ``nonlinearity``, ``trigger_loss`` in the
-sensor; ``xy_error`` in the recorded geometry: each pulse's recorded anchor and echoes are
-moved horizontally by an N(0, xy_error) offset per axis (the field samples stay where the
-plants are; trajectory positions are not moved).
+sensor; ``xy_error`` in the recorded geometry: the recorded trajectory and the recorded points
+drift together horizontally by a Gauss-Markov error of SD xy_error per axis and correlation
+time ``flight.georef_tau_s`` (:func:`.flight.georeferencing_error`), so a recorded beam is the
+true one moved as a whole; the field samples stay where the plants are.
 """
 
 from __future__ import annotations
@@ -50,7 +51,7 @@ from ..effects import CATALOGUE, active, parse_effects
 from ..errors import WaveforestError
 from ..io.tables import PULSE_SCHEMA, padded_to_list, write_table
 from .agc_loop import agc_sequence
-from .flight import plan_flight, site_pulses
+from .flight import georeferencing_error, plan_flight, site_pulses
 from .layout import FIELD_COLUMNS, TARGET_COLUMNS, build_layout
 from .params import CAMPAIGN_RESOURCES, load_datasets, load_layout
 from .readme import readme_text
@@ -399,13 +400,15 @@ def _record_dataset(row, sensor: TruthSensor, plan, p: pd.DataFrame, a0: np.ndar
     n_strips = len(plan.strips)
     strip_off = np.column_stack([srng.normal(0, sensor.strip_xy_sd_m, (n_strips, 2)),
                                  srng.normal(0, sensor.strip_z_sd_m, n_strips)])
-    xy = generator(seed, "xy_error", ds).standard_normal((n, 2)) * eff["xy_error"]
+    traj = plan.trajectory(float(lay["flight"]["trajectory_hz"]))
+    traj_xy, xy = georeferencing_error(traj, p["strip"].to_numpy(), p["gps_time"].to_numpy(), eff["xy_error"],
+                                       float(lay["flight"]["georef_tau_s"]), generator(seed, "xy_error", ds))
     sensor_true = p[["sensor_x", "sensor_y", "sensor_z"]].to_numpy()
     d = p[["dir_x", "dir_y", "dir_z"]].to_numpy()
     shift = strip_off[p["strip"].to_numpy()] + np.column_stack([xy, np.zeros(n)])
     anchor = sensor_true + d * (first * RANGE_PER_NS)[:, None] + shift
     echo_xyz = sensor_true[:, None, :] + d[:, None, :] * (echo_ns * RANGE_PER_NS)[:, :, None] + shift[:, None, :]
-    sensor_rec = sensor_true + strip_off[p["strip"].to_numpy()]
+    sensor_rec = sensor_true + shift
     keep = n_echo > 0
     kept = np.flatnonzero(keep)
     lengths = n_echo[kept]
@@ -440,8 +443,7 @@ def _record_dataset(row, sensor: TruthSensor, plan, p: pd.DataFrame, a0: np.ndar
                        agc_attribute="user_data", creation=(int(date.day_of_year), int(date.year)),
                        system_identifier="ALS60 (virtual)", generating_software=f"waveforest {__version__}",
                        wkt=wkt)
-    traj = plan.trajectory(float(lay["flight"]["trajectory_hz"]))
-    off = strip_off[traj["strip"].to_numpy()]
+    off = strip_off[traj["strip"].to_numpy()] + np.column_stack([traj_xy, np.zeros(len(traj))])
     traj_out = pd.DataFrame({"gps_time": traj["gps_time"], "x": traj["x"] + off[:, 0],
                              "y": traj["y"] + off[:, 1], "z": traj["z"] + off[:, 2]})
     traj_out.to_csv(out / f"{ds}_trajectory.csv", index=False, float_format="%.4f")

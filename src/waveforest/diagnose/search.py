@@ -31,9 +31,13 @@ Procedure (one *round*; :func:`search` runs up to ``rounds`` of them)
    shift delta is told apart from the current model with z = delta / (2 SE(d)), half the z
    of the shift itself (which of two models is closer to noisy data is decided at their
    midpoint) — hence cross-fitting.
-4. **Name** the significant candidate with the largest R, add it at its fitted value, and
-   (from the second effect on) re-fit all named effects, each with the others fixed, until
-   they stop moving (coordinate descent, :data:`REFIT_PASSES`). Stop when no candidate is
+4. **Name** the candidate with the largest R if it is significant, add it at its fitted
+   value, and (from the second effect on) re-fit all named effects, each with the others
+   fixed, until they stop moving (coordinate descent, :data:`REFIT_PASSES`). A lower-ranked
+   candidate is never named in its place, even when its own interval clears zero: the data
+   then say that another effect explains the gap better, only less certainly, and naming
+   the narrower interval would name the wrong effect (seen with a hidden ``lad_shift``,
+   whose look-alike ``leaf_albedo`` ranked second). Stop when the best candidate is not
    significant, when ``rounds`` effects are named, or when the model's gap on all samples
    is no longer significant above the noise floor.
 
@@ -669,12 +673,11 @@ def search(
             dlo, dhi = _gap.wald_interval(best.reduction - c.reduction, best.replicates - c.replicates,
                                           df, settings.alpha)
             rows.append({**c.row(), "rank": rank, "vs_best_ci_low": float(dlo), "vs_best_ci_high": float(dhi)})
-        passing = [results[i] for i in order if results[i].significant]
-        if not passing:
-            reason = (f"round {rnd}: no candidate reduces the gap significantly"
+        if not best.significant:
+            reason = (f"round {rnd}: the best candidate ({best.estimate.name}) does not reduce the gap significantly"
                       if baseline.significant else "the base model's gap is within the noise floor")
             break
-        win = passing[0]
+        win = best
         e = win.estimate
         current = cat.with_effect(current, e.name, e.value)
         named.append(NamedEffect(name=e.name, value=e.value, ci_low=e.ci_low, ci_high=e.ci_high,
