@@ -11,7 +11,8 @@ understory        0        vegetation  LAI of a grass/seedling layer (``UNDERSTO
                                        under trees; 0 = the paper's empty crown-base gap
 clumping          0        vegetation  radius of the shoot clusters, m (Thomas process); 0 = the
                                        paper's uniform random shoot positions
-xy_error          0        geometry    SD of the horizontal georeferencing error per pulse, m
+xy_error          0        geometry    SD of the horizontal georeferencing error of the recorded
+                                       beams (trajectory and points), m
 specular          0        mcrt        fraction of the leaf reflectance that is specular (Phong
                                        lobe), the rest Lambertian; 0 = bi-Lambertian leaves
 hotspot           1        mcrt        factor on first-order returns from vegetation elements
@@ -38,13 +39,12 @@ by more than 3 standard errors (tests/test_campaign_agreement.py):
   fireweed and grass shoots from short rhizome branches, a few dm across: 0.15 m puts ~68 %
   of a cluster's shoots within 0.15 m of each axis of its centre (0.3 m moved the fireweed E
   by 2.2 SE only).
-- ``xy_error`` 0.25 m: the SD of the per-pulse horizontal offset between the recorded point
-  and the field sample, i.e. ALS georeferencing (0.1-0.3 m horizontally for a 2010-era
-  GNSS/IMU system at ~1 km) combined with GNSS field positions under canopy (0.2-0.5 m).
-  Within the realistic 0.2-0.6 m this effect does not reach 3 SE in the test campaign (birch
-  E -2.2 SE at 0.25, -1.5 SE at 0.4, -1.7 SE at 0.6, seed 21): pulses are generated only
-  within ``campaign.disc_margin_m`` of the 0.5-m tree selection disc and the crown of a
-  juvenile birch looks alike within that distance of the stem, so a larger value buys nothing.
+- ``xy_error`` 0.25 m: the SD of the horizontal georeferencing error of the recorded data
+  relative to the field positions, the paper's "typical XY error 0.20-0.25 m" (METHOD.md a,
+  j). In the campaign it is a drift of the GNSS/INS solution that moves the recorded
+  trajectory and points together (campaign/flight.py), so that ``simulate`` traces each
+  recorded beam where the real one was not; in the model, ``simulate`` shifts each traced
+  beam by N(0, xy_error) per axis.
 """
 
 from __future__ import annotations
