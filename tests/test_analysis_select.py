@@ -32,7 +32,7 @@ FIELDS = pd.DataFrame(
 ECHOES = [
     [(0.3, 0.3, 102.0)],                        # 0: T1 (0.42 m, H 2)
     [(0.4, 0.4, 102.0)],                        # 1: 0.57 m from T1: outside the tree radius
-    [(0.1, 0.0, 100.5)],                        # 2: T1, H 0.5 < 1 m: not in the classification set
+    [(0.1, 0.0, 100.5)],                        # 2: T1 but H 0.5 < 1 m: dropped
     [(10.5, 0.0, 101.2)],                       # 3: L1 (0.5 m)
     [(10.0, 0.8, 101.3)],                       # 4: L1 0.8 m, L2 0.7 m -> L2
     [(20.0, 0.0, 0.5)],                         # 5: sample of another year
@@ -42,7 +42,7 @@ ECHOES = [
     [(0.0, 10.2, 105.0)],                       # 9: T2, birch of 6 m: outside the comparison heights
 ]
 
-EXPECTED = {0: "T1", 2: "T1", 3: "L1", 4: "L2", 7: "L1", 8: "L1", 9: "T2"}
+EXPECTED = {0: "T1", 3: "L1", 4: "L2", 7: "L1", 8: "L1", 9: "T2"}
 
 
 def _rules(min_pulses=2):
@@ -65,9 +65,8 @@ def test_flags():
     # single-echo raspberry pulses: 3, 4, 8 (>= 2); birch single-echo: 0, 9 -> 2 (>= 2)
     assert out.loc[[0, 3, 4, 8, 9], "classification_set"].all()
     assert not out.loc[7, "classification_set"]  # two DR echoes
-    assert not out.loc[2, "classification_set"]  # a tree's pulse with a low echo (METHOD i4)
-    # comparison: birch only 2.5-5 m -> T2 (6 m) out; raspberry in; a low echo under T1 stays
-    assert out.loc[[0, 2, 3, 4, 7, 8], "comparison_set"].all()
+    # comparison: birch only 2.5-5 m -> T2 (6 m) out; raspberry in
+    assert out.loc[[0, 3, 4, 7, 8], "comparison_set"].all()
     assert not out.loc[9, "comparison_set"]
     out3 = select_pulses(pulse_table("2010_12_1", ECHOES), FIELDS, 2010, _rules(min_pulses=3)).to_pandas()
     out3 = out3.set_index("pulse_id")
@@ -76,11 +75,11 @@ def test_flags():
 
 
 def test_far_candidates_are_not_missed():
-    """Nine nearer tree samples are out of their 0.5-m radius; the farther low sample (1.0 m) wins."""
-    rows = [dict(x=-0.51 - 0.009 * i, y=0.0, ground_z=0.0, radius_m=0.5, is_tree=True) for i in range(9)]
+    """Nine nearer tree samples fail the height rule; the farther low sample must still win."""
+    rows = [dict(x=0.01 * (i + 1), y=0.0, ground_z=0.0, radius_m=0.5, is_tree=True) for i in range(9)]
     rows.append(dict(x=0.6, y=0.0, ground_z=0.0, radius_m=1.0, is_tree=False))
     f = pd.DataFrame(rows)
-    idx, dist = match_samples(np.array([[0.0, 0.0, 0.5], [-0.5, 0.0, 1.5], [5.0, 5.0, 0.0]]), f, _rules())
+    idx, dist = match_samples(np.array([[0.0, 0.0, 0.5], [0.0, 0.0, 1.5], [5.0, 5.0, 0.0]]), f, _rules())
     assert idx.tolist() == [9, 0, -1]
     assert dist[0] == pytest.approx(0.6) and dist[1] == pytest.approx(0.01) and np.isnan(dist[2])
 
@@ -101,13 +100,13 @@ def test_run_and_cli(tmp_path):
                        footprint_diameter_m=0.18, sampling_ns=1)]).to_csv(tmp_path / "datasets.csv", index=False)
     cfg = config.load(overrides={"select": {"min_pulses": 2}})
     s = run(pulses, tmp_path / "fields.csv", tmp_path / "datasets.csv", tmp_path / "sel.parquet", cfg)
-    assert (s.n_pulses, s.n_selected, s.n_samples) == (10, 7, 4)
+    assert (s.n_pulses, s.n_selected, s.n_samples) == (10, 6, 4)
     out = read_pulses(tmp_path / "sel.parquet")
     assert sorted(out.column("pulse_id").to_pylist()) == sorted(EXPECTED)
     main(["select", str(pulses), "--fields", str(tmp_path / "fields.csv"), "--datasets",
           str(tmp_path / "datasets.csv"), "--out", str(tmp_path / "cli.parquet"), "--config",
           str(_config_file(tmp_path, "select:\n  min_pulses: 2\n"))])
-    assert read_pulses(tmp_path / "cli.parquet").num_rows == 7
+    assert read_pulses(tmp_path / "cli.parquet").num_rows == 6
 
 
 def test_bad_tables(tmp_path, capsys):

@@ -3,7 +3,9 @@
 A pulse belongs to a field sample of the dataset's year when its first DR echo
 ``(echo_x[0], echo_y[0])`` lies within the sample's selection radius of the sample position:
 
-* trees (``is_tree``): ``tree_radius_m`` (0.5 m) around the tree base;
+* trees (``is_tree``): ``tree_radius_m`` (0.5 m) around the tree base, and the first echo
+  must lie at least ``tree_min_echo_h_m`` (1 m) above the sample's ground elevation
+  (lower echoes are ground vegetation, not the tree);
 * low vegetation and ground samples: the sample's own ``radius_m`` (0.5 m S10, 1.0 m S12).
 
 When several samples qualify, the nearest one (horizontal distance) wins. The search is a
@@ -12,16 +14,9 @@ KD-tree query over all pulses at once (no loop over pulses).
 Two flags mark the subsets the later stages use:
 
 * ``classification_set`` (METHOD i4): pulses with exactly one DR echo, of species with at
-  least ``min_pulses`` such pulses in the dataset; for trees the echo must lie at least
-  ``tree_min_echo_h_m`` (1 m) above the sample's ground (lower echoes are ground
-  vegetation, not the tree);
+  least ``min_pulses`` such pulses in the dataset;
 * ``comparison_set`` (METHOD i1): pulses of the modelled species (``simulate.species``), for
-  species with a height window (birch: trees of 2.5-5 m) only samples inside it. METHOD i1
-  takes the *radius* rules of i4 and then keeps only birch echoes above 1.5 m for the
-  waveform features (``simulate.compare_min_h_m``), so a tree's pulses whose first echo is
-  low (ground or ground vegetation under the crown) stay in this set: their H is where a
-  missing understory shows (METHOD j), and no selection on the outcome (the echo height)
-  has to be mirrored on the simulated twins.
+  species with a height window (birch: trees of 2.5-5 m) only samples inside it.
 """
 
 from __future__ import annotations
@@ -108,8 +103,10 @@ def match_samples(echo_xyz: np.ndarray, fields: pd.DataFrame, rules: SelectRules
         return index, distance
     is_tree = fields["is_tree"].to_numpy(bool)
     radius = np.where(is_tree, rules.tree_radius_m, fields["radius_m"].to_numpy(float))
+    ground = fields["ground_z"].to_numpy(float)
     tree = cKDTree(fields[["x", "y"]].to_numpy(float))
     xy = echo_xyz[ok_rows, :2]
+    z = echo_xyz[ok_rows, 2]
     k = min(_FIRST_K, n_f)
     while True:
         d, i = tree.query(xy, k=k, distance_upper_bound=float(radius.max()))
@@ -120,6 +117,8 @@ def match_samples(echo_xyz: np.ndarray, fields: pd.DataFrame, rules: SelectRules
     found = np.isfinite(d)
     ii = np.where(found, i, 0)
     valid = found & (d <= radius[ii])
+    low = is_tree[ii] & (z[:, None] - ground[ii] < rules.tree_min_echo_h_m)
+    valid &= ~low
     first = np.argmax(valid, axis=1)
     hit = valid[np.arange(len(xy)), first]
     sub_index = np.where(hit, ii[np.arange(len(xy)), first], -1)
@@ -155,9 +154,7 @@ def select_pulses(pulses: pa.Table, fields: pd.DataFrame, year: int, rules: Sele
     s = f.iloc[idx[keep]].reset_index(drop=True)
     species = s["species"].to_numpy(object)
     n_echoes = out.column("n_echoes").to_numpy(zero_copy_only=False).astype(np.int64)
-    ground_z = s["ground_z"].to_numpy(float)
-    low_tree = s["is_tree"].to_numpy(bool) & ~(echo[keep, 2] - ground_z >= rules.tree_min_echo_h_m)
-    single = (n_echoes == 1) & ~low_tree  # METHOD i4: single-echo pulses; a tree's only if not low
+    single = n_echoes == 1
     counts = pd.Series(species[single]).value_counts()
     frequent = np.isin(species, counts.index[counts >= rules.min_pulses].to_numpy(object))
     classification = single & frequent
@@ -166,6 +163,7 @@ def select_pulses(pulses: pa.Table, fields: pd.DataFrame, year: int, rules: Sele
     for sp, (lo, hi) in rules.height_range_m.items():
         this = species == sp
         comparison &= ~this | ((height >= lo) & (height <= hi))
+    ground_z = s["ground_z"].to_numpy(float)
     columns = {
         "sample_id": pa.array(s["sample_id"].astype(str).to_list(), pa.string()),
         "species": pa.array(s["species"].astype(str).to_list(), pa.string()),

@@ -15,9 +15,11 @@ pulses). It adds three things:
   trigger_loss, xy_error) therefore trace the very same instances as the model without them
   (no rebuild, and no extra vegetation noise between values); only the four vegetation
   effects build new ones;
-* **the comparison rule applied alike**: the waveform features of species in
-  ``simulate.compare_min_h_m`` (birch: 1.5 m) use only pulses whose first echo is higher,
-  for real and simulated pulses alike (:func:`apply_rules`, as ``compare`` does).
+* **the selection rules mirrored on the simulation**: real pulses were selected with their
+  first echo at least ``select.tree_min_echo_h_m`` above the ground for trees; a simulated
+  twin whose first echo is lower is dropped in the same way, and the waveform features of
+  species in ``simulate.compare_min_h_m`` (birch: 1.5 m) use only pulses whose first echo is
+  higher, for real and simulated pulses alike (:func:`apply_rules`, as ``compare`` does).
 """
 
 from __future__ import annotations
@@ -44,12 +46,13 @@ SCENE_CACHE_TRIANGLES = 12_000_000
 
 
 def apply_rules(features: pd.DataFrame, cfg: dict) -> pd.DataFrame:
-    """The comparison rule of ``compare`` applied to a feature table.
+    """The selection rules of ``select`` and ``compare`` applied to a feature table.
 
-    For species in ``simulate.compare_min_h_m`` the waveform features of rows with H at or
-    below the threshold become NaN (METHOD.md i1); rows without a first echo (H NaN) are
-    dropped. (``select`` chooses pulses by their first echo's horizontal position only, so
-    nothing else needs mirroring on the simulated twins.)
+    Rows of trees (``is_tree``) whose first echo lies below ``select.tree_min_echo_h_m`` are
+    dropped (``select``'s rule, which the real pulses satisfy by construction); for species
+    in ``simulate.compare_min_h_m`` the waveform features of rows with H at or below the
+    threshold become NaN (``compare``'s rule, METHOD.md i1). Rows without a first echo
+    (H NaN) are dropped.
 
     Parameters
     ----------
@@ -59,6 +62,9 @@ def apply_rules(features: pd.DataFrame, cfg: dict) -> pd.DataFrame:
         Loaded study config.
     """
     df = features[np.isfinite(features["H"].to_numpy(dtype=float))].copy()
+    if "is_tree" in df.columns:
+        tree = df["is_tree"].fillna(False).astype(bool).to_numpy()
+        df = df[~tree | (df["H"].to_numpy(float) >= float(cfg["select"]["tree_min_echo_h_m"]))].copy()
     species = df["species"].astype(str).to_numpy()
     h = df["H"].to_numpy(float)
     for sp, lo in (cfg["simulate"].get("compare_min_h_m") or {}).items():
