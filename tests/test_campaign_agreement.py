@@ -162,7 +162,7 @@ def effect_baseline(tmp_path_factory):
 
 
 UNDETECTED = {
-    "understory": "birch E moves +2.9 SE only at LAI 2.5 (+2.5 SE with 24 samples per species): the tree selection "
+    "understory": "birch E moves +2.9 SE only at LAI 2.5: the tree selection "
                   "drops first echoes below 1 m and the birch waveform features keep H > 1.5 m, so a grass layer "
                   "under the crown shows only through multiple scattering",
     "xy_error": "birch E moves -2.0 SE only at 0.25 m: the recorded beam and the traced one are a quarter metre "

@@ -35,7 +35,7 @@ by more than 3 standard errors (tests/test_campaign_agreement.py):
   mid-summer, so 2.5 is a dense but common layer. It stays below 3 SE (birch E +2.9 SE): the
   selection keeps a tree's pulses only with a first echo above 1 m and the birch waveform
   features only above 1.5 m (METHOD.md i1, i4), so the layer shows through multiple
-  scattering alone; larger campaigns do not help (+2.5 SE with twice the samples).
+  scattering alone.
 - ``clumping`` 0.15 m: the value is the SD of the Thomas-process displacement around a
   cluster centre (vegetation/placement.py), so a *smaller* radius is *stronger* clumping
   (radius >> plant spacing is uniform again). Raspberry canes rise from one root crown and
