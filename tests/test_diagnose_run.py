@@ -148,8 +148,17 @@ def test_real_chain_no_effect_names_nothing(tmp_path):
     assert m["effects"] == [] and m["verdict"] in ("none", "unexplained")
 
 
+BELOW_DETECTION = {
+    "understory": "moves no feature mean of the campaign by 3 SE (tests/test_campaign_agreement.py: birch E +2.9 SE)",
+    "xy_error": "moves no feature mean of the campaign by 3 SE (tests/test_campaign_agreement.py: birch E -2.0 SE)",
+}
+"""Effects whose test value the campaign itself barely shows (the effects.py docstring): a
+diagnosis that names them would be luck, so they are expected to fail (not strictly)."""
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize("name", list(CATALOGUE))
+@pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.xfail(reason=BELOW_DETECTION[n]))
+                                  if n in BELOW_DETECTION else n for n in CATALOGUE])
 def test_real_chain_names_the_hidden_effect(tmp_path, name):
     truth = CATALOGUE[name].test_value
     m = _diagnose_campaign(tmp_path, {name: truth})
