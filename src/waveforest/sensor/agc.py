@@ -7,10 +7,19 @@ the part above the noise floor:
 
 with n0 the dataset noise mean c-bar from the last ``calibrate.noise_tail`` samples of every
 waveform, a the dataset mean AGC, and b fitted per dataset by minimising the pooled
-within-target relative SD ("nested CV") of the waveform peak amplitude over homogeneous
-targets (targets.csv rows with agc = 1):
+within-target relative SD ("nested CV") of an echo amplitude A over homogeneous targets
+(targets.csv rows with agc = 1):
 
-    CV(b) = sqrt( sum_k sum_i (A_ki / mean_i(A_ki) - 1)^2 / (N - K) ),  A_ki = (max V - n0) / g_ki(b)
+    CV(b) = sqrt( sum_k sum_i (A_ki / mean_i(A_ki) - 1)^2 / (N - K) ),  A_ki = A_raw,ki / g_ki(b)
+
+``agc.statistic`` chooses A_raw. ``peak`` is METHOD.md (b) word for word: max V - n0. Its
+noise part is not gained: the largest of a few noisy samples near the top exceeds the true
+peak by about one noise SD whatever the gain, so on weak targets A_raw = g A_0 + delta and the
+fit reads g^(1 - delta / A) -- b comes out low by about delta / A (-11 % on the virtual
+2010_30_2, whose bitumen roof peaks at ~13 DN and darkest tarp at ~25 DN; -4.9 to +4.9 %
+with ``energy`` on all nine virtual datasets). ``energy`` (default) sums V - n0 over
+``agc.energy_half_window_ns`` either side of the largest sample: the noise in that window has
+zero mean, so the sum scales with the gain exactly and b stays unbiased on weak targets.
 
 k = fit group, i = pulse, N pulses, K groups; a coarse grid over the bounded interval
 ``agc.b_bounds`` followed by a bounded Brent refinement around the best grid point. The
@@ -113,6 +122,35 @@ def peak_amplitudes(samples, lengths, n0: float) -> np.ndarray:
     valid = np.arange(x.shape[1])[None, :] < lens[:, None]
     m = np.where(valid, x, -np.inf).max(axis=1).astype(np.float64)
     return np.where(lens > 0, m - n0, np.nan)
+
+
+def window_sums(samples, lengths, half_window) -> tuple[np.ndarray, np.ndarray]:
+    """Sum of the samples within ``half_window`` samples of each waveform's largest one.
+
+    Parameters
+    ----------
+    samples : (N, M) waveforms, DN.  lengths : (N,) valid samples per row.
+    half_window : int or (N,) int, samples either side of the maximum.
+
+    Returns
+    -------
+    sums : (N,) float64, DN (NaN for empty rows); counts : (N,) int64, samples summed (the
+    window clipped to the record). An echo energy above n0 is ``sums - counts * n0``.
+    """
+    x, lens = _checks.waveforms(samples, lengths)
+    n, m = x.shape
+    half = np.broadcast_to(np.asarray(half_window, dtype=np.int64), (n,))
+    if m == 0 or n == 0:
+        return np.full(n, np.nan), np.zeros(n, np.int64)
+    valid = np.arange(m)[None, :] < lens[:, None]
+    k = np.where(valid, x, -np.inf).argmax(axis=1)
+    h = int(half.max()) if n else 0
+    j = np.arange(-h, h + 1)
+    idx = k[:, None] + j[None, :]
+    inside = (idx >= 0) & (idx < lens[:, None]) & (np.abs(j)[None, :] <= half[:, None])
+    vals = np.take_along_axis(x, np.clip(idx, 0, m - 1), axis=1).astype(np.float64)
+    sums = np.where(inside, vals, 0.0).sum(axis=1)
+    return np.where(lens > 0, sums, np.nan), inside.sum(axis=1)
 
 
 def nested_cv(amplitudes, agc, groups, a: float, b: float) -> float:
@@ -266,6 +304,7 @@ class AGCFit:
     b_grid: list = field(default_factory=list)
     cv_grid: list = field(default_factory=list)
     fixed_b: bool = False
+    statistic: str = "peak"
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -305,7 +344,7 @@ def normalise_pulses(pulses: pa.Table, a: float, b: float, n0: float) -> pa.Tabl
 
 
 # -- the `agc` stage ------------------------------------------------------------------------
-_PASS1_COLUMNS = ["dataset", "gps_time", "agc", "echo_x", "echo_y", "samples"]
+_PASS1_COLUMNS = ["dataset", "gps_time", "agc", "echo_x", "echo_y", "samples", "sampling_ns"]
 
 
 def _single_dataset(names: set, path) -> str:
@@ -342,6 +381,10 @@ def run(pulses_path, targets, datasets, out_path, fit_path, cfg: dict, *, plot_p
     dmax = float(cfg.get("sensor", {}).get("digitizer_max", 255))
     min_per_target = int(sec.get("min_pulses_per_target", 5))
     gap_s = float(sec.get("pass_gap_s", 30.0))
+    statistic = str(sec.get("statistic", "energy"))
+    if statistic not in ("energy", "peak"):
+        raise WaveforestError(f"agc.statistic: expected 'energy' or 'peak', got {statistic!r}")
+    half_window_ns = float(sec.get("energy_half_window_ns", 10.0))
     names: set = set()
     agc_sum = agc_n = 0.0
     agc_min, agc_max = np.inf, -np.inf
@@ -376,8 +419,13 @@ def run(pulses_path, targets, datasets, out_path, fit_path, cfg: dict, *, plot_p
         on[on] = targets["agc"].to_numpy(dtype=bool)[tidx[on]]
         if on.any():
             raw_max = peak_amplitudes(samples[on], lens[on], 0.0)
+            if statistic == "energy":
+                dt = batch.column("sampling_ns").to_numpy(zero_copy_only=False).astype(np.float64)[on]
+                sums, counts = window_sums(samples[on], lens[on], np.maximum(np.rint(half_window_ns / dt), 1))
+            else:
+                sums, counts = raw_max, np.ones(raw_max.size, np.int64)
             gps = batch.column("gps_time").to_numpy(zero_copy_only=False).astype(np.float64)
-            fit_rows.append((raw_max, agc[on], tidx[on], gps[on]))
+            fit_rows.append((raw_max, sums, counts, agc[on], tidx[on], gps[on]))
     if not names:
         raise WaveforestError(f"{pulses_path}: the pulse table is empty")
     name = _single_dataset(names, pulses_path)
@@ -387,14 +435,15 @@ def run(pulses_path, targets, datasets, out_path, fit_path, cfg: dict, *, plot_p
     n0 = tail_sum / tail_n
     noise_sd = math.sqrt(max(tail_sq / tail_n - n0**2, 0.0) * tail_n / (tail_n - 1))
 
-    raw_max = np.concatenate([r[0] for r in fit_rows]) if fit_rows else np.empty(0)
-    fagc = np.concatenate([r[1] for r in fit_rows]) if fit_rows else np.empty(0)
-    ftgt = np.concatenate([r[2] for r in fit_rows]) if fit_rows else np.empty(0, dtype=np.int64)
-    fgps = np.concatenate([r[3] for r in fit_rows]) if fit_rows else np.empty(0)
+    def cat(i, dtype=np.float64):
+        return np.concatenate([r[i] for r in fit_rows]) if fit_rows else np.empty(0, dtype=dtype)
+
+    raw_max, sums, counts, fagc, ftgt, fgps = cat(0), cat(1), cat(2, np.int64), cat(3), cat(4, np.int64), cat(5)
     fpass = target_passes(fgps, ftgt, gap_s)  # passes from all target pulses, clipped ones included
     sat = raw_max >= dmax
-    keep = ~sat & np.isfinite(fagc) & np.isfinite(raw_max)
-    amps, fagc, ftgt, fpass = raw_max[keep] - n0, fagc[keep], ftgt[keep], fpass[keep]
+    keep = ~sat & np.isfinite(fagc) & np.isfinite(sums)
+    amps = sums[keep] - counts[keep] * n0  # the fit statistic above n0 (module docstring)
+    fagc, ftgt, fpass = fagc[keep], ftgt[keep], fpass[keep]
     fgrp = ftgt * (int(fpass.max()) + 1 if fpass.size else 1) + fpass  # one group per target pass
     ids, counts = np.unique(fgrp, return_counts=True)
     good = np.isin(fgrp, ids[counts >= min_per_target])
@@ -445,7 +494,7 @@ def run(pulses_path, targets, datasets, out_path, fit_path, cfg: dict, *, plot_p
         pass_gap_s=gap_s, n_per_pass=n_per_pass,
         cv_per_pass_before=plabel(cv_per_group(amps, fagc, fgrp, a, 0.0)) if have_a else {},
         cv_per_pass_after=plabel(cv_per_group(amps, fagc, fgrp, a, b)) if have_b else {},
-        b_grid=grid.tolist(), cv_grid=curve.tolist(), fixed_b=fixed is not None,
+        b_grid=grid.tolist(), cv_grid=curve.tolist(), fixed_b=fixed is not None, statistic=statistic,
     )
 
     meta = {AGC_METADATA_KEY: json.dumps({"dataset": fit.dataset, "a": fit.a, "b": fit.b, "n0": fit.n0}).encode()}

@@ -40,7 +40,7 @@ def plot_system_waveform(system, path, title: str = "System waveform S(t)") -> P
 
 
 def plot_cv_curve(fit, path) -> Path:
-    """Nested CV of target peak amplitudes against b (Eq. 1), the fitted b marked."""
+    """Nested CV of target echo amplitudes (``agc.statistic``) against b (Eq. 1), the fitted b marked."""
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(6.0, 3.8), dpi=120)
     b, cv = np.asarray(fit.b_grid), np.asarray(fit.cv_grid)
@@ -48,7 +48,7 @@ def plot_cv_curve(fit, path) -> Path:
     ax.axvline(fit.b, color="tab:red", lw=1, ls="--", label=f"b = {fit.b:.5f}, CV = {100 * fit.cv_after:.2f} %")
     ax.axhline(100 * fit.cv_before, color="grey", lw=0.8, ls=":", label=f"b = 0: CV = {100 * fit.cv_before:.2f} %")
     ax.set_xlabel("b (relative gain per AGC unit)")
-    ax.set_ylabel("nested CV of peak amplitude, %")
+    ax.set_ylabel(f"nested CV of echo {fit.statistic}, %")
     ax.set_title(f"AGC fit of {fit.dataset} (a = {fit.a:.2f}, {fit.n_fit_pulses} target pulses)")
     ax.legend(frameon=False, fontsize=8)
     fig.tight_layout()
