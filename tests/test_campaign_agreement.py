@@ -162,7 +162,7 @@ def effect_baseline(tmp_path_factory):
 
 
 UNDETECTED = {
-    "understory": "birch E moves +2.9 SE only at LAI 2.5: the tree selection "
+    "understory": "birch E moves +2.9 to +3.0 SE only at LAI 2.5, at the edge of the criterion: the tree selection "
                   "drops first echoes below 1 m and the birch waveform features keep H > 1.5 m, so a grass layer "
                   "under the crown shows only through multiple scattering",
     "xy_error": "birch E moves -2.0 SE only at 0.25 m: the recorded beam and the traced one are a quarter metre "
@@ -172,8 +172,12 @@ UNDETECTED = {
 size (measured at seed 21, 12 samples per species, density x 2). Each effect test prints its
 largest shift: ``pytest tests/test_campaign_agreement.py -m slow -s -k each_effect``."""
 
+BORDERLINE = {"understory"}
+"""Of those, the ones measured within rounding of 3 SE (not strict: the last digits of the
+MCRT sums differ between machines)."""
 
-@pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.xfail(strict=True, reason=UNDETECTED[n]))
+
+@pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.xfail(strict=n not in BORDERLINE, reason=UNDETECTED[n]))
                                   if n in UNDETECTED else n for n in CATALOGUE])
 def test_each_effect_moves_a_feature(effect_baseline, name, tmp_path):
     cfg, real = effect_baseline
