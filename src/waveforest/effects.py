@@ -32,10 +32,10 @@ by more than 3 standard errors (tests/test_campaign_agreement.py):
 
 - ``understory`` 2.5: the grass/herb/seedling layer of boreal clear-cuts and young stands
   (Calamagrostis, Deschampsia, Epilobium, tree seedlings) reaches a green LAI of about 1-3 by
-  mid-summer, so 2.5 is a dense but common layer. It stays at the edge of 3 SE (birch E +2.9 to +3.0 SE): the
-  selection keeps a tree's pulses only with a first echo above 1 m and the birch waveform
-  features only above 1.5 m (METHOD.md i1, i4), so the layer shows through multiple
-  scattering alone.
+  mid-summer, so 2.5 is a dense but common layer. It stays at the edge of 3 SE (birch E +2.9
+  to +3.0 SE): the selection keeps a tree's pulses only with a first echo above 1 m and the
+  birch waveform features only above 1.5 m (METHOD.md i1, i4), so the layer shows through
+  multiple scattering alone.
 - ``clumping`` 0.15 m: the value is the SD of the Thomas-process displacement around a
   cluster centre (vegetation/placement.py), so a *smaller* radius is *stronger* clumping
   (radius >> plant spacing is uniform again). Raspberry canes rise from one root crown and
