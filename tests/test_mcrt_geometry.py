@@ -96,6 +96,48 @@ def test_embree_split_over_threads_is_identical(kind):
     assert np.array_equal(isect.occluded(o, d, tm, threads=1), isect.occluded(o, d, tm, threads=2))
 
 
+def _morton(q: np.ndarray) -> np.ndarray:
+    """Z-order code of integer cell coordinates (n, 3), bit by bit (x lowest)."""
+    key = np.zeros(len(q), np.int64)
+    for b in range(10):
+        for a in range(3):
+            key |= ((q[:, a] >> b) & 1) << (3 * b + a)
+    return key
+
+
+@pytest.mark.parametrize("bits", [0, 1, 5])
+def test_coherent_order_is_a_stable_z_order_permutation(bits):
+    rng = np.random.default_rng(4)
+    o = rng.uniform([-3, -3, 0], [3, 3, 1.2], (5000, 3)).astype(np.float32)
+    order = rtc.coherent_order(o, bits)
+    assert np.array_equal(np.sort(order), np.arange(len(o)))
+    cells = 2 ** bits
+    lo, hi = o.min(0), o.max(0)
+    q = np.clip(((o - lo) * ((cells - 1) / (hi - lo))).astype(np.int64), 0, cells - 1)
+    key = _morton(q)
+    assert np.array_equal(order, np.argsort(key, kind="stable"))
+
+
+def test_coherent_order_survives_degenerate_origins():
+    o = np.zeros((7, 3), np.float32)  # one point: every ray in cell 0, order kept
+    assert np.array_equal(rtc.coherent_order(o, 5), np.arange(7))
+    o[2] = np.nan
+    o[4, 0] = np.inf
+    assert np.array_equal(np.sort(rtc.coherent_order(o, 5)), np.arange(7))
+
+
+def test_direct_embree_results_do_not_depend_on_the_tracing_order(monkeypatch):
+    rng = np.random.default_rng(5)
+    isect = DirectEmbreeIntersector(_random_triangles(rng, 500))
+    o, d = _random_rays(rng, 20000)
+    tm = np.full(len(o), 1.0, np.float32)
+    sorted_ = isect.intersect(o, d), isect.occluded(o, d, tm)
+    monkeypatch.setattr(rtc, "CELL_BITS", 0)  # one cell: the rays' own order
+    plain = isect.intersect(o, d), isect.occluded(o, d, tm)
+    assert np.array_equal(sorted_[0][0], plain[0][0]) and np.array_equal(sorted_[0][1], plain[0][1])
+    assert np.array_equal(sorted_[1], plain[1])
+
+
 def test_prepare_shifts_to_box_centre_and_keeps_properties():
     sc = syn.plane(4.0, z=2.0, rho=0.2, center=(1000.0, 2000.0))
     ps = prepare(sc)
