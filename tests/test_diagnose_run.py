@@ -117,12 +117,12 @@ SLOW_CONFIG = {
     "sensor_study": {"pulses": 20},
     "diagnose": {"rounds": 2, "bootstrap": 200},
 }
-"""A small study on which each hidden effect is diagnosed (~10 minutes per campaign): two
-datasets, the three modelled species only, 20 field samples of each (the diagnosis simulates
-at most ``diagnose.max_pulses`` pulses per dataset x species, so more samples buy independent
-plants, the unit of its bootstrap, at nearly no cost). The campaign and the analysis trace the
-same orders: orders 6-10 carry ~8 % of a raspberry canopy's sigma, a gap of its own that no
-catalogue effect is meant to explain."""
+"""A small study on which each hidden effect is diagnosed (18-24 minutes per campaign on the
+2-core machine, 15 of them in diagnose): two datasets, the three modelled species only, 20
+field samples of each (the diagnosis simulates at most ``diagnose.max_pulses`` pulses per
+dataset x species, so more samples buy independent plants, the unit of its bootstrap, at
+nearly no cost). The campaign and the analysis trace the same orders: orders 6-10 carry ~8 %
+of a raspberry canopy's sigma, a gap of its own that no catalogue effect is meant to explain."""
 
 
 def _diagnose_campaign(tmp_path, effects: dict) -> dict:
