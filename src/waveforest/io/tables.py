@@ -133,8 +133,8 @@ _STREAM_OPTIONS = dict(compression="lz4", use_dictionary=["dataset", "source"], 
 """Parquet options of streamed pulse tables: fast lz4, no dictionaries or statistics on the
 noise-like waveform lists. Encoding the ``samples`` list column is most of ingest's time: with
 these options it alone writes ~210,000 pulses/s of 256 samples on one core of the 2-core
-machine (~270,000 uncompressed, for a 2x larger file), whole ingest ~120,000
-(benchmarks/ingest.py); zstd with defaults halves that for a 2.4x smaller file."""
+machine (~270,000 uncompressed, for a 2x larger file), whole ingest 187,000-208,000 on the
+idle machine (benchmarks/ingest.py); zstd with defaults halves that for a 2.4x smaller file."""
 
 
 def write_pulse_batches(batches: Iterable[pa.Table], path: str | Path) -> int:
