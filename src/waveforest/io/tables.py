@@ -131,10 +131,11 @@ def write_pulses(table: pa.Table, path: str | Path) -> Path:
 
 _STREAM_OPTIONS = dict(compression="lz4", use_dictionary=["dataset", "source"], write_statistics=False)
 """Parquet options of streamed pulse tables: fast lz4, no dictionaries or statistics on the
-noise-like waveform lists. Encoding the ``samples`` list column is most of ingest's time: with
-these options it alone writes ~210,000 pulses/s of 256 samples on one core of the 2-core
-machine (~270,000 uncompressed, for a 2x larger file), whole ingest 187,000-208,000 on the
-idle machine (benchmarks/ingest.py); zstd with defaults halves that for a 2.4x smaller file."""
+noise-like waveform lists. Writing the table, mostly the ``samples`` list column, is ~3/4 of
+ingest's time (cProfile of benchmarks/ingest.py's file); whole ingest runs at 187,000-208,000
+pulses/s of 256 samples on one core of the idle 2-core machine (benchmarks/ingest.py). No
+compression writes faster for a 2x larger file; zstd with defaults halves the rate for a 2.4x
+smaller one."""
 
 
 def write_pulse_batches(batches: Iterable[pa.Table], path: str | Path) -> int:
