@@ -11,7 +11,7 @@ the three modelled species. The standard error of a difference of two means is
 sqrt(se_1^2 + se_2^2), se = sd / sqrt(n), except that a campaign mean compared with a
 simulation has a cluster-robust se over its field samples (:func:`_cluster_se`). An effect campaign uses the same seed as the baseline (the
 same plants and pulses; only the effect differs) and is compared with the baseline campaign.
-Slow: about 2 minutes in all (twelve campaigns, one simulation).
+Slow: about 11 minutes in all (twelve campaigns, one simulation).
 """
 
 from __future__ import annotations
@@ -57,7 +57,7 @@ calibration takes the incidence into account (``calibrate.cos_incidence``); with
 about 1.5 % low at the 0-15 degree scan zeniths and so is every simulated amplitude."""
 
 
-EFFECT_CAMPAIGN = {"density_scale": 2.0}
+EFFECT_CAMPAIGN = {"samples_per_species": 28, "density_scale": 4.5}
 """The effect tests' campaigns: twice the pulse density of :data:`RAW`, no simulation."""
 
 
@@ -161,24 +161,7 @@ def effect_baseline(tmp_path_factory):
     return cfg, real
 
 
-UNDETECTED = {
-    "understory": "birch E moves +2.9 to +3.0 SE only at LAI 2.5, at the edge of the criterion: the tree selection "
-                  "drops first echoes below 1 m and the birch waveform features keep H > 1.5 m, so a grass layer "
-                  "under the crown shows only through multiple scattering",
-    "xy_error": "birch E moves -2.0 SE only at 0.25 m: the recorded beam and the traced one are a quarter metre "
-                "apart, and a juvenile birch crown looks alike over that distance; see the effects.py docstring",
-}
-"""Effects that, at their catalogue test value, move no Table 3 mean by 3 SE at this campaign
-size (measured at seed 21, 12 samples per species, density x 2). Each effect test prints its
-largest shift: ``pytest tests/test_campaign_agreement.py -m slow -s -k each_effect``."""
-
-BORDERLINE = {"understory"}
-"""Of those, the ones measured within rounding of 3 SE (not strict: the last digits of the
-MCRT sums differ between machines)."""
-
-
-@pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.xfail(strict=n not in BORDERLINE, reason=UNDETECTED[n]))
-                                  if n in UNDETECTED else n for n in CATALOGUE])
+@pytest.mark.parametrize("name", list(CATALOGUE))
 def test_each_effect_moves_a_feature(effect_baseline, name, tmp_path):
     cfg, real = effect_baseline
     value = CATALOGUE[name].test_value

@@ -27,28 +27,29 @@ trigger_loss      0        sensor      fraction of sigma(t), earliest first, los
 ================  =======  ==========  ===========================================================
 
 Test values (``Effect.test_value``: what tests and ``diagnose`` hide in a campaign) are
-realistic magnitudes, chosen large enough to move a Table 3 feature mean of one test campaign
-by more than 3 standard errors (tests/test_campaign_agreement.py):
+realistic magnitudes, chosen large enough to move a Table 3 feature mean by more than 3
+standard errors in a campaign with the paper's pulse counts (tests/test_campaign_agreement.py,
+which prints each effect's largest shift):
 
 - ``understory`` 2.5: the grass/herb/seedling layer of boreal clear-cuts and young stands
   (Calamagrostis, Deschampsia, Epilobium, tree seedlings) reaches a green LAI of about 1-3 by
-  mid-summer, so 2.5 is a dense but common layer. It stays at the edge of 3 SE (birch E +2.9
-  to +3.0 SE): the selection keeps a tree's pulses only with a first echo above 1 m and the
-  birch waveform features only above 1.5 m (METHOD.md i1, i4), so the layer shows through
-  multiple scattering alone.
+  mid-summer, so 2.5 is a dense but common layer. It moves birch E by +5.1 SE only: the
+  selection keeps a tree's pulses only with a first echo above 1 m and the birch waveform
+  features only above 1.5 m (METHOD.md i1, i4), so the layer shows through multiple
+  scattering alone.
 - ``clumping`` 0.15 m: the value is the SD of the Thomas-process displacement around a
   cluster centre (vegetation/placement.py), so a *smaller* radius is *stronger* clumping
   (radius >> plant spacing is uniform again). Raspberry canes rise from one root crown and
   fireweed and grass shoots from short rhizome branches, a few dm across: 0.15 m puts ~68 %
   of a cluster's shoots within 0.15 m of each axis of its centre (0.3 m moved the fireweed E
-  by 2.2 SE only).
+  by 2.2 SE only, in a campaign of a quarter of these pulses).
 - ``xy_error`` 0.25 m: the SD of the horizontal georeferencing error of the recorded data
   relative to the field positions, the paper's "typical XY error 0.20-0.25 m" (METHOD.md a,
   j). In the campaign it is a drift of the GNSS/INS solution that moves the recorded
   trajectory and points together (campaign/flight.py), so that ``simulate`` traces each
   recorded beam where the real one was not; in the model, ``simulate`` shifts each traced
-  beam by N(0, xy_error) per axis. It stays below 3 SE in the test campaign (birch E -2.0 SE):
-  a juvenile birch crown looks alike within a quarter metre of where the pulse was meant to go.
+  beam by N(0, xy_error) per axis. It moves birch E by -3.4 SE only: a juvenile birch crown
+  looks alike within a quarter metre of where the pulse was meant to go.
 """
 
 from __future__ import annotations
