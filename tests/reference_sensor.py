@@ -264,9 +264,11 @@ def write_campaign_tables(folder, dataset="2010_12_1", year=2010, targets=TARGET
 
 
 def target_pulses(rng, system, *, per_target=80, b_true=0.012, agc_spread=20, noise_mean=10.0, noise_sd=1.5,
-                  sampling_ns=1.0, n_other=40, dataset="2010_12_1", targets=TARGETS_2010, constant_agc=False):
+                  sampling_ns=1.0, n_other=40, dataset="2010_12_1", targets=TARGETS_2010, constant_agc=False,
+                  sensor_effects=None):
     """A pulse table of planar-target pulses simulated through the signal model (Eq. 7), plus
-    ``n_other`` pulses off the targets, with a known AGC law (gain = 1 + (AGC - a) b_true).
+    ``n_other`` pulses off the targets, with a known AGC law (gain = 1 + (AGC - a) b_true) and
+    optionally the signal model's sensor effects (``render`` keywords).
 
     Returns (table, truth) with truth = dict(a, b, noise_mean, noise_sd, target_index (n,)).
     """
@@ -297,7 +299,7 @@ def target_pulses(rng, system, *, per_target=80, b_true=0.012, agc_spread=20, no
     sig = np.zeros((n, 200))
     sig[:, 100] = rho / np.pi
     t0 = rng_m / RANGE_PER_NS - 100.5 * H  # the spike's bin centre is at the pulse's range
-    rend = render(sig, t0, rng_m, system, noise_mean, noise_sd, sampling_ns, rng, gain=gain)
+    rend = render(sig, t0, rng_m, system, noise_mean, noise_sd, sampling_ns, rng, gain=gain, **(sensor_effects or {}))
     te = rend.trigger_ns - rend.first_sample_ns
     target_xyz = np.column_stack([p[:, 1], p[:, 2], np.full(n, 100.0)])
     anchor = target_xyz - d * te[:, None] * RANGE_PER_NS

@@ -37,6 +37,7 @@ rule calibrate:
     params:
         calibrate=config["calibrate"],
         sensor=config["sensor"],
+        effects=config["simulate"]["effects"],  # S(t) of the model: its sensor effects are inverted
         config=CONFIG_FILE,
     log:
         result("logs", "calibrate", "{dataset}.log"),

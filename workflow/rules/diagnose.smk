@@ -7,6 +7,8 @@ rule diagnose:
         real=expand(result("features", "{dataset}_real.parquet"), dataset=COMPARE_DATASETS),
         calibration=expand(result("calibration", "{dataset}.json"), dataset=COMPARE_DATASETS),
         system=expand(result("calibration", "{dataset}.parquet"), dataset=COMPARE_DATASETS),
+        agc=expand(result("agc", "{dataset}.parquet"), dataset=COMPARE_DATASETS),
+        targets=campaign_file("targets.csv"),
         table3=result("compare", "table3.csv"),
         fields=campaign_file("fields.csv"),
         datasets=campaign_file("datasets.csv"),
@@ -36,5 +38,5 @@ rule diagnose:
     threads: 2
     shell:
         "waveforest diagnose --selected {input.selected} --features-real {input.real} "
-        "--calibration {input.calibration} --system {input.system} --campaign {params.campaign} "
+        "--calibration {input.calibration} --system {input.system} --agc {input.agc} --campaign {params.campaign} "
         "--out {params.out} --threads {threads} --config {params.config} > {log} 2>&1"

@@ -23,13 +23,17 @@ _EXISTING_DIR = click.Path(exists=True, file_okay=False, path_type=Path)
               help="Calibration JSONs (results/calibration/{dataset}.json).")
 @click.option("--system", "system", cls=MultiValueOption, type=_FILE,
               help="S(t) Parquet files (results/calibration/{dataset}.parquet); default: beside each JSON.")
+@click.option("--agc", "agc", cls=MultiValueOption, type=_FILE,
+              help="AGC-normalised pulse tables (results/agc/{dataset}.parquet): their calibration-target "
+                   "pulses recalibrate S(t) under each value of the candidates nonlinearity and trigger_loss; "
+                   "without them those candidates act on top of the calibrated S(t).")
 @click.option("--campaign", "campaign", type=_EXISTING_DIR, required=True,
-              help="Campaign folder (its datasets.csv; fields.csv if present).")
+              help="Campaign folder (its datasets.csv and targets.csv; fields.csv if present).")
 @click.option("--out", "out", type=_DIR, required=True,
               help="Output folder: model.yaml, candidates.csv, gap_before_after.csv, gap.png, "
                    "signatures.csv, diagnose.md.")
 @stage_options
-def diagnose(selected, features_real, calibration, system, campaign, out, cfg):
+def diagnose(selected, features_real, calibration, system, agc, campaign, out, cfg):
     """Find where simulation and measurement disagree, name the missing effect, show the gap shrink.
 
     Beyond the paper: each effect of the catalogue (src/waveforest/effects.py) is fitted on
@@ -40,7 +44,8 @@ def diagnose(selected, features_real, calibration, system, campaign, out, cfg):
     fields = campaign / "fields.csv"
     res = run(list(selected), list(features_real), list(calibration), out, cfg,
               datasets_path=campaign / "datasets.csv", system_paths=list(system or ()),
-              fields_path=fields if fields.exists() else None)
+              fields_path=fields if fields.exists() else None, agc_paths=list(agc or ()),
+              targets_path=campaign / "targets.csv")
     named = ", ".join(f"{k} = {v:.3g}" for k, v in res.effects.items()) or "nothing named"
     click.echo(f"diagnose: verdict {res.verdict} ({named}); gap {res.gap_before:.3g} -> {res.gap_after:.3g}; "
                f"{res.n_pulses} pulses, {res.n_samples} samples, {res.n_simulations} simulations, "

@@ -310,6 +310,23 @@ def write_outputs(out_dir, result: SearchResult, gap: pd.DataFrame, cand: pd.Dat
     return paths
 
 
+def _calibration_pulses(agc_paths, targets_path, datasets_path, selected: dict, settings: SearchSettings,
+                        cfg: dict) -> dict:
+    """Dataset -> calibration-target pulses, read only when a calibration-shaping candidate is tried."""
+    from ..sensor.agc import read_agc_metadata
+    from ..sensor.calibration import CALIBRATION_EFFECTS, read_calibration_pulses
+    from ..sensor.targets import read_datasets, read_targets
+
+    if not agc_paths or not set(CALIBRATION_EFFECTS) & set(settings.candidates):
+        return {}
+    if targets_path is None:
+        raise WaveforestError("diagnose: AGC-normalised pulse tables given without targets.csv")
+    targets, datasets = read_targets(targets_path), read_datasets(datasets_path)
+    paths = _by_dataset(agc_paths, lambda p: (str(read_agc_metadata(p).get("dataset", p.stem)), p),
+                        "AGC-normalised pulse table")
+    return {ds: read_calibration_pulses(paths[ds], targets, datasets, cfg) for ds in selected if ds in paths}
+
+
 def _by_dataset(paths, reader, what: str) -> dict:
     out = {}
     for p in paths:
@@ -321,7 +338,8 @@ def _by_dataset(paths, reader, what: str) -> dict:
 
 
 def run(selected_paths, real_paths, calibration_paths, out_dir, cfg: dict, *, datasets_path,
-        system_paths=None, fields_path=None, simulator=None, progress: bool = True) -> DiagnoseOutputs:
+        system_paths=None, fields_path=None, agc_paths=None, targets_path=None, simulator=None,
+        progress: bool = True) -> DiagnoseOutputs:
     """The ``diagnose`` stage (module docstring).
 
     Parameters
@@ -343,6 +361,11 @@ def run(selected_paths, real_paths, calibration_paths, out_dir, cfg: dict, *, da
         calibration JSON, same stem.
     fields_path : path, optional
         fields.csv, for select tables that lack sample_x, sample_y, height_m.
+    agc_paths, targets_path : paths, path, optional
+        AGC-normalised pulse tables (``results/agc/{dataset}.parquet``) and targets.csv: the
+        calibration-target pulses, so that the candidates ``nonlinearity`` and ``trigger_loss``
+        are tried with S(t) recalibrated under each value (:mod:`.simulator`); without them,
+        on top of the calibrated S(t).
     simulator : callable, optional
         ``simulate(pulses, effects, seed)`` instead of the study chain (tests).
     progress : bool
@@ -395,7 +418,9 @@ def run(selected_paths, real_paths, calibration_paths, out_dir, cfg: dict, *, da
                 raise WaveforestError(f"{systems[ds]}: no such S(t) file (calibration of {ds})")
             calibrations[ds] = (load_calibration(systems[ds], metas[ds]), load_json(metas[ds]))
         simulator = StudySimulator(selected, read_datasets(datasets_path), calibrations, cfg, base_effects=base,
-                                   range_correction=use_rc)
+                                   range_correction=use_rc,
+                                   calibration_pulses=_calibration_pulses(agc_paths, targets_path, datasets_path,
+                                                                          selected, settings, cfg))
     bar = None
     if progress:
         from tqdm import tqdm

@@ -15,6 +15,12 @@ pulses). It adds three things:
   trigger_loss, xy_error) therefore trace the very same instances as the model without them
   (no rebuild, and no extra vegetation noise between values); only the four vegetation
   effects build new ones;
+* **S(t) of the model tried**: the calibrate stage inverts the sensor effects of the base
+  model (``simulate.effects``) on the calibration targets (:func:`waveforest.sensor.calibration.linearise`);
+  a candidate ``nonlinearity`` or ``trigger_loss`` shapes those targets too, so with the
+  targets' pulses (``calibration_pulses``) each value tried gets S(t) recalibrated under it
+  (cached per value). Without them the candidate is applied on top of the calibrated S(t),
+  which already holds part of the effect;
 * **the selection rules mirrored on the simulation**: real pulses were selected with their
   first echo at least ``select.tree_min_echo_h_m`` above the ground for trees; a simulated
   twin whose first echo is lower is dropped in the same way, and the waveform features of
@@ -26,6 +32,7 @@ from __future__ import annotations
 
 import copy
 from collections import OrderedDict
+from dataclasses import replace
 
 import numpy as np
 import pandas as pd
@@ -139,11 +146,14 @@ class StudySimulator:
     range_correction : bool
         Apply the calibration's CFD range correction to the features' own CFD echoes (as
         the ``features`` stage does with ``sensor.cfd.range_correction``).
+    calibration_pulses : dict, optional
+        Dataset -> :class:`waveforest.sensor.calibration.CalibrationPulses`, to recalibrate
+        S(t) under the sensor effects tried (module docstring).
     """
 
     def __init__(self, selected: dict, datasets: pd.DataFrame, calibrations: dict, cfg: dict, *,
                  n_rays: int | None = None, threads: int | None = None, base_effects: dict | None = None,
-                 range_correction: bool = True):
+                 range_correction: bool = True, calibration_pulses: dict | None = None):
         from ..analysis.campaign_tables import dataset_row
 
         self.selected = selected
@@ -159,6 +169,26 @@ class StudySimulator:
         self.threads = threads
         self.scenes = _SceneCache()
         self.pulses_simulated = 0
+        self.calibration_pulses = dict(calibration_pulses or {})
+        self._recalibrated: dict = {}
+
+    def calibration(self, dataset: str, effects: dict) -> tuple:
+        """(Calibration, calibration JSON) of ``dataset`` for a model with ``effects`` (all of them).
+
+        The calibrate stage's own when the calibration-shaping sensor effects are those of the
+        base model or no target pulses were given; else S(t) recalibrated under them.
+        """
+        from ..sensor.calibration import CALIBRATION_EFFECTS
+
+        key = tuple(float(effects.get(k, 0.0)) for k in CALIBRATION_EFFECTS)
+        if key == tuple(float(self.base_effects.get(k, 0.0)) for k in CALIBRATION_EFFECTS) or \
+                dataset not in self.calibration_pulses:
+            return self.calibrations[dataset]
+        if (dataset, key) not in self._recalibrated:
+            cal, meta = self.calibrations[dataset]
+            system = self.calibration_pulses[dataset].system_waveform(dict(zip(CALIBRATION_EFFECTS, key)))
+            self._recalibrated[(dataset, key)] = (replace(cal, system=system), {**meta, "fwhm_ns": system.fwhm_ns})
+        return self._recalibrated[(dataset, key)]
 
     def _cfg(self, seed: int) -> dict:
         c = copy.deepcopy(self.cfg)
@@ -190,13 +220,13 @@ class StudySimulator:
             table = self.selected[ds]
             ids = pa.array(rows["pulse_id"].to_numpy(np.int64))
             sub = table.filter(pc.is_in(table.column("pulse_id"), value_set=ids))
-            sim, _ = simulate_pulses(sub, self.info[ds], self.calibrations[ds][0], cfg,
-                                     effects={**self.base_effects, **effects},
+            model = {**self.base_effects, **effects}
+            cal, meta = self.calibration(ds, model)
+            sim, _ = simulate_pulses(sub, self.info[ds], cal, cfg, effects=model,
                                      progress=False, threads=self.threads, scene_builder=self.scenes)
             self.pulses_simulated += sub.num_rows
             if sim.num_rows == 0:
                 continue
-            meta = self.calibrations[ds][1]
             rc = {ds: range_correction_of(meta)} if self.range_correction else None
             feats = feature_table(sim, {ds: meta}, params, cfd=cfd, range_corrections=rc)
             parts.append(feats)

@@ -15,6 +15,15 @@ normalisation is undone for the tails: the AGC does not change the noise).
 Pulses whose recorded peak reaches the digitiser maximum (clipped) or whose incidence zenith
 exceeds ``calibrate.max_zenith_deg`` are left out.
 
+Sensor effects of the simulation model (``simulate.effects``, src/waveforest/effects.py) that
+also act on the targets' waveforms are inverted before Eq. 8, so that S(t) is the system
+waveform of the model that will use it (:func:`linearise`): the detector saturation
+``nonlinearity`` L (the signal model's ``V - c-bar = L tanh(v / L)``) and ``trigger_loss`` f
+(the earliest fraction f of a target's near-delta sigma is lost, which scales its whole echo
+by 1 - f). Without them a model with the effect would apply it twice: once through S(t), once
+in the signal model. ``diagnose`` recalibrates in the same way for each value it tries
+(:class:`CalibrationPulses`).
+
 The same stage checks the CFD against the DR ranges (METHOD.md f) on all target pulses
 (calibration and AGC targets): the fraction with |dR| < 0.10 m and the bias, before and
 after the amplitude-dependent range correction it fits (:func:`fit_range_correction`).
@@ -25,6 +34,7 @@ from __future__ import annotations
 import json
 import math
 import warnings
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -82,8 +92,33 @@ def resample_aligned(samples, lengths, sampling_ns, echo_time_ns, t_grid) -> np.
     return np.where(ok & (lens[:, None] >= 2), out, np.nan)
 
 
+LINEARISE_MAX = 3.0
+""":func:`linearise` caps the linearised signal at this many saturation levels L: beyond it
+``tanh`` lies within 0.5 % of 1, and a recorded value there no longer tells the input."""
+
+
+def linearise(v, nonlinearity: float = 0.0, trigger_loss: float = 0.0) -> np.ndarray:
+    """Planar-target signal above the noise mean with the sensor effects inverted, DN.
+
+    ``L artanh(v / L) / (1 - f)``: the inverse of the signal model's saturation
+    ``v -> L tanh(v / L)`` (L = ``nonlinearity``, 0 = linear; capped at ``LINEARISE_MAX`` L)
+    and of the loss of the earliest fraction f = ``trigger_loss`` of a near-delta sigma (the
+    echo scaled by 1 - f). NaN stays NaN.
+    """
+    v = np.asarray(v, dtype=np.float64)
+    if not nonlinearity >= 0:
+        raise ValueError(f"nonlinearity (saturation level, DN) must be >= 0, got {nonlinearity}")
+    if not 0.0 <= trigger_loss < 1.0:
+        raise ValueError(f"trigger_loss must be in [0, 1), got {trigger_loss}")
+    if nonlinearity > 0:
+        lim = math.tanh(LINEARISE_MAX)
+        v = nonlinearity * np.arctanh(np.clip(v / nonlinearity, -lim, lim))
+    return v / (1.0 - trigger_loss) if trigger_loss else v
+
+
 def calibrate_system_waveform(samples, lengths, sampling_ns, echo_time_ns, range_m, sigma, noise_mean, *,
-                              window_ns=(-20.0, 60.0)) -> SystemWaveform:
+                              window_ns=(-20.0, 60.0), nonlinearity: float = 0.0,
+                              trigger_loss: float = 0.0) -> SystemWaveform:
     """S(t) by Eq. 8 averaged over planar-target pulses (METHOD.md e).
 
     Parameters
@@ -92,6 +127,8 @@ def calibrate_system_waveform(samples, lengths, sampling_ns, echo_time_ns, range
     sampling_ns : float or (n,), ns.  echo_time_ns : (n,) first DR echo, ns from the first sample.
     range_m : (n,) m.  sigma : (n,) target cross-section per unit power (HDRF/pi [x cos]).
     noise_mean : float, c-bar, DN.  window_ns : (lo, hi) time span of S(t) around the echo.
+    nonlinearity, trigger_loss : sensor effects of the model, inverted on each pulse before
+        Eq. 8 (:func:`linearise`); 0 = off.
 
     Returns
     -------
@@ -113,7 +150,7 @@ def calibrate_system_waveform(samples, lengths, sampling_ns, echo_time_ns, range
     for start in range(0, n, _CHUNK):  # blocks of pulses, each vectorised
         sl = slice(start, start + _CHUNK)
         v = resample_aligned(x[sl], lens[sl], dt[sl], te[sl], t)
-        si = (v - noise_mean) * (r[sl] ** 2 / sg[sl])[:, None]
+        si = linearise(v - noise_mean, nonlinearity, trigger_loss) * (r[sl] ** 2 / sg[sl])[:, None]
         ok = np.isfinite(si)
         si = np.where(ok, si, 0.0)
         s1 += si.sum(axis=0)
@@ -125,7 +162,10 @@ def calibrate_system_waveform(samples, lengths, sampling_ns, echo_time_ns, range
     mean = s1 / cnt
     var = np.where(cnt > 1, (s2 - cnt * mean**2) / np.maximum(cnt - 1, 1), np.nan)
     sd = np.sqrt(np.maximum(var, 0.0))
-    return SystemWaveform(t, mean, sd, {"n_pulses": int(n)})
+    meta = {"n_pulses": int(n)}
+    if nonlinearity or trigger_loss:
+        meta.update(nonlinearity=float(nonlinearity), trigger_loss=float(trigger_loss))
+    return SystemWaveform(t, mean, sd, meta)
 
 
 def cfd_check(dr_minus_cfd_m) -> dict:
@@ -180,23 +220,37 @@ def _gather_target_pulses(path: Path, targets, datasets, batch_rows: int, progre
     return name, year, data
 
 
-def run(pulses_path, targets, datasets, out_path, json_path, cfg: dict, *, plot_path=None, agc_fit: dict | None = None,
-        batch_rows: int = 65536, progress: bool = True) -> dict:
-    """The ``calibrate`` stage: S(t), noise and the CFD/range-correction check of one dataset.
+@dataclass(frozen=True)
+class CalibrationPulses:
+    """The calibration-target pulses of one dataset that Eq. 8 averages, with their noise.
 
-    Parameters
-    ----------
-    pulses_path : AGC-normalised pulse table of one dataset (the ``agc`` output; a table
-        without AGC normalisation is accepted, gain 1).
-    targets, datasets : DataFrames of targets.csv and datasets.csv.
-    out_path : S(t) Parquet (t_ns, s, s_sd).  json_path : calibration JSON.  plot_path : PNG.
-    cfg : loaded config (sections calibrate, sensor).  agc_fit : the ``agc`` JSON (a, b), optional.
-
-    Returns
-    -------
-    dict, the calibration JSON content.
+    Arrays over the n pulses as :func:`calibrate_system_waveform` takes them (``samples``
+    AGC-normalised, DN); ``noise`` from their tails; ``window_ns`` of S(t).
     """
-    pulses_path = Path(pulses_path)
+
+    dataset: str
+    year: int
+    samples: np.ndarray
+    lengths: np.ndarray
+    sampling_ns: np.ndarray
+    t_echo: np.ndarray
+    range_m: np.ndarray
+    sigma: np.ndarray
+    target: np.ndarray
+    noise: object
+    window_ns: tuple
+
+    def system_waveform(self, effects: dict | None = None) -> SystemWaveform:
+        """S(t) of the model with ``effects`` (only ``nonlinearity`` and ``trigger_loss`` act here)."""
+        e = effects or {}
+        return calibrate_system_waveform(self.samples, self.lengths, self.sampling_ns, self.t_echo, self.range_m,
+                                         self.sigma, self.noise.mean, window_ns=self.window_ns,
+                                         nonlinearity=float(e.get("nonlinearity", 0.0)),
+                                         trigger_loss=float(e.get("trigger_loss", 0.0)))
+
+
+def _target_pulses(pulses_path: Path, targets, datasets, cfg: dict, agc_fit, batch_rows: int, progress: bool):
+    """The target pulses of a pulse table: (CalibrationPulses, all target pulses, AGC metadata, usable mask)."""
     if not pulses_path.exists():
         raise WaveforestError(f"{pulses_path}: no such file")
     sec = cfg.get("calibrate", {})
@@ -206,8 +260,6 @@ def run(pulses_path, targets, datasets, out_path, json_path, cfg: dict, *, plot_
     cos_inc = bool(sec.get("cos_incidence", False))
     min_pulses = int(sec.get("min_pulses", 20))
     dmax = float(cfg.get("sensor", {}).get("digitizer_max", 255))
-    cfd = CFDParams.from_config(cfg)
-    max_echoes = int(cfg.get("sensor", {}).get("cfd", {}).get("max_echoes", 4))
 
     meta = read_agc_metadata(pulses_path)
     if agc_fit:
@@ -239,8 +291,55 @@ def run(pulses_path, targets, datasets, out_path, json_path, cfg: dict, *, plot_
     else:
         noise = noise_stats(d["samples"][idx], d["lengths"][idx], tail)
     sigma = hdrf[idx] / math.pi * (np.abs(cos_t[idx]) if cos_inc else 1.0)
-    system = calibrate_system_waveform(d["samples"][idx], d["lengths"][idx], d["sampling_ns"][idx], d["t_echo"][idx],
-                                       d["range_m"][idx], sigma, noise.mean, window_ns=window)
+    pulses = CalibrationPulses(str(name), int(year), d["samples"][idx], d["lengths"][idx], d["sampling_ns"][idx],
+                               d["t_echo"][idx], d["range_m"][idx], sigma, d["target"][idx], noise, window)
+    return pulses, d, meta, usable & zen_ok & not_sat
+
+
+def read_calibration_pulses(pulses_path, targets, datasets, cfg: dict, *, agc_fit: dict | None = None,
+                            batch_rows: int = 65536, progress: bool = False) -> CalibrationPulses:
+    """The calibration-target pulses of an AGC-normalised pulse table (the ``agc`` output).
+
+    Parameters as :func:`run`. Raises WaveforestError if too few pulses hit calibration targets.
+    """
+    return _target_pulses(Path(pulses_path), targets, datasets, cfg, agc_fit, batch_rows, progress)[0]
+
+
+def model_sensor_effects(cfg: dict) -> dict:
+    """The effects of ``simulate.effects`` that the calibration inverts (nonlinearity, trigger_loss)."""
+    effects = (cfg.get("simulate") or {}).get("effects") or {}
+    return {k: float(effects[k]) for k in CALIBRATION_EFFECTS if effects.get(k)}
+
+
+CALIBRATION_EFFECTS = ("nonlinearity", "trigger_loss")
+"""Sensor effects that also shape the calibration targets' waveforms (:func:`linearise`)."""
+
+
+def run(pulses_path, targets, datasets, out_path, json_path, cfg: dict, *, plot_path=None, agc_fit: dict | None = None,
+        batch_rows: int = 65536, progress: bool = True) -> dict:
+    """The ``calibrate`` stage: S(t), noise and the CFD/range-correction check of one dataset.
+
+    Parameters
+    ----------
+    pulses_path : AGC-normalised pulse table of one dataset (the ``agc`` output; a table
+        without AGC normalisation is accepted, gain 1).
+    targets, datasets : DataFrames of targets.csv and datasets.csv.
+    out_path : S(t) Parquet (t_ns, s, s_sd).  json_path : calibration JSON.  plot_path : PNG.
+    cfg : loaded config (sections calibrate, sensor; the sensor effects of simulate.effects).
+    agc_fit : the ``agc`` JSON (a, b), optional.
+
+    Returns
+    -------
+    dict, the calibration JSON content.
+    """
+    sec = cfg.get("calibrate", {})
+    cfd = CFDParams.from_config(cfg)
+    max_echoes = int(cfg.get("sensor", {}).get("cfd", {}).get("max_echoes", 4))
+    pulses, d, meta, checkable = _target_pulses(Path(pulses_path), targets, datasets, cfg, agc_fit, batch_rows,
+                                                progress)
+    name, year, noise, window = pulses.dataset, pulses.year, pulses.noise, pulses.window_ns
+    effects = model_sensor_effects(cfg)
+    system = pulses.system_waveform(effects)  # S(t) of the model that will use it
     fwhm = system.fwhm_ns
     if not np.isfinite(fwhm):
         raise WaveforestError(f"dataset {name}: the calibrated S(t) has no defined FWHM; widen calibrate.window_ns")
@@ -248,7 +347,7 @@ def run(pulses_path, targets, datasets, out_path, json_path, cfg: dict, *, plot_
 
     # CFD vs DR ranges on all usable target pulses (METHOD.md f)
     rc_cfd = cfd.resolved(fwhm)
-    chk = np.flatnonzero(usable & zen_ok & not_sat)
+    chk = np.flatnonzero(checkable)
     ech = detect_echoes(d["samples"][chk], d["lengths"][chk], d["sampling_ns"][chk], noise.mean, noise.sd, rc_cfd,
                         max_echoes)
     dr = (d["t_echo"][chk] - ech.times_ns[:, 0]) * RANGE_PER_NS
@@ -259,18 +358,18 @@ def run(pulses_path, targets, datasets, out_path, json_path, cfg: dict, *, plot_
     dr_after = dr - corr(amp)
     per_target = {}
     tid = targets["target_id"].to_numpy()
-    for k, c in zip(*np.unique(d["target"][idx], return_counts=True)):
+    for k, c in zip(*np.unique(pulses.target, return_counts=True)):
         per_target[str(tid[k])] = int(c)
 
     result = {
         "dataset": name, "year": int(year),
         "noise_mean": noise.mean, "noise_sd": noise.sd, "noise_sd_analog": noise.sd_analog,
-        "noise_lag1": noise.lag1, "noise_tail": tail, "noise_quantised": noise.quantised,
+        "noise_lag1": noise.lag1, "noise_tail": int(sec.get("noise_tail", 50)), "noise_quantised": noise.quantised,
         "fwhm_ns": fwhm, "energy": system.energy, "peak": system.peak, "t_peak_ns": system.t_peak_ns,
-        "n_pulses": int(idx.size), "n_per_target": per_target,
+        "n_pulses": int(pulses.target.size), "n_per_target": per_target, "model_effects": effects,
         "a": meta.get("a"), "b": meta.get("b"), "n0": meta.get("n0"),
-        "sampling_ns": float(np.median(d["sampling_ns"][idx])),
-        "window_ns": list(window), "cos_incidence": cos_inc,
+        "sampling_ns": float(np.median(pulses.sampling_ns)),
+        "window_ns": list(window), "cos_incidence": bool(sec.get("cos_incidence", False)),
         "cfd": {"fraction": rc_cfd.fraction, "delay_ns": rc_cfd.delay_ns, "arming_sd": rc_cfd.arming_sd,
                 "dead_time_ns": rc_cfd.dead_time_ns},
         "range_correction": corr.to_dict(),
@@ -286,7 +385,7 @@ def run(pulses_path, targets, datasets, out_path, json_path, cfg: dict, *, plot_
     if plot_path is not None:
         from .plots import plot_system_waveform
 
-        plot_system_waveform(system, plot_path, title=f"S(t) of {name} ({idx.size} pulses)")
+        plot_system_waveform(system, plot_path, title=f"S(t) of {name} ({pulses.target.size} pulses)")
     return result
 
 
