@@ -1,8 +1,10 @@
 """The ``diagnose`` stage: gap, search, the extended model, "after" and the outputs.
 
 Inputs (per diagnosed dataset): the ``select`` table (pulse geometry and sample columns),
-the real feature table (``features``), the calibration (S(t) Parquet and JSON), and the
-campaign's datasets.csv. Steps:
+the real feature table (``features``), the calibration (S(t) Parquet and JSON), the
+AGC-normalised pulse table (``agc``: its calibration-target pulses, to recalibrate S(t) under
+the candidates ``nonlinearity`` and ``trigger_loss``), and the campaign's datasets.csv and
+targets.csv. Steps:
 
 1. **Pulses.** The comparison pulses of the modelled species (``select``'s
    ``comparison_set``, ``simulate.species``) of ``diagnose.datasets`` (default: the
