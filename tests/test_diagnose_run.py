@@ -124,7 +124,8 @@ def test_study_simulator_recalibrates_under_a_calibration_shaping_candidate():
     te = np.array([v[0] for v in table.column("echo_time_ns").to_pylist()])
     hdrf = np.array([0.14, 0.21, 0.41, 0.21, 0.34, 0.45])[tr["target_index"]]
     pulses = CalibrationPulses("2010_12_1", 2010, x, lens, np.ones(len(x)), te, table.column("range_m").to_numpy(),
-                               hdrf / math.pi, tr["target_index"], noise_stats(x, lens, 50), (-15.0, 45.0))
+                               hdrf / math.pi, tr["target_index"], np.ones(len(x)), noise_stats(x, lens, 50),
+                               (-15.0, 45.0))
     stage = (Calibration(pulses.system_waveform(), 10.0, 1.5), {"fwhm_ns": 6.5, "noise_mean": 10.0})
     sim = StudySimulator({}, pd.DataFrame(), {}, config.validate({}), calibration_pulses={"2010_12_1": pulses})
     sim.calibrations = {"2010_12_1": stage, "2012_10_1": stage}

@@ -98,6 +98,31 @@ def test_eq8_under_sensor_effects_recovers_the_linear_s(effects):
                         "trigger_loss": effects.get("trigger_loss", 0.0)}
 
 
+def test_calibration_pulses_saturate_after_the_agc_gain():
+    """Targets saturated after an AGC gain g (0.8-1.2 here) and then normalised: S(t) under the
+    model's L, taken at L / g per pulse, is the linear S within 2 %; one level for all is not."""
+    truth = true_system()
+    table, tr = target_pulses(np.random.default_rng(14), truth, per_target=60, b_true=0.01, agc_spread=20,
+                              n_other=0, sensor_effects={"nonlinearity": 150.0})
+    x, lens = list_to_padded(table.column("samples"))
+    keep = x.max(axis=1) < 254.5
+    g = tr["gain"][keep]
+    x = (x[keep] - 10.0) / g[:, None] + 10.0  # AGC normalisation with the true law (Eq. 1)
+    te = np.array([v[0] for v in table.column("echo_time_ns").to_pylist()])[keep]
+    hdrf = np.array([0.14, 0.21, 0.41, 0.21, 0.34, 0.45])[tr["target_index"][keep]]
+    args = ("2010_12_1", 2010, x, lens[keep], np.ones(len(x)), te, table.column("range_m").to_numpy()[keep],
+            hdrf / math.pi, tr["target_index"][keep])
+    noise = noise_stats(x, lens[keep], 50)
+    assert g.min() < 0.85 and g.max() > 1.15
+    per_pulse = cal_mod.CalibrationPulses(*args, g, noise, (-15.0, 45.0)).system_waveform({"nonlinearity": 150.0})
+    one_level = cal_mod.CalibrationPulses(*args, np.ones(len(x)), noise, (-15.0, 45.0)).system_waveform(
+        {"nonlinearity": 150.0})
+    err = rel_l2(per_pulse.aligned_to_cfd(), truth)
+    assert err < S_L2_TOL, err
+    assert rel_l2(one_level.aligned_to_cfd(), truth) > 2 * err
+    assert per_pulse.meta["nonlinearity"] == 150.0
+
+
 def test_calibration_stage_after_agc(tmp_path):
     """Planar targets through Eq. 7 with a known AGC law -> agc -> calibrate: S(t) within 2 %,
     the noise, and the CFD check of METHOD.md f on the target pulses."""

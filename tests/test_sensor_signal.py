@@ -15,6 +15,7 @@ from waveforest.sensor import (
     gaussian_system_waveform,
     render,
 )
+from waveforest.sensor.signal import saturation_levels
 
 H = 0.05
 FWHM = 7.2
@@ -135,6 +136,20 @@ def test_nonlinearity_effect_is_tanh():
         assert sat.max() < v
     r = render(sig, 8000.0, 1200.0, sw, 10.0, 0.0, 1.0, np.random.default_rng(0), nonlinearity=50.0, quantise=False)
     assert r.samples.max() - 10.0 < 50.0
+
+
+def test_saturation_after_the_gain_is_a_level_per_pulse():
+    """Saturating the gained signal (the campaign's sensor) and saturating the normalised one at
+    L / g (the simulation of an AGC-normalised twin) differ by the factor g alone."""
+    sw = gaussian_system_waveform(FWHM, S_PEAK)
+    sig = planar(3, rho=0.4)
+    g = np.array([0.8, 1.0, 1.25])
+    gained, _ = analog_waveforms(sig, 8000.0, 1200.0, sw, gain=g, nonlinearity=150.0)
+    normalised, _ = analog_waveforms(sig, 8000.0, 1200.0, sw, nonlinearity=saturation_levels(150.0, g))
+    assert np.allclose(gained / g[:, None], normalised, rtol=1e-12, atol=1e-9)
+    assert np.array_equal(saturation_levels(150.0, [np.nan, 0.0, 2.0]), [150.0, 150.0, 75.0])
+    with pytest.raises(ValueError, match="nonlinearity"):
+        analog_waveforms(sig, 8000.0, 1200.0, sw, nonlinearity=np.array([150.0, -1.0, 150.0]))
 
 
 def test_trigger_loss_effect():

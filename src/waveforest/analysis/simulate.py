@@ -12,6 +12,11 @@ pulse's ``pulse_id``, geometry and sample columns, the simulated waveform, its C
 
 R of Eq. 7 is the pulse's range to the sample's ground plane along the beam (METHOD c).
 
+The simulated waveform is in the AGC-normalised DN of the real one. A ``nonlinearity`` effect
+(detector saturation at L DN) acts after the receiver's AGC gain, so the twin of a real pulse
+with gain g (``agc_gain``, Eq. 1) saturates at L / g
+(:func:`waveforest.sensor.signal.saturation_levels`).
+
 Vegetation instances: the paper builds a new instance for every pulse. Here each field
 sample has a pool of ``simulate.instances_per_sample`` instances (seeded by the master seed,
 the sample and the instance number, so every dataset of a year sees the same plants) and
@@ -36,7 +41,7 @@ coordinates (the truth differs from the record, as with a georeferencing error).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -46,6 +51,8 @@ import pyarrow as pa
 from ..constants import RANGE_PER_NS
 from ..errors import WaveforestError
 from ..io.tables import PULSE_SCHEMA, padded_to_list
+from ..sensor.agc import GAIN_COLUMN
+from ..sensor.signal import saturation_levels
 from .campaign_tables import dataset_row, divergence_mrad, read_datasets
 from .pulse_sim import (
     MCRTSetup,
@@ -202,7 +209,8 @@ def simulate_pulses(selected: pa.Table, dataset_info: pd.Series, calibration: Ca
                            "comparison_set") if c not in selected.column_names]
     if missing:
         raise WaveforestError(f"select table of {dataset} lacks column(s) {', '.join(missing)}")
-    scal = selected.select([c for c in _SCALARS + list(_CARRY) if c in selected.column_names]).to_pandas()
+    scal = selected.select([c for c in _SCALARS + [GAIN_COLUMN] + list(_CARRY)
+                            if c in selected.column_names]).to_pandas()
     carry = pa.schema([selected.schema.field(c) for c in _CARRY if c in selected.column_names])
     p = plan(scal, cfg, dataset)
     p = p[(p["chunk_hash"] % chunks) == chunk]
@@ -241,7 +249,12 @@ def simulate_pulses(selected: pa.Table, dataset_info: pd.Series, calibration: Ca
                 offset[:, :2] = rng.normal(0.0, xy_error, (len(rows), 2))
             origin = sensor - d[["sample_x", "sample_y", "ground_z"]].to_numpy(float) + offset
             beams = Beams.from_divergence(origin, direction, div, r)
-            sim, _ = trace_and_render(prepare(scene), beams, r, mcrt, setup, trace_seed, rng, threads)
+            pulse_setup = setup
+            if setup.render_effects.get("nonlinearity"):
+                gain = d[GAIN_COLUMN].to_numpy(float) if GAIN_COLUMN in d else np.ones(len(d))
+                level = saturation_levels(setup.render_effects["nonlinearity"], gain)
+                pulse_setup = replace(setup, render_effects={**setup.render_effects, "nonlinearity": level})
+            sim, _ = trace_and_render(prepare(scene), beams, r, mcrt, pulse_setup, trace_seed, rng, threads)
             keep = sim.n_echoes > 0
             n_no_echo += int((~keep).sum())
             if keep.any():

@@ -49,6 +49,7 @@ from .agc import GAIN_COLUMN, _single_dataset, read_agc_metadata, write_json
 from .cfd import RangeCorrection, detect_echoes, fit_range_correction
 from .noise import noise_stats
 from .params import CFD_CHECK_M, FINE_NS, RANGE_GATE_M, CFDParams
+from .signal import saturation_levels
 from .system_waveform import SystemWaveform
 from .targets import dataset_year, pulse_targets, read_datasets, read_targets  # noqa: F401 (re-exported)
 
@@ -97,27 +98,30 @@ LINEARISE_MAX = 3.0
 ``tanh`` lies within 0.5 % of 1, and a recorded value there no longer tells the input."""
 
 
-def linearise(v, nonlinearity: float = 0.0, trigger_loss: float = 0.0) -> np.ndarray:
+def linearise(v, nonlinearity=0.0, trigger_loss: float = 0.0) -> np.ndarray:
     """Planar-target signal above the noise mean with the sensor effects inverted, DN.
 
     ``L artanh(v / L) / (1 - f)``: the inverse of the signal model's saturation
-    ``v -> L tanh(v / L)`` (L = ``nonlinearity``, 0 = linear; capped at ``LINEARISE_MAX`` L)
-    and of the loss of the earliest fraction f = ``trigger_loss`` of a near-delta sigma (the
-    echo scaled by 1 - f). NaN stays NaN.
+    ``v -> L tanh(v / L)`` (L = ``nonlinearity``, a scalar or an array broadcast against ``v``,
+    e.g. one level per pulse as a column; 0 = linear; capped at ``LINEARISE_MAX`` L) and of the
+    loss of the earliest fraction f = ``trigger_loss`` of a near-delta sigma (the echo scaled
+    by 1 - f). NaN stays NaN.
     """
     v = np.asarray(v, dtype=np.float64)
-    if not nonlinearity >= 0:
+    level = np.asarray(nonlinearity, dtype=np.float64)
+    if not np.all(level >= 0):
         raise ValueError(f"nonlinearity (saturation level, DN) must be >= 0, got {nonlinearity}")
     if not 0.0 <= trigger_loss < 1.0:
         raise ValueError(f"trigger_loss must be in [0, 1), got {trigger_loss}")
-    if nonlinearity > 0:
+    if np.any(level > 0):
         lim = math.tanh(LINEARISE_MAX)
-        v = nonlinearity * np.arctanh(np.clip(v / nonlinearity, -lim, lim))
+        safe = np.where(level > 0, level, 1.0)
+        v = np.where(level > 0, safe * np.arctanh(np.clip(v / safe, -lim, lim)), v)
     return v / (1.0 - trigger_loss) if trigger_loss else v
 
 
 def calibrate_system_waveform(samples, lengths, sampling_ns, echo_time_ns, range_m, sigma, noise_mean, *,
-                              window_ns=(-20.0, 60.0), nonlinearity: float = 0.0,
+                              window_ns=(-20.0, 60.0), nonlinearity=0.0,
                               trigger_loss: float = 0.0) -> SystemWaveform:
     """S(t) by Eq. 8 averaged over planar-target pulses (METHOD.md e).
 
@@ -128,7 +132,7 @@ def calibrate_system_waveform(samples, lengths, sampling_ns, echo_time_ns, range
     range_m : (n,) m.  sigma : (n,) target cross-section per unit power (HDRF/pi [x cos]).
     noise_mean : float, c-bar, DN.  window_ns : (lo, hi) time span of S(t) around the echo.
     nonlinearity, trigger_loss : sensor effects of the model, inverted on each pulse before
-        Eq. 8 (:func:`linearise`); 0 = off.
+        Eq. 8 (:func:`linearise`); 0 = off; nonlinearity a scalar or (n,) levels per pulse, DN.
 
     Returns
     -------
@@ -143,6 +147,7 @@ def calibrate_system_waveform(samples, lengths, sampling_ns, echo_time_ns, range
     te = _checks.per_pulse(echo_time_ns, n, "echo_time_ns")
     r = _checks.per_pulse(range_m, n, "range_m", positive=True)
     sg = _checks.per_pulse(sigma, n, "sigma", positive=True)
+    level = _checks.per_pulse(nonlinearity, n, "nonlinearity", nonnegative=True)
     t = calibration_grid(window_ns)
     s1 = np.zeros(t.size)
     s2 = np.zeros(t.size)
@@ -150,7 +155,7 @@ def calibrate_system_waveform(samples, lengths, sampling_ns, echo_time_ns, range
     for start in range(0, n, _CHUNK):  # blocks of pulses, each vectorised
         sl = slice(start, start + _CHUNK)
         v = resample_aligned(x[sl], lens[sl], dt[sl], te[sl], t)
-        si = linearise(v - noise_mean, nonlinearity, trigger_loss) * (r[sl] ** 2 / sg[sl])[:, None]
+        si = linearise(v - noise_mean, level[sl, None], trigger_loss) * (r[sl] ** 2 / sg[sl])[:, None]
         ok = np.isfinite(si)
         si = np.where(ok, si, 0.0)
         s1 += si.sum(axis=0)
@@ -163,8 +168,8 @@ def calibrate_system_waveform(samples, lengths, sampling_ns, echo_time_ns, range
     var = np.where(cnt > 1, (s2 - cnt * mean**2) / np.maximum(cnt - 1, 1), np.nan)
     sd = np.sqrt(np.maximum(var, 0.0))
     meta = {"n_pulses": int(n)}
-    if nonlinearity or trigger_loss:
-        meta.update(nonlinearity=float(nonlinearity), trigger_loss=float(trigger_loss))
+    if level.any() or trigger_loss:
+        meta.update(nonlinearity=float(np.median(level)), trigger_loss=float(trigger_loss))
     return SystemWaveform(t, mean, sd, meta)
 
 
@@ -225,7 +230,8 @@ class CalibrationPulses:
     """The calibration-target pulses of one dataset that Eq. 8 averages, with their noise.
 
     Arrays over the n pulses as :func:`calibrate_system_waveform` takes them (``samples``
-    AGC-normalised, DN); ``noise`` from their tails; ``window_ns`` of S(t).
+    AGC-normalised, DN), and ``gain``, the AGC gain of Eq. 1 of each; ``noise`` from their
+    tails; ``window_ns`` of S(t).
     """
 
     dataset: str
@@ -237,16 +243,22 @@ class CalibrationPulses:
     range_m: np.ndarray
     sigma: np.ndarray
     target: np.ndarray
+    gain: np.ndarray
     noise: object
     window_ns: tuple
 
     def system_waveform(self, effects: dict | None = None) -> SystemWaveform:
-        """S(t) of the model with ``effects`` (only ``nonlinearity`` and ``trigger_loss`` act here)."""
+        """S(t) of the model with ``effects`` (only ``nonlinearity`` and ``trigger_loss`` act
+        here; the saturation level L acts after the AGC gain g: L / g in normalised DN)."""
         e = effects or {}
-        return calibrate_system_waveform(self.samples, self.lengths, self.sampling_ns, self.t_echo, self.range_m,
-                                         self.sigma, self.noise.mean, window_ns=self.window_ns,
-                                         nonlinearity=float(e.get("nonlinearity", 0.0)),
-                                         trigger_loss=float(e.get("trigger_loss", 0.0)))
+        level = float(e.get("nonlinearity", 0.0))
+        system = calibrate_system_waveform(self.samples, self.lengths, self.sampling_ns, self.t_echo, self.range_m,
+                                           self.sigma, self.noise.mean, window_ns=self.window_ns,
+                                           nonlinearity=saturation_levels(level, self.gain) if level else 0.0,
+                                           trigger_loss=float(e.get("trigger_loss", 0.0)))
+        if level:
+            system.meta["nonlinearity"] = level
+        return system
 
 
 def _target_pulses(pulses_path: Path, targets, datasets, cfg: dict, agc_fit, batch_rows: int, progress: bool):
@@ -292,7 +304,8 @@ def _target_pulses(pulses_path: Path, targets, datasets, cfg: dict, agc_fit, bat
         noise = noise_stats(d["samples"][idx], d["lengths"][idx], tail)
     sigma = hdrf[idx] / math.pi * (np.abs(cos_t[idx]) if cos_inc else 1.0)
     pulses = CalibrationPulses(str(name), int(year), d["samples"][idx], d["lengths"][idx], d["sampling_ns"][idx],
-                               d["t_echo"][idx], d["range_m"][idx], sigma, d["target"][idx], noise, window)
+                               d["t_echo"][idx], d["range_m"][idx], sigma, d["target"][idx], d["gain"][idx], noise,
+                               window)
     return pulses, d, meta, usable & zen_ok & not_sat
 
 

@@ -8,7 +8,10 @@ For each pulse, on the 0.05-ns grid:
    ``V[k] = gain * sum_j S[k - j] sigma[j] / R^2``. sigma bin j (left edge ``t0 + j h``) is
    placed at its centre ``t0 + (j + 1/2) h``, so V[k] lies at ``t0 + t_S[0] + (k + 1/2) h``.
    ``gain`` is an optional per-pulse factor of the signal (the virtual campaign's AGC).
-3. ``nonlinearity`` effect: detector saturation ``v -> L tanh(v / L)`` (L in DN; 0 = linear).
+3. ``nonlinearity`` effect: detector saturation ``v -> L tanh(v / L)`` (L in DN; 0 = linear),
+   one level for all pulses or one per pulse: the saturation acts on the signal after the
+   receiver's AGC gain, so a pulse rendered in AGC-normalised DN (no ``gain``) with AGC gain g
+   saturates at L / g.
 4. Trigger: the first CFD echo (:mod:`waveforest.sensor.cfd`) of this noise-free fine-grid
    signal, armed at ``arming_sd * noise_sd`` -- the DR circuit seeing the analog signal. The
    virtual campaign may trigger differently (its own CFD with range walk).
@@ -115,10 +118,11 @@ def _saturate(v, level):
 
 @njit(parallel=True, cache=True)
 def _analog_kernel(sigma, w, S, level, out):
-    """Fine-grid signal of every pulse: (n, n_bins + n_S - 1) into ``out`` (pre-zeroed)."""
+    """Fine-grid signal of every pulse: (n, n_bins + n_S - 1) into ``out`` (pre-zeroed);
+    ``level``: (n,) saturation level per pulse (0 = linear)."""
     for i in prange(sigma.shape[0]):
         _convolve_into(sigma[i], w[i], S, out[i])
-        _saturate(out[i], level)
+        _saturate(out[i], level[i])
 
 
 @njit(parallel=True, cache=True)
@@ -171,16 +175,25 @@ def _check_sigma(sigma, t0_ns, range_m, gain):
     return np.ascontiguousarray(sig), t0, r, g
 
 
-def _check_effects(noise_autocorr, nonlinearity, trigger_loss):
+def saturation_levels(level: float, gain) -> np.ndarray:
+    """Saturation levels L / g of pulses with AGC gains g in AGC-normalised DN (g not finite
+    or <= 0, e.g. no AGC: 1)."""
+    g = np.asarray(gain, dtype=np.float64)
+    return float(level) / np.where(np.isfinite(g) & (g > 0), g, 1.0)
+
+
+def _check_effects(noise_autocorr, nonlinearity, trigger_loss, n: int) -> np.ndarray:
+    """Check the sensor effects; return the (n,) saturation levels."""
     if not (-1.0 < noise_autocorr < 1.0):
         raise ValueError(f"noise_autocorr must lie in (-1, 1), got {noise_autocorr}")
-    if not nonlinearity >= 0:
+    if not np.all(np.asarray(nonlinearity, dtype=np.float64) >= 0):
         raise ValueError(f"nonlinearity (saturation level, DN) must be >= 0, got {nonlinearity}")
     if not (0.0 <= trigger_loss < 1.0):
         raise ValueError(f"trigger_loss must lie in [0, 1), got {trigger_loss}")
+    return _checks.per_pulse(nonlinearity, n, "nonlinearity", nonnegative=True)
 
 
-def analog_waveforms(sigma, t0_ns, range_m, system: SystemWaveform, *, gain=None, nonlinearity: float = 0.0,
+def analog_waveforms(sigma, t0_ns, range_m, system: SystemWaveform, *, gain=None, nonlinearity=0.0,
                      trigger_loss: float = 0.0, bin_ns: float = FINE_NS) -> tuple[np.ndarray, np.ndarray]:
     """Noise-free fine-grid signals of Eq. 7 (steps 1-3 of the module docstring).
 
@@ -188,7 +201,8 @@ def analog_waveforms(sigma, t0_ns, range_m, system: SystemWaveform, *, gain=None
     ----------
     sigma : (n, n_bins) float, per-bin sums on the 0.05-ns grid; bin 0's left edge at ``t0_ns``.
     t0_ns : (n,) float, two-way time from emission, ns.  range_m : float or (n,), R of Eq. 7, m.
-    system : SystemWaveform.  gain : (n,) float or None.  nonlinearity, trigger_loss : effects.
+    system : SystemWaveform.  gain : (n,) float or None.  nonlinearity : float or (n,), DN.
+    trigger_loss : effect.
 
     Returns
     -------
@@ -198,21 +212,21 @@ def analog_waveforms(sigma, t0_ns, range_m, system: SystemWaveform, *, gain=None
     """
     if abs(bin_ns - FINE_NS) > 1e-9:
         raise ValueError(f"sigma must be binned at {FINE_NS} ns (the S(t) grid), got bin_ns = {bin_ns}")
-    _check_effects(0.0, nonlinearity, trigger_loss)
     sig, t0, r, g = _check_sigma(sigma, t0_ns, range_m, gain)
+    level = _check_effects(0.0, nonlinearity, trigger_loss, sig.shape[0])
     if trigger_loss:
         sig = apply_trigger_loss(sig, trigger_loss)
     n, nb = sig.shape
     out = np.zeros((n, nb + system.s.size - 1))
     if n:
-        _analog_kernel(sig, g / r**2, system.s, float(nonlinearity), out)
+        _analog_kernel(sig, g / r**2, system.s, level, out)
     return out, t0 + system.t_ns[0] + 0.5 * FINE_NS
 
 
 def render(sigma, t0_ns, range_m, system: SystemWaveform, noise_mean, noise_sd, sampling_ns: float,
            rng: np.random.Generator, *, record_ns: float = RECORD_NS, pre_trigger_m=(3.3, 4.8),
            digitizer_max: int = 255, cfd: CFDParams | None = None, noise_autocorr: float = 0.0,
-           nonlinearity: float = 0.0, trigger_loss: float = 0.0, gain=None, quantise: bool = True,
+           nonlinearity=0.0, trigger_loss: float = 0.0, gain=None, quantise: bool = True,
            bin_ns: float = FINE_NS) -> Rendered:
     """Recorded waveforms of pulses with cross-section profiles sigma(t) (Eq. 7, METHOD.md c).
 
@@ -229,7 +243,8 @@ def render(sigma, t0_ns, range_m, system: SystemWaveform, noise_mean, noise_sd, 
     record_ns : float, record length, ns; n_s = round(record_ns / sampling_ns).
     pre_trigger_m : (lo, hi) m, the record starts uniform(lo, hi) m of range before the trigger.
     digitizer_max : int, largest DN.  cfd : CFDParams of the trigger (unresolved parts from S's FWHM).
-    noise_autocorr, nonlinearity, trigger_loss : effects (src/waveforest/effects.py); off = 0.
+    noise_autocorr, nonlinearity, trigger_loss : effects (src/waveforest/effects.py); off = 0;
+        nonlinearity a scalar or one saturation level per pulse (step 3), DN.
     gain : (n,) float or None, per-pulse factor on the signal (not the noise).
     quantise : bool, round and clip (False: the analog record, for tests).
 
@@ -243,9 +258,9 @@ def render(sigma, t0_ns, range_m, system: SystemWaveform, noise_mean, noise_sd, 
         raise ValueError("system must be a SystemWaveform")
     if not isinstance(rng, np.random.Generator):
         raise ValueError("rng must be a numpy.random.Generator (seeded)")
-    _check_effects(noise_autocorr, nonlinearity, trigger_loss)
     sig, t0, r, g = _check_sigma(sigma, t0_ns, range_m, gain)
     n = sig.shape[0]
+    level = _check_effects(noise_autocorr, nonlinearity, trigger_loss, n)
     if not (np.isfinite(sampling_ns) and sampling_ns > 0):
         raise ValueError(f"sampling_ns must be > 0, got {sampling_ns}")
     if not (np.isfinite(record_ns) and record_ns >= sampling_ns):
@@ -276,7 +291,7 @@ def render(sigma, t0_ns, range_m, system: SystemWaveform, noise_mean, noise_sd, 
         sl = slice(lo, min(lo + _CHUNK, n))
         m = sl.stop - sl.start
         v = np.zeros((m, nv))
-        _analog_kernel(sig[sl], (g / r**2)[sl], system.s, float(nonlinearity), v)
+        _analog_kernel(sig[sl], (g / r**2)[sl], system.s, level[sl], v)
         t_rel = np.full((m, 1), np.nan)
         a_rel = np.full((m, 1), np.nan)
         _cfd_kernel(v, np.full(m, nv, dtype=np.int64), np.full(m, FINE_NS), np.zeros(m), thr[sl],
