@@ -3,7 +3,7 @@
 A thin adapter over :func:`waveforest.analysis.simulate.simulate_pulses` (vegetation ->
 MCRT -> sensor -> CFD; effects routed to the module that applies each) and
 :func:`waveforest.sensor.feature_table` (first-echo features, the same code as for the real
-pulses). It adds three things:
+pulses). It adds four things:
 
 * **the seed**: ``simulate_pulses`` derives every random number from the config's master
   seed, the dataset, the sample and the vegetation instance; the adapter passes the search's

@@ -18,7 +18,8 @@ exceeds ``calibrate.max_zenith_deg`` are left out.
 Sensor effects of the simulation model (``simulate.effects``, src/waveforest/effects.py) that
 also act on the targets' waveforms are inverted before Eq. 8, so that S(t) is the system
 waveform of the model that will use it (:func:`linearise`): the detector saturation
-``nonlinearity`` L (the signal model's ``V - c-bar = L tanh(v / L)``) and ``trigger_loss`` f
+``nonlinearity`` L (the signal model's ``V - c-bar = L tanh(v / L)``; each pulse at L / g, g its
+AGC gain, as the saturation acts after the gain) and ``trigger_loss`` f
 (the earliest fraction f of a target's near-delta sigma is lost, which scales its whole echo
 by 1 - f). Without them a model with the effect would apply it twice: once through S(t), once
 in the signal model. ``diagnose`` recalibrates in the same way for each value it tries
