@@ -178,17 +178,17 @@ class StudySimulator:
         The calibrate stage's own when the calibration-shaping sensor effects are those of the
         base model or no target pulses were given; else S(t) recalibrated under them.
         """
-        from ..sensor.calibration import CALIBRATION_EFFECTS
+        from ..sensor.calibration import calibration_effects
 
-        key = tuple(float(effects.get(k, 0.0)) for k in CALIBRATION_EFFECTS)
-        if key == tuple(float(self.base_effects.get(k, 0.0)) for k in CALIBRATION_EFFECTS) or \
-                dataset not in self.calibration_pulses:
+        wanted = calibration_effects(effects)
+        if wanted == calibration_effects(self.base_effects) or dataset not in self.calibration_pulses:
             return self.calibrations[dataset]
-        if (dataset, key) not in self._recalibrated:
+        key = (dataset, tuple(sorted(wanted.items())))
+        if key not in self._recalibrated:
             cal, meta = self.calibrations[dataset]
-            system = self.calibration_pulses[dataset].system_waveform(dict(zip(CALIBRATION_EFFECTS, key)))
-            self._recalibrated[(dataset, key)] = (replace(cal, system=system), {**meta, "fwhm_ns": system.fwhm_ns})
-        return self._recalibrated[(dataset, key)]
+            system = self.calibration_pulses[dataset].system_waveform(wanted)
+            self._recalibrated[key] = (replace(cal, system=system), {**meta, "fwhm_ns": system.fwhm_ns})
+        return self._recalibrated[key]
 
     def _cfg(self, seed: int) -> dict:
         c = copy.deepcopy(self.cfg)

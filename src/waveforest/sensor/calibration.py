@@ -319,14 +319,19 @@ def read_calibration_pulses(pulses_path, targets, datasets, cfg: dict, *, agc_fi
     return _target_pulses(Path(pulses_path), targets, datasets, cfg, agc_fit, batch_rows, progress)[0]
 
 
-def model_sensor_effects(cfg: dict) -> dict:
-    """The effects of ``simulate.effects`` that the calibration inverts (nonlinearity, trigger_loss)."""
-    effects = (cfg.get("simulate") or {}).get("effects") or {}
+CALIBRATION_EFFECTS = ("nonlinearity", "trigger_loss")
+"""Sensor effects that also shape the calibration targets' waveforms (:func:`linearise`)."""
+
+
+def calibration_effects(effects: dict | None) -> dict:
+    """The switched-on effects of ``effects`` that the calibration inverts (nonlinearity, trigger_loss)."""
+    effects = effects or {}
     return {k: float(effects[k]) for k in CALIBRATION_EFFECTS if effects.get(k)}
 
 
-CALIBRATION_EFFECTS = ("nonlinearity", "trigger_loss")
-"""Sensor effects that also shape the calibration targets' waveforms (:func:`linearise`)."""
+def model_sensor_effects(cfg: dict) -> dict:
+    """:func:`calibration_effects` of the simulation model (``simulate.effects``)."""
+    return calibration_effects((cfg.get("simulate") or {}).get("effects"))
 
 
 def run(pulses_path, targets, datasets, out_path, json_path, cfg: dict, *, plot_path=None, agc_fit: dict | None = None,
