@@ -22,7 +22,7 @@ Figures (``name: value unit``), canopy first, then ``<species>_...`` for each sp
   (split over Python threads), the path the tracer used before :mod:`waveforest.mcrt.rtc`;
 * ``ms_per_pulse_amortised_<k>``: tracing plus the scene build shared by k pulses (a pool of
   instances; target <= 100 ms), on the BVH quality :func:`trace` builds for k pulses
-  (HIGH from ``HIGH_QUALITY_MIN_PULSES`` on, else MEDIUM);
+  (:func:`waveforest.mcrt.tracer.bvh_quality`: HIGH from 12 pulses of 30,000 rays on);
 * ``rays_per_pulse_intersect``, ``rays_per_pulse_occluded``: Embree work per pulse;
 * ``trace_cpu_ms_per_pulse_serial``, ``embree_floor_cpu_ms_per_pulse_serial``,
   ``trace_over_floor_cpu``: the same on one thread, as CPU time of that thread, which other
@@ -44,7 +44,7 @@ import numpy as np
 
 from waveforest.mcrt import Beams, EmbreeIntersector, prepare, trace
 from waveforest.mcrt.synthetic import random_leaves
-from waveforest.mcrt.tracer import HIGH_QUALITY_MIN_PULSES
+from waveforest.mcrt.tracer import bvh_quality
 
 LAI, HEIGHT_M, SIZE_M, LEAF_AREA_M2 = 3.35, 1.2, 6.0, 6.7e-4
 RANGE_M, DIVERGENCE_MRAD, MAX_ZENITH_DEG = 1200.0, 0.15, 15.0
@@ -161,7 +161,7 @@ def bench_scene(prefix: str, scene, beams, args, full: bool) -> None:
     out("rays_per_pulse_occluded", n_occl / n, "rays", ".0f")
     out("trace_ms_per_pulse_medium", times["medium"] / n * 1e3, "ms")
     for k in (1, 10, 30):  # the BVH quality that trace() picks for k pulses of one scene
-        high = k >= HIGH_QUALITY_MIN_PULSES
+        high = bvh_quality(k, kw["n_rays"]) == "high"
         amortised = (default + build / k) if high else (times["medium"] / n + build_medium / k)
         out(f"ms_per_pulse_amortised_{k}", amortised * 1e3, "ms")
 

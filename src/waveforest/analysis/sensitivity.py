@@ -77,7 +77,7 @@ def simulate_setting(build_kwargs: dict, geom: Geometry, setup: SensorSetup, mcr
     ``scene_builder``: ``f(species, height, seed, **kwargs) -> Scene`` (default
     :func:`waveforest.vegetation.build_scene`).
     """
-    from ..mcrt import Beams, prepare
+    from ..mcrt import Beams
 
     if scene_builder is None:
         from ..vegetation import build_scene as scene_builder
@@ -93,7 +93,7 @@ def simulate_setting(build_kwargs: dict, geom: Geometry, setup: SensorSetup, mcr
                                       geom.range_m[idx])
         ss = seed_sequence(seed, "sensitivity", "pulses", int(k))
         trace_seed = int(ss.generate_state(1, dtype=np.uint64)[0] >> np.uint64(1))
-        sim, _ = trace_and_render(prepare(scene), beams, geom.range_m[idx], mcrt, setup, trace_seed,
+        sim, _ = trace_and_render(scene, beams, geom.range_m[idx], mcrt, setup, trace_seed,
                                   np.random.default_rng(ss), threads)
         f = sim.features(setup)
         first = sim.echo_times_ns[:, 0]

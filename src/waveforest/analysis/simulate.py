@@ -196,7 +196,7 @@ def simulate_pulses(selected: pa.Table, dataset_info: pd.Series, calibration: Ca
     (pa.Table, SimulateSummary)
         The simulated pulse table (PULSE_SCHEMA + select columns + sim_instance, sigma_total).
     """
-    from ..mcrt import Beams, prepare
+    from ..mcrt import Beams
 
     if scene_builder is None:
         from ..vegetation import build_scene as scene_builder
@@ -254,7 +254,7 @@ def simulate_pulses(selected: pa.Table, dataset_info: pd.Series, calibration: Ca
                 gain = d[GAIN_COLUMN].to_numpy(float) if GAIN_COLUMN in d else np.ones(len(d))
                 level = saturation_levels(setup.render_effects["nonlinearity"], gain)
                 pulse_setup = replace(setup, render_effects={**setup.render_effects, "nonlinearity": level})
-            sim, _ = trace_and_render(prepare(scene), beams, r, mcrt, pulse_setup, trace_seed, rng, threads)
+            sim, _ = trace_and_render(scene, beams, r, mcrt, pulse_setup, trace_seed, rng, threads)
             keep = sim.n_echoes > 0
             n_no_echo += int((~keep).sum())
             if keep.any():

@@ -63,10 +63,17 @@ START_MARGIN_M = 0.05
 CHUNK_RAYS = 240_000
 """Rays per wavefront (pulses are traced in chunks of ``CHUNK_RAYS // n_rays``)."""
 
-HIGH_QUALITY_MIN_PULSES = 12
-"""``trace`` of an unprepared scene builds a HIGH-quality BVH from this many pulses on, else a
-MEDIUM one (on the vegetation scenes HIGH costs ~0.3 s more CPU to build and saves ~20 ms
-of CPU per pulse, ``benchmarks/mcrt.py``)."""
+HIGH_QUALITY_MIN_RAYS = 12 * 30_000
+"""``trace`` of an unprepared scene builds a HIGH-quality BVH from this many emitted rays on
+(12 pulses of 30,000 rays), else a MEDIUM one: on the vegetation scenes HIGH costs ~0.3 s
+more CPU to build and saves ~20 ms of CPU per 30,000-ray pulse (``benchmarks/mcrt.py``), a
+saving proportional to the rays traced."""
+
+
+def bvh_quality(n_pulses: int, n_rays: int) -> str:
+    """The BVH build quality that pays for ``n_pulses`` pulses of ``n_rays`` rays each:
+    "high" from :data:`HIGH_QUALITY_MIN_RAYS` rays on, else "medium"."""
+    return "high" if int(n_pulses) * int(n_rays) >= HIGH_QUALITY_MIN_RAYS else "medium"
 
 CHUNKS_PER_WORKER = 4
 """In ``parallel="pulses"``, pulses are split into about this many chunks per thread."""
@@ -274,7 +281,7 @@ def trace(scene: Scene | PreparedScene, beams: Beams, n_rays: int = 30000, max_o
     ----------
     scene : Scene or PreparedScene
         Triangles with rho, tau, kind; prepare it once (:func:`prepare`) to trace it often
-        (a Scene is prepared here, its BVH quality chosen by :data:`HIGH_QUALITY_MIN_PULSES`).
+        (a Scene is prepared here, its BVH quality chosen by :func:`bvh_quality`).
     beams : Beams
         The pulses: sensor positions, unit directions, 1/e footprints.
     n_rays : int
@@ -319,8 +326,8 @@ def trace(scene: Scene | PreparedScene, beams: Beams, n_rays: int = 30000, max_o
     _check(n_rays, max_order, bin_ns, viewed_diameter_m, window_ns, specular, hotspot)
     if isinstance(scene, PreparedScene):
         prepared = scene
-    else:  # a HIGH-quality BVH pays for its longer build only over enough pulses
-        prepared = prepare(scene, quality="high" if len(beams) >= HIGH_QUALITY_MIN_PULSES else "medium")
+    else:  # a HIGH-quality BVH pays for its longer build only over enough rays
+        prepared = prepare(scene, quality=bvh_quality(len(beams), n_rays))
     key = master_key(seed)
     n = len(beams)
     n_bins = int(math.ceil(window_ns / bin_ns - 1e-9))
