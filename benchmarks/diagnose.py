@@ -9,9 +9,10 @@ Usage::
 Prints ``name: value unit`` lines. With a results folder it times one simulation of all the
 diagnosed pulses under the base model (vegetation built), one under a vegetation effect
 (new plants) and one under a sensor effect (cached plants), and projects the wall time of
-one search round for that study and for the default study (config/config.yaml: 5
-comparison datasets x 3 species x diagnose.max_pulses pulses, 6 samples per species and
-year) from the per-pulse and per-scene costs.
+one search round (fits on diagnose.fit_pulses pulses per dataset x species, tests on all)
+for that study and for the default study (config/config.yaml: 5 comparison datasets x 3
+species, ~800 comparison pulses, 6 samples per species and year) from the per-pulse and
+per-scene costs.
 """
 
 from __future__ import annotations
@@ -50,7 +51,9 @@ def real_chain(results: Path, config_path: Path) -> None:
                load_json(results / "calibration" / f"{d}.json")) for d in ds}
     sim = StudySimulator(sel, read_datasets(results / "campaign" / "datasets.csv"), cal, cfg)
     keys = pulse_keys(sel, cfg)
+    cap = cfg["diagnose"]["fit_pulses"]
     n, n_samples = len(keys), keys["sample_id"].nunique()
+    n_fit = n if cap is None else len(pulse_keys(sel, cfg, int(cap)))
     sim(keys.head(5), {}, 0)  # compile
     timings = {}
     for label, eff in (("base", {}), ("vegetation_effect", {"clumping": 0.3}), ("sensor_effect", {"trigger_loss": 0.1})):
@@ -61,6 +64,7 @@ def real_chain(results: Path, config_path: Path) -> None:
         print(f"simulation_{label}: {timings[label]:.2f} s")
         print(f"simulation_{label}_scenes_built: {sim.scenes.built - built} count")
     print(f"diagnosed_pulses: {n} count")
+    print(f"fit_pulses: {n_fit} count")
     print(f"diagnosed_samples: {n_samples} count")
     print(f"n_rays: {sim.n_rays} rays")
     per_pulse = timings["sensor_effect"] / n
@@ -68,19 +72,20 @@ def real_chain(results: Path, config_path: Path) -> None:
     print(f"trace_render_per_pulse: {1000 * per_pulse:.2f} ms")
     print(f"scene_per_sample: {1000 * per_scene:.1f} ms")
     s = SearchSettings.from_config(cfg)
-    sims_per_candidate = len(s.folds) * (s.values - 1 + s.refine + 1) / 2  # full-study equivalents
+    fits_per_candidate = len(s.folds) * (s.values - 1 + s.refine) / 2  # full-study equivalents
+    tests_per_candidate = len(s.folds) / 2
     n_veg = sum(CATALOGUE[c].stage == "vegetation" for c in s.candidates)
     n_other = len(s.candidates) - n_veg
 
-    def round_s(pulses, samples):
-        other = per_pulse * pulses
-        veg = other + per_scene * samples
-        return sims_per_candidate * (n_other * other + n_veg * veg)
+    def round_s(pulses, fit_pulses, samples):
+        def one(p):
+            return n_other * per_pulse * p + n_veg * (per_pulse * p + per_scene * samples)
+        return fits_per_candidate * one(fit_pulses) + tests_per_candidate * one(pulses)
 
-    print(f"projected_round_this_study: {round_s(n, n_samples):.0f} s")
-    default_pulses = 5 * 3 * int(cfg["diagnose"]["max_pulses"] or 60)
-    default_samples = 3 * 2 * 6
-    print(f"projected_round_default_study: {round_s(default_pulses, default_samples):.0f} s")
+    print(f"projected_round_this_study: {round_s(n, n_fit, n_samples):.0f} s")
+    default_pulses, default_samples = 800, 3 * 2 * 6
+    default_fit = min(default_pulses, 5 * 3 * int(cap or 60))
+    print(f"projected_round_default_study: {round_s(default_pulses, default_fit, default_samples):.0f} s")
 
 
 if __name__ == "__main__":

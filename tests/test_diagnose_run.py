@@ -155,7 +155,7 @@ SLOW_CONFIG = {
 """A small study on which each hidden effect is diagnosed (7-24 minutes per campaign on the
 2-core machine, most of them in diagnose: 4.5 min when nothing clears the noise floor, 12-22
 min for a search): two datasets, the three modelled species only, 20 field samples of each
-(the diagnosis simulates at most ``diagnose.max_pulses`` pulses per dataset x species, so
+(the diagnosis fits candidates on at most ``diagnose.fit_pulses`` pulses per dataset x species, so
 more samples buy independent plants, the unit of its bootstrap, at nearly no cost). The
 campaign and the analysis trace the same orders: orders 6-10 carry ~8 % of a raspberry
 canopy's sigma, a gap of its own that no catalogue effect is meant to explain."""

@@ -149,3 +149,52 @@ def test_value_interval_coverage():
         e = {x.name: x for x in res.named}.get("hotspot")
         hits += bool(e is not None and e.ci_low <= 1.3 <= e.ci_high)
     assert hits >= 9  # binomial(12, 0.95): P(hits < 9) < 0.3 %
+
+
+def test_fits_on_a_subset_and_tests_on_all_pulses():
+    """With ``fit_keys`` the 1-D fits simulate only those pulses, the tests and the gap against
+    the noise floor all of them; with ``fit_keys`` = all pulses the search is unchanged."""
+    study = SyntheticStudy(samples_per_species=12, pulses_per_sample=8, seed=1)
+    real = study.real({"hotspot": 1.3})
+    fit = study.keys.groupby(["dataset", "sample_id"]).head(2)
+    sizes = []
+
+    def simulate(pulses, effects, seed):
+        sizes.append((len(pulses), bool(effects)))
+        return study.simulate(pulses, effects, seed)
+
+    settings = SearchSettings(rounds=1, n_boot=100)
+    res = search(study.keys, real, simulate, settings, seed=3, fit_keys=fit)
+    assert_named(res, {"hotspot": 1.3})
+    n_half = {len(study.keys[study.keys["sample_id"].isin(res.halves[h])]) for h in ("A", "B")}
+    n_fit = {len(fit[fit["sample_id"].isin(res.halves[h])]) for h in ("A", "B")}
+    assert {n for n, _ in sizes} == n_half | n_fit
+    reps = settings.replicates  # simulator calls per simulation
+    # all pulses: at most one test per candidate and half, plus the model named; the fits: a grid each
+    assert sum(n in n_half for n, on in sizes if on) <= reps * 2 * (len(CATALOGUE) + 1)
+    assert sum(n in n_fit for n, on in sizes if on) >= reps * 2 * len(CATALOGUE) * (settings.values - 1)
+    assert res.baseline.cells.groupby(["dataset", "species"])["n_real"].first().sum() == len(real)
+    same = search(study.keys, real, study.simulate, settings, seed=3, fit_keys=study.keys)
+    pd.testing.assert_frame_equal(same.candidates, search(study.keys, real, study.simulate, settings,
+                                                          seed=3).candidates)
+    with pytest.raises(WaveforestError, match="fit pulses"):
+        search(study.keys, real, study.simulate, settings, seed=3,
+               fit_keys=fit.assign(pulse_id=fit["pulse_id"] + 10_000))
+
+
+def test_at_bound_is_the_far_edge_of_the_range():
+    from waveforest.diagnose.search import at_bound
+
+    assert not at_bound("hotspot", 0.0) and at_bound("hotspot", 1.0)  # off = 1.0 is hotspot's lower bound
+    assert at_bound("leaf_albedo", 0.0) and at_bound("leaf_albedo", 1.0)  # off = 1.0 lies inside 0.6 ... 1.2
+    assert not at_bound("leaf_albedo", cat.to_u("leaf_albedo", 0.85))
+
+
+def test_a_fit_at_the_edge_of_its_range_is_not_named():
+    """A hidden hotspot of 3 (its range ends at 2): hotspot reduces the gap most, but only at
+    its bound, as do the look-alikes; nothing inside its range explains the gap."""
+    res = run_search({"hotspot": 3.0}, settings=SearchSettings(rounds=2, n_boot=200))
+    first = res.candidates[res.candidates["round"] == 1].sort_values("rank").iloc[0]
+    assert first["name"] == "hotspot" and bool(first["significant"]) and bool(first["at_bound"])
+    assert res.verdict == "unexplained" and res.named == []
+    assert "edge of the range" in res.reason

@@ -8,12 +8,13 @@ targets.csv. Steps:
 
 1. **Pulses.** The comparison pulses of the modelled species (``select``'s
    ``comparison_set``, ``simulate.species``) of ``diagnose.datasets`` (default: the
-   comparison datasets), at most ``diagnose.max_pulses`` per dataset x species (a seeded
-   hash order, so the subset does not depend on the order of the files). Their real
-   features, with ``compare``'s rules (:func:`.simulator.apply_rules`).
+   comparison datasets), and their real features, with ``compare``'s rules
+   (:func:`.simulator.apply_rules`). Candidates are fitted on at most
+   ``diagnose.fit_pulses`` of them per dataset x species (a seeded hash order, so the
+   subset does not depend on the order of the files) and tested on all.
 2. **Search** (:func:`.search.search`) with the study's simulation chain
    (:class:`.simulator.StudySimulator`) on top of ``simulate.effects`` (the base model).
-3. **After.** The pulses are simulated again with a fresh seed, independent of the search,
+3. **After.** All pulses are simulated again with a fresh seed, independent of the search,
    under the base model and under the extended model (base + named effects); the gap of
    each against the real data, per cell, per feature and in total, with a paired cluster
    bootstrap (:func:`.gap.before_after`). Nothing named: "after" is the base model.
@@ -79,7 +80,7 @@ def diagnosed_datasets(cfg: dict) -> list[str]:
     return [str(d) for d in chosen]
 
 
-def pulse_keys(selected: dict, cfg: dict) -> pd.DataFrame:
+def pulse_keys(selected: dict, cfg: dict, cap: int | None = None) -> pd.DataFrame:
     """The pulses the diagnosis simulates (step 1 of the module docstring).
 
     Parameters
@@ -88,6 +89,9 @@ def pulse_keys(selected: dict, cfg: dict) -> pd.DataFrame:
         Dataset -> ``select`` pa.Table.
     cfg : dict
         Loaded study config.
+    cap : int, optional
+        At most this many pulses per dataset x species (a seeded random subset: a smaller
+        cap gives a subset of a larger one); None = all.
 
     Returns
     -------
@@ -97,7 +101,6 @@ def pulse_keys(selected: dict, cfg: dict) -> pd.DataFrame:
     from ..analysis.pulse_sim import hash_ids, stable_hash
 
     species = [str(s) for s in cfg["simulate"]["species"]]
-    cap = cfg["diagnose"]["max_pulses"]
     parts = []
     for ds, table in sorted(selected.items()):
         missing = [c for c in KEY_COLUMNS if c not in table.column_names and c != "is_tree"]
@@ -179,8 +182,10 @@ def _simulate_all(simulate, keys: pd.DataFrame, effects: dict, seed: int, replic
 
 
 def diagnose(keys: pd.DataFrame, real: pd.DataFrame, simulate, settings: SearchSettings, seed: int, *,
-             progress=None) -> tuple[SearchResult, pd.DataFrame, pd.DataFrame, pd.DataFrame]:
-    """Search, re-simulate before/after with a fresh seed, signatures (no file output).
+             progress=None, fit_keys: pd.DataFrame | None = None
+             ) -> tuple[SearchResult, pd.DataFrame, pd.DataFrame, pd.DataFrame]:
+    """Search (fits on ``fit_keys``, default all), re-simulate ``keys`` before/after with a
+    fresh seed, signatures (no file output).
 
     Returns
     -------
@@ -193,7 +198,7 @@ def diagnose(keys: pd.DataFrame, real: pd.DataFrame, simulate, settings: SearchS
         :func:`signatures`.
     """
     s_search, s_after, s_boot = np.random.SeedSequence([int(seed), 8]).generate_state(3)
-    result = search(keys, real, simulate, settings, seed=int(s_search), progress=progress)
+    result = search(keys, real, simulate, settings, seed=int(s_search), progress=progress, fit_keys=fit_keys)
     before = _simulate_all(simulate, keys, {}, int(s_after), settings.replicates)
     after = before if not result.named else _simulate_all(simulate, keys, result.effects, int(s_after),
                                                           settings.replicates)
@@ -207,10 +212,10 @@ def diagnose(keys: pd.DataFrame, real: pd.DataFrame, simulate, settings: SearchS
     else:
         cand = pd.DataFrame(columns=["round", "rank", "name", "value", "ci_low", "ci_high", "gap_base", "gap_new",
                                      "gap_reduction", "reduction_ci_low", "reduction_ci_high",
-                                     "relative_reduction", "significant", "vs_best_ci_low", "vs_best_ci_high",
-                                     "named"])
+                                     "relative_reduction", "significant", "at_bound", "vs_best_ci_low",
+                                     "vs_best_ci_high", "named"])
     lead = ["round", "rank", "name", "value", "ci_low", "ci_high", "gap_reduction", "reduction_ci_low",
-            "reduction_ci_high", "relative_reduction", "significant", "named"]
+            "reduction_ci_high", "relative_reduction", "significant", "at_bound", "named"]
     cand = cand[lead + [c for c in cand.columns if c not in lead]]
     return result, gap, cand, signatures(result, settings)
 
@@ -224,7 +229,8 @@ def _fmt(x: float, nd: int = 3) -> str:
 
 
 def summary_markdown(result: SearchResult, gap: pd.DataFrame, cand: pd.DataFrame, *, datasets, n_pulses: int,
-                     n_samples: int, seconds: float, settings: SearchSettings, base_effects: dict) -> str:
+                     n_samples: int, seconds: float, settings: SearchSettings, base_effects: dict,
+                     n_fit_pulses: int | None = None) -> str:
     """A short human summary (``diagnose.md``)."""
     tot = gap[gap["level"] == "total"].iloc[0]
     lines = [
@@ -234,7 +240,8 @@ def summary_markdown(result: SearchResult, gap: pd.DataFrame, cand: pd.DataFrame
         "",
         f"Datasets {', '.join(datasets)}; {n_pulses} real pulses from {n_samples} field samples; "
         f"base model effects {base_effects or 'none (the paper model)'}; {result.n_simulations} half-sample "
-        f"simulations in the search ({settings.replicates} simulated pulse(s) per real pulse and value); "
+        f"simulations in the search ({settings.replicates} simulated pulse(s) per real pulse and value; "
+        f"candidates fitted on {n_fit_pulses if n_fit_pulses is not None else n_pulses} pulses, tested on all); "
         f"{seconds:.0f} s.",
         "",
         "The gap is the mean over dataset x species x feature cells of d^2 + ln(SD ratio)^2 (d = mean "
@@ -267,7 +274,7 @@ def summary_markdown(result: SearchResult, gap: pd.DataFrame, cand: pd.DataFrame
             lines.append(f"| {r['round']} | {r['rank']} | {r['name']} | {_fmt(r['value'])} | "
                          f"{_fmt(r['gap_reduction'])} [{_fmt(r['reduction_ci_low'])}, "
                          f"{_fmt(r['reduction_ci_high'])}] | {_fmt(r['relative_reduction'], 2)} | "
-                         f"{'yes' if r['significant'] else 'no'} |")
+                         f"{'yes' if r['significant'] else 'no'}{' (fit at a bound)' if r['at_bound'] else ''} |")
         lines.append("")
     lines += ["Files: model.yaml (the extended model), candidates.csv (all candidates, ranked), "
               "gap_before_after.csv (per cell, feature and total), gap.png, signatures.csv (how each "
@@ -277,7 +284,7 @@ def summary_markdown(result: SearchResult, gap: pd.DataFrame, cand: pd.DataFrame
 
 def write_outputs(out_dir, result: SearchResult, gap: pd.DataFrame, cand: pd.DataFrame, sigs: pd.DataFrame, *,
                   settings: SearchSettings, base_effects: dict, datasets, keys: pd.DataFrame,
-                  seconds: float) -> dict:
+                  seconds: float, n_fit_pulses: int | None = None) -> dict:
     """Write the six outputs of :data:`OUTPUT_NAMES` into ``out_dir`` (atomically); returns their paths."""
     out_dir = Path(out_dir)
     base = dict(base_effects)
@@ -291,6 +298,7 @@ def write_outputs(out_dir, result: SearchResult, gap: pd.DataFrame, cand: pd.Dat
              "noise_floor": float(tot["noise_floor"]), "reduction": float(tot["reduction"]),
              "reduction_ci": [float(tot["reduction_ci_low"]), float(tot["reduction_ci_high"])]},
         extra={"datasets": list(datasets), "n_pulses": int(len(keys)),
+               "n_fit_pulses": int(len(keys) if n_fit_pulses is None else n_fit_pulses),
                "n_samples": int(keys["sample_id"].nunique()), "search_simulations": int(result.n_simulations),
                "settings": {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(settings).items()
                             if k not in ("floors",)}},
@@ -306,7 +314,7 @@ def write_outputs(out_dir, result: SearchResult, gap: pd.DataFrame, cand: pd.Dat
     gap_figure(gap, cand, paths["figure"], title=f"verdict: {result.verdict}" + (f" ({named})" if named else ""))
     md = summary_markdown(result, gap, cand, datasets=list(datasets), n_pulses=len(keys),
                           n_samples=int(keys["sample_id"].nunique()), seconds=seconds, settings=settings,
-                          base_effects=base)
+                          base_effects=base, n_fit_pulses=n_fit_pulses)
     with atomic_path(paths["markdown"]) as tmp:
         tmp.write_text(md)
     return paths
@@ -409,6 +417,8 @@ def run(selected_paths, real_paths, calibration_paths, out_dir, cfg: dict, *, da
         if Path(p).stem in systems:
             systems[Path(p).stem] = Path(p)
     keys = pulse_keys(selected, cfg)
+    fit_cap = cfg["diagnose"]["fit_pulses"]
+    fit_keys = None if fit_cap is None else pulse_keys(selected, cfg, int(fit_cap))
     if keys.empty:
         raise WaveforestError("diagnose: no comparison pulse of the modelled species in the select tables")
     real = real_features(read_feature_tables(real_paths), keys, cfg)
@@ -428,13 +438,14 @@ def run(selected_paths, real_paths, calibration_paths, out_dir, cfg: dict, *, da
         from tqdm import tqdm
 
         bar = tqdm(desc="diagnose: simulations", unit="sim")
-    result, gap, cand, sigs = diagnose(keys, real, simulator, settings, int(cfg["seed"]),
+    result, gap, cand, sigs = diagnose(keys, real, simulator, settings, int(cfg["seed"]), fit_keys=fit_keys,
                                        progress=(lambda label: bar.update(1)) if bar is not None else None)
     if bar is not None:
         bar.close()
     seconds = time.perf_counter() - t_start
     paths = write_outputs(out_dir, result, gap, cand, sigs, settings=settings, base_effects=base,
-                          datasets=sorted(selected), keys=keys, seconds=seconds)
+                          datasets=sorted(selected), keys=keys, seconds=seconds,
+                          n_fit_pulses=None if fit_keys is None else len(fit_keys))
     tot = gap[gap["level"] == "total"].iloc[0]
     return DiagnoseOutputs(paths=paths, verdict=result.verdict, effects=result.effects,
                            gap_before=float(tot["gap_before"]), gap_after=float(tot["gap_after"]),
