@@ -732,12 +732,12 @@ def search(
             dlo, dhi = _gap.wald_interval(best.reduction - c.reduction, best.replicates - c.replicates,
                                           df, settings.alpha)
             rows.append({**c.row(), "rank": rank, "vs_best_ci_low": float(dlo), "vs_best_ci_high": float(dhi)})
-        pinned = [results[i].estimate.name for i in order[:list(order).index(inside[0]) if inside else None]]
-        edge = (f" ({', '.join(pinned)} reduce{'s' if len(pinned) == 1 else ''} it more, but only with a fit at "
-                "the edge of the range)") if pinned else ""
         if not inside:
             reason = f"round {rnd}: every candidate's fit lies at the edge of its range"
             break
+        pinned = [results[i].estimate.name for i in order[:list(order).index(inside[0])]]  # ranked above best
+        edge = (f" ({', '.join(pinned)} reduce{'s' if len(pinned) == 1 else ''} it more, but only with a fit at "
+                "the edge of the range)") if pinned else ""
         if not best.significant:
             reason = (f"round {rnd}: the best candidate ({best.estimate.name}) does not reduce the gap significantly"
                       + edge if baseline.significant else "the base model's gap is within the noise floor")
