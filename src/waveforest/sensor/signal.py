@@ -186,11 +186,9 @@ def _check_effects(noise_autocorr, nonlinearity, trigger_loss, n: int) -> np.nda
     """Check the sensor effects; return the (n,) saturation levels."""
     if not (-1.0 < noise_autocorr < 1.0):
         raise ValueError(f"noise_autocorr must lie in (-1, 1), got {noise_autocorr}")
-    if not np.all(np.asarray(nonlinearity, dtype=np.float64) >= 0):
-        raise ValueError(f"nonlinearity (saturation level, DN) must be >= 0, got {nonlinearity}")
     if not (0.0 <= trigger_loss < 1.0):
         raise ValueError(f"trigger_loss must lie in [0, 1), got {trigger_loss}")
-    return _checks.per_pulse(nonlinearity, n, "nonlinearity", nonnegative=True)
+    return _checks.per_pulse(nonlinearity, n, "nonlinearity (saturation level, DN)", nonnegative=True)
 
 
 def analog_waveforms(sigma, t0_ns, range_m, system: SystemWaveform, *, gain=None, nonlinearity=0.0,
