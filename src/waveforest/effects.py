@@ -33,7 +33,7 @@ which prints each effect's largest shift):
 
 - ``understory`` 2.5: the grass/herb/seedling layer of boreal clear-cuts and young stands
   (Calamagrostis, Deschampsia, Epilobium, tree seedlings) reaches a green LAI of about 1-3 by
-  mid-summer, so 2.5 is a dense but common layer. It moves birch E by +5.1 SE only: the
+  mid-summer, so 2.5 is a dense but common layer. It moves birch E by +4.5 SE only: the
   selection keeps a tree's pulses only with a first echo above 1 m and the birch waveform
   features only above 1.5 m (METHOD.md i1, i4), so the layer shows through multiple
   scattering alone.
@@ -48,7 +48,7 @@ which prints each effect's largest shift):
   j). In the campaign it is a drift of the GNSS/INS solution that moves the recorded
   trajectory and points together (campaign/flight.py), so that ``simulate`` traces each
   recorded beam where the real one was not; in the model, ``simulate`` shifts each traced
-  beam by N(0, xy_error) per axis. It moves birch E by -3.4 SE only: a juvenile birch crown
+  beam by N(0, xy_error) per axis. It moves birch E by -4.6 SE only: a juvenile birch crown
   looks alike within a quarter metre of where the pulse was meant to go.
 """
 

@@ -4,7 +4,7 @@ One tree stands at the origin of the 6 x 6 m plot (METHOD.md g). From the height
 
 1. **Stem** from (0, 0, 0) to (0, 0, h), diameter ``stem_base_diameter_per_h`` h at the base
    tapering to ``stem_top_diameter_m``.
-2. **Crown base** at ``crown_base_frac`` h (birch: ~0.3 h, the paper's empty gap below).
+2. **Crown base** at ``crown_base_frac`` h (birch: 0.2 h, the paper's empty gap below).
 3. **Branch whorls** every ``whorl_spacing_m`` from the top down to the crown base (random
    phase), ``branches_per_whorl`` branches each, successive whorls turned by
    ``whorl_divergence_deg``, plus ``branch_azimuth_jitter_deg`` of noise.
