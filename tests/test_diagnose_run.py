@@ -211,7 +211,6 @@ BELOW_DETECTION = {
 docstring), on birch, of which this campaign has few pulses: expected to fail (not strictly)."""
 
 
-
 # ``noise_autocorr`` and ``trigger_loss`` pass since the fits and tests use all comparison
 # pulses (``diagnose.fit_pulses`` null; seed 11):
 # noise_autocorr 0.666 [0.424, 0.793] around 0.7, gap 0.0355 -> 0.021, floor 0.0251 (not named
