@@ -20,6 +20,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from ..scene import Scene, SceneError
 
@@ -306,6 +307,32 @@ def _box(triangles: np.ndarray) -> np.ndarray:
     return np.stack([v.min(axis=1), v.max(axis=1)]).astype(np.float64)
 
 
+@njit(cache=True, nogil=True)
+def _triangle_records(tri, shift, rho, tau, kind):
+    """Internal-frame float32 triangles ``tri - shift`` and the (n, 8) records of
+    :attr:`PreparedScene.tri_data` (unit normal of the internal triangle by the right-hand
+    rule, zero if degenerate; rho, tau, kind; 0, 0)."""
+    n = tri.shape[0]
+    internal = np.empty((n, 3, 3), np.float32)
+    rec = np.zeros((n, 8))
+    for i in range(n):
+        for v in range(3):
+            for a in range(3):
+                internal[i, v, a] = np.float32(np.float64(tri[i, v, a]) - shift[a])
+        ax = np.float64(internal[i, 1, 0]) - np.float64(internal[i, 0, 0])
+        ay = np.float64(internal[i, 1, 1]) - np.float64(internal[i, 0, 1])
+        az = np.float64(internal[i, 1, 2]) - np.float64(internal[i, 0, 2])
+        bx = np.float64(internal[i, 2, 0]) - np.float64(internal[i, 0, 0])
+        by = np.float64(internal[i, 2, 1]) - np.float64(internal[i, 0, 1])
+        bz = np.float64(internal[i, 2, 2]) - np.float64(internal[i, 0, 2])
+        nx, ny, nz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+        length = np.sqrt(nx * nx + ny * ny + nz * nz)
+        if length > 0.0:
+            rec[i, 0], rec[i, 1], rec[i, 2] = nx / length, ny / length, nz / length
+        rec[i, 3], rec[i, 4], rec[i, 5] = rho[i], tau[i], kind[i]
+    return internal, rec
+
+
 def prepare(scene: Scene | PreparedScene, backend: str = "embree", quality: str | None = None) -> PreparedScene:
     """Build the intersector (Embree BVH or NumPy) and the per-triangle arrays of ``scene``.
 
@@ -338,15 +365,7 @@ def prepare(scene: Scene | PreparedScene, backend: str = "embree", quality: str 
         raise ValueError(f"quality: expected one of {', '.join(QUALITIES)}, got {quality!r}")
     bounds = _box(scene.triangles)
     shift = 0.5 * (bounds[0] + bounds[1])
-    internal = (scene.triangles.astype(np.float64) - shift).astype(np.float32)
-    t = internal.astype(np.float64)
-    nrm = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
-    length = np.sqrt(np.einsum("ij,ij->i", nrm, nrm))[:, None]
-    tri_data = np.zeros((len(scene), 8))
-    tri_data[:, :3] = np.where(length > 0, nrm / np.where(length > 0, length, 1.0), 0.0)
-    tri_data[:, 3] = scene.rho
-    tri_data[:, 4] = scene.tau
-    tri_data[:, 5] = scene.kind
+    internal, tri_data = _triangle_records(scene.triangles, shift, scene.rho, scene.tau, scene.kind)
     return PreparedScene(
         scene=scene,
         intersector=BACKENDS[backend](internal, quality),

@@ -48,7 +48,7 @@ from ..scene import Scene
 from .beams import Beams
 from .embree import PreparedScene, prepare
 from .kernels import MISS_KIND, BeamFrame, Scattered, accumulate, beam_keys, compact, emit_rays, scatter
-from .rtc import NumbaThreads
+from .rtc import MIN_PARALLEL_RAYS, NumbaThreads, take_rays
 
 DEFAULT_WINDOW_NS = 100.0
 """Default sigma window, ns of two-way time after t0 (15 m of one-way range: a 6 x 6 m scene
@@ -261,8 +261,9 @@ def _trace_chunk(prepared: PreparedScene, beams: Beams, index: np.ndarray, key, 
                       out=work)
         counted = np.flatnonzero(out.value > 0.0)
         if order > 1 and counted.size:
-            blocked = isect.occluded(out.shadow_origin[counted], out.shadow_direction[counted],
-                                     out.shadow_tmax[counted], threads=threads)
+            with NumbaThreads(1 if counted.size < MIN_PARALLEL_RAYS else threads):
+                so, sd = take_rays(out.shadow_origin, out.shadow_direction, counted)
+            blocked = isect.occluded(so, sd, out.shadow_tmax[counted], threads=threads)
             counted = counted[~blocked]
         accumulate(counted, rays.beam, out.value, out.bin, order, acc, dropped, totals, by_order)
         if order < max_order:
