@@ -9,6 +9,7 @@ import hashlib
 import laspy
 import numpy as np
 import pyarrow as pa
+import pyarrow.compute as pc
 import pytest
 from reference_io import reference_pulses
 
@@ -204,10 +205,25 @@ def test_multi_bucket_reading_equals_in_memory(tmp_path):
     spill.mkdir()
     reader = WaveformPulseReader(path, chunk_points=700, bucket_points=1000, batch_pulses=333, tmp_dir=spill)
     parts = list(reader)
-    assert reader.n_passes == 2 and reader.stats.n_buckets >= 5
+    # points in time order (as the writer puts them): buckets cut in memory, none spilled
+    assert reader.n_passes == 2 and reader.stats.n_buckets >= 5 and not reader.stats.spilled
     assert_tables_equal(pa.concat_tables(parts), whole)
-    assert list(spill.iterdir()) == []  # bucket files removed
+    assert list(spill.iterdir()) == []
     assert_round_trip(t, whole)
+
+
+def test_ordered_buckets_keep_the_returns_of_a_pulse_together(tmp_path):
+    """Bucket cuts fall between GPS times, even when a cut lands inside a pulse's returns
+    (every pulse has 3 returns, 250-point buckets of 101-point chunks)."""
+    t = synthetic_pulses(900, seed=12, max_echoes=3)
+    t = t.filter(pc.equal(t["n_echoes"], 3))
+    path = write_waveform_las(tmp_path / "o.las", t)
+    reader = WaveformPulseReader(path, chunk_points=101, bucket_points=250, batch_pulses=97)
+    back = pa.concat_tables(list(reader))
+    assert not reader.stats.spilled and reader.stats.n_buckets >= 2
+    assert reader.stats.n_split_pulses == 0
+    assert_tables_equal(back, read_waveform_las(path))
+    assert_round_trip(t, back)
 
 
 def test_writer_rejects_what_las_cannot_hold(tmp_path):

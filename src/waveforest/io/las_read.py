@@ -32,9 +32,11 @@ Memory
 Memory stays bounded whatever the file size. Points are read in chunks with laspy and
 reduced to a 76-byte record each. A file of at most ``bucket_points`` points is sorted
 in memory; a larger file is first scanned for its GPS times (keeping a sorted sample of
-one in ``QUANTILE_STRIDE``), split into GPS-time buckets of about ``bucket_points`` points
-each (all returns of a pulse fall into one bucket) that are spilled to temporary files
-beside the output, and then processed bucket by bucket. Waveform bytes are read through
+one in ``QUANTILE_STRIDE``), and then read in GPS-time buckets of about ``bucket_points``
+points each (all returns of a pulse fall into one bucket), processed bucket by bucket. If
+the points are in GPS-time order, as ALS files are written, a bucket is a run of consecutive
+points cut between two GPS times; otherwise the buckets are bounded by quantiles of the GPS
+times and spilled to temporary files beside the output. Waveform bytes are read through
 a memory map of the ``.wdp`` file or of the LAS file's waveform record, one batch of
 ``batch_pulses`` pulses at a time, and the batch's pages are released after use.
 """
@@ -69,6 +71,14 @@ DEFAULT_BATCH_PULSES = 16_384
 QUANTILE_STRIDE = 256
 """One in this many sorted GPS times of each chunk is kept to place bucket boundaries."""
 _MADV_DONTNEED = getattr(mmap, "MADV_DONTNEED", None)
+_RECORD_BYTES = np.dtype((np.void, COMPACT_DTYPE.itemsize))
+"""A compact record as opaque bytes: NumPy copies these ~4x faster than the structured
+records, which it copies field by field."""
+
+
+def _concat_records(parts: list[np.ndarray]) -> np.ndarray:
+    """``np.concatenate`` of compact point records, copied as opaque bytes."""
+    return np.concatenate([p.view(_RECORD_BYTES) for p in parts]).view(COMPACT_DTYPE)
 
 
 @dataclass
@@ -82,6 +92,7 @@ class ReadStats:
     n_split_pulses: int = 0
     agc_dimension: str | None = None
     n_buckets: int = 0
+    spilled: bool = False
 
 
 Locator = Callable[[np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
@@ -110,7 +121,8 @@ class WaveformPulseReader:
     chunk_points, bucket_points, batch_pulses : int
         Points per laspy read, points sorted in memory at once, pulses per output table.
     tmp_dir : str or Path, optional
-        Folder for spilled buckets of large files (default: the system temp folder).
+        Folder for spilled buckets of large files whose points are not in GPS-time order
+        (default: the system temp folder).
     on_points : callable, optional
         Called with the number of points processed after each step (progress bars).
 
@@ -177,7 +189,7 @@ class WaveformPulseReader:
             box = [np.empty(n, COMPACT_DTYPE)]  # handed out with pop(): no reference stays here
             rec, filled, part = box[0], 0, None
             for part in scanner.chunks():
-                rec[filled : filled + len(part)] = part
+                rec.view(_RECORD_BYTES)[filled : filled + len(part)] = part.view(_RECORD_BYTES)
                 filled += len(part)
                 self.on_points(len(part))
             if dim is not None and n and not np.any(rec["agc"] != 0):
@@ -190,17 +202,24 @@ class WaveformPulseReader:
             yield box.pop()
             return
 
-        # pass 1: GPS-time quantiles (and whether the AGC is ever non-zero)
-        samples, any_agc = [], False
+        # pass 1: GPS-time quantiles, whether the points are in time order, whether the AGC
+        # is ever non-zero
+        samples, any_agc, in_order, last = [], False, True, -np.inf
         for gps, agc in scanner.chunks("keys"):
-            s = np.sort(gps)
-            samples.append(s[QUANTILE_STRIDE // 2 :: QUANTILE_STRIDE] if len(s) > QUANTILE_STRIDE else s)
+            if in_order and len(gps):
+                in_order = bool(gps[0] >= last and np.all(gps[1:] >= gps[:-1]))
+                last = gps[-1]
+            s = gps if in_order else np.sort(gps)
+            samples.append((s[QUANTILE_STRIDE // 2 :: QUANTILE_STRIDE] if len(s) > QUANTILE_STRIDE else s).copy())
             any_agc = any_agc or (dim is not None and bool(np.any(agc != 0)))
             self.on_points(len(gps))
         if dim is not None and not any_agc:
             self._no_agc_values(dim)
             scanner.agc_dimension = None
             self.stats.agc_dimension = None
+        if in_order:
+            yield from self._ordered_buckets(scanner)
+            return
         sample = np.sort(np.concatenate(samples))
         del samples
         n_buckets = max(1, math.ceil(n / self.bucket_points))
@@ -210,6 +229,7 @@ class WaveformPulseReader:
         self.stats.n_buckets = n_buckets
 
         # pass 2: spill each bucket's records to its own file
+        self.stats.spilled = True
         tmp = Path(tempfile.mkdtemp(prefix=".waveforest-ingest-", dir=self.tmp_dir))
         try:
             files = [tmp / f"bucket{i:05d}.bin" for i in range(n_buckets)]
@@ -217,7 +237,7 @@ class WaveformPulseReader:
                 b = np.searchsorted(bounds, part["gps"], side="right")
                 order = np.argsort(b, kind="stable")
                 edges = np.searchsorted(b[order], np.arange(n_buckets + 1))
-                part = part[order]
+                part = np.take(part, order)
                 for i in np.flatnonzero(np.diff(edges)):
                     with open(files[i], "ab") as fh:
                         fh.write(part[edges[i] : edges[i + 1]].tobytes())
@@ -231,6 +251,36 @@ class WaveformPulseReader:
                     yield box.pop()
         finally:
             shutil.rmtree(tmp, ignore_errors=True)
+
+    def _ordered_buckets(self, scanner: PointScanner) -> Iterator[np.ndarray]:
+        """Pass 2 for points already in GPS-time order (as ALS files are written): buckets of
+        about ``bucket_points`` consecutive points, cut where the GPS time changes, so that all
+        returns of a pulse stay together; nothing is spilled to disk."""
+        parts, held = [], 0
+        for part in scanner.chunks():
+            self.stats.n_points += len(part)
+            self.on_points(len(part))
+            parts.append(part)
+            held += len(part)
+            if held < self.bucket_points:
+                continue
+            box = [_concat_records(parts)]
+            parts.clear()
+            gps = box[0]["gps"]
+            cut = int(np.searchsorted(gps, gps[-1], side="left"))  # the last time's first point
+            if cut == 0:  # one GPS time throughout: keep gathering
+                parts, held = box, len(box[0])
+                continue
+            parts, held = [box[0][cut:].copy()], len(box[0]) - cut
+            box[0] = box[0][:cut]
+            self.stats.n_buckets += 1
+            del gps, part
+            yield box.pop()
+        if held:
+            self.stats.n_buckets += 1
+            box = [_concat_records(parts)]
+            parts.clear()
+            yield box.pop()
 
     # pulses ---------------------------------------------------------------------------
 
@@ -279,7 +329,7 @@ class WaveformPulseReader:
         if not np.any(keep):
             return None
         ids = first_id + np.arange(p0, p1, dtype=np.int64)[keep]
-        r = rec[index.order[ch[keep]]]  # the chosen return of each kept pulse
+        r = np.take(rec, index.order[ch[keep]])  # the chosen return of each kept pulse
         n = len(r)
         d = r["d"].astype(np.float64)
         loc = r["loc"].astype(np.float64)
@@ -292,7 +342,7 @@ class WaveformPulseReader:
         counts = np.diff(starts[p0 : p1 + 1])
         pulse_local = np.repeat(np.arange(p1 - p0), counts)
         keep_pt = keep[pulse_local]
-        pts = rec[index.order[pt0:pt1][keep_pt]]
+        pts = np.take(rec, index.order[pt0:pt1][keep_pt])
         kept_index = np.cumsum(keep) - 1
         pk = kept_index[pulse_local[keep_pt]]
         e_counts = counts[keep]
@@ -302,7 +352,7 @@ class WaveformPulseReader:
         echo_t = np.where(same, pts["loc"].astype(np.float64) / 1000.0, t_geo)
         e_off = np.zeros(n + 1, np.int64)
         np.cumsum(e_counts, out=e_off[1:])
-        first_pt = pts[e_off[:-1]]  # the first return of each pulse
+        first_pt = np.take(pts, e_off[:-1])  # the first return of each pulse
 
         # waveform samples of the chosen packets
         wpi = r["wpi"].astype(np.int64)
