@@ -224,6 +224,11 @@ def test_ordered_buckets_keep_the_returns_of_a_pulse_together(tmp_path):
     assert reader.stats.n_split_pulses == 0
     assert_tables_equal(back, read_waveform_las(path))
     assert_round_trip(t, back)
+    # buckets smaller than a pulse: each grows until its GPS time changes
+    few = write_waveform_las(tmp_path / "few.las", t.slice(0, 12))
+    reader = WaveformPulseReader(few, chunk_points=1, bucket_points=2)
+    assert_tables_equal(pa.concat_tables(list(reader)), read_waveform_las(few))
+    assert reader.stats.n_buckets == 12 and not reader.stats.spilled
 
 
 def test_writer_rejects_what_las_cannot_hold(tmp_path):

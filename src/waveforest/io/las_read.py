@@ -76,11 +76,6 @@ _RECORD_BYTES = np.dtype((np.void, COMPACT_DTYPE.itemsize))
 records, which it copies field by field."""
 
 
-def _concat_records(parts: list[np.ndarray]) -> np.ndarray:
-    """``np.concatenate`` of compact point records, copied as opaque bytes."""
-    return np.concatenate([p.view(_RECORD_BYTES) for p in parts]).view(COMPACT_DTYPE)
-
-
 @dataclass
 class ReadStats:
     """What a reader has seen so far."""
@@ -255,31 +250,35 @@ class WaveformPulseReader:
     def _ordered_buckets(self, scanner: PointScanner) -> Iterator[np.ndarray]:
         """Pass 2 for points already in GPS-time order (as ALS files are written): buckets of
         about ``bucket_points`` consecutive points, cut where the GPS time changes, so that all
-        returns of a pulse stay together; nothing is spilled to disk."""
-        parts, held = [], 0
+        returns of a pulse stay together; nothing is spilled to disk. Chunks are copied into
+        one buffer per bucket (its unused pages are never touched, so never resident)."""
+        cap = self.bucket_points + self.chunk_points
+        box, held = [np.empty(cap, COMPACT_DTYPE)], 0
         for part in scanner.chunks():
             self.stats.n_points += len(part)
             self.on_points(len(part))
-            parts.append(part)
+            if held + len(part) > len(box[0]):  # one GPS time in the whole buffer: grow it
+                grown = np.empty(held + cap, COMPACT_DTYPE)
+                grown.view(_RECORD_BYTES)[:held] = box[0].view(_RECORD_BYTES)[:held]
+                box[0] = grown
+            box[0].view(_RECORD_BYTES)[held : held + len(part)] = part.view(_RECORD_BYTES)
             held += len(part)
+            del part
             if held < self.bucket_points:
                 continue
-            box = [_concat_records(parts)]
-            parts.clear()
-            gps = box[0]["gps"]
+            gps = box[0]["gps"][:held]
             cut = int(np.searchsorted(gps, gps[-1], side="left"))  # the last time's first point
-            if cut == 0:  # one GPS time throughout: keep gathering
-                parts, held = box, len(box[0])
+            del gps
+            if cut == 0:
                 continue
-            parts, held = [box[0][cut:].copy()], len(box[0]) - cut
-            box[0] = box[0][:cut]
+            nxt = np.empty(cap, COMPACT_DTYPE)
+            nxt.view(_RECORD_BYTES)[: held - cut] = box[0].view(_RECORD_BYTES)[cut:held]
+            box, held = [box[0][:cut], nxt], held - cut
             self.stats.n_buckets += 1
-            del gps, part
-            yield box.pop()
+            yield box.pop(0)  # handed out: no reference stays here
         if held:
             self.stats.n_buckets += 1
-            box = [_concat_records(parts)]
-            parts.clear()
+            box[0] = box[0][:held]
             yield box.pop()
 
     # pulses ---------------------------------------------------------------------------

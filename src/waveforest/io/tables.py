@@ -131,11 +131,11 @@ def write_pulses(table: pa.Table, path: str | Path) -> Path:
 
 _STREAM_OPTIONS = dict(compression="lz4", use_dictionary=["dataset", "source"], write_statistics=False)
 """Parquet options of streamed pulse tables: fast lz4, no dictionaries or statistics on the
-noise-like waveform lists. Writing the table, mostly the ``samples`` list column, is ~3/4 of
-ingest's time (cProfile of benchmarks/ingest.py's file); whole ingest runs at 187,000-208,000
-pulses/s of 256 samples on one core of the idle 2-core machine (benchmarks/ingest.py). No
+noise-like waveform lists. Writing the table, mostly the ``samples`` list column, is ~4/5 of
+ingest's time: on one core of the idle 2-core machine the reader alone runs at ~1,000,000
+pulses/s of 256 samples, the whole ingest at 195,000-235,000 (benchmarks/ingest.py). No
 compression writes faster for a 2x larger file; zstd with defaults halves the rate for a 2.4x
-smaller one."""
+smaller one; byte-stream-split and larger write batches or pages gain nothing measurable."""
 
 
 def write_pulse_batches(batches: Iterable[pa.Table], path: str | Path) -> int:
