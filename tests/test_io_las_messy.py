@@ -114,9 +114,12 @@ def test_points_in_any_order(clean):
     back = read_waveform_las(messy)
     assert_round_trip(t, back)
     # and through the bounded-memory (bucketed) path
-    reader = WaveformPulseReader(messy, chunk_points=97, bucket_points=150, batch_pulses=50)
+    folder = messy.parent / "spill"
+    folder.mkdir()
+    reader = WaveformPulseReader(messy, chunk_points=97, bucket_points=150, batch_pulses=50, tmp_dir=folder)
     spill = pa.concat_tables(list(reader))
     assert reader.stats.spilled  # out of time order: the buckets go through disk
+    assert list(folder.iterdir()) == []  # and their files are removed
     assert_tables_equal(spill, back)
 
 
