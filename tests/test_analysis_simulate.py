@@ -121,6 +121,35 @@ def test_plate_geometry_and_amplitude():
     assert np.abs(f["Apeak"].to_numpy() / expected - 1).max() < 0.05  # sampling phase + noise + rounding
 
 
+def test_twins_are_recorded_at_the_real_pulses_agc_gain():
+    """A twin is recorded at its real pulse's AGC gain g and normalised like it (Eq. 1): the
+    normalised noise has SD sqrt(sd^2 + 1/12) / g (analog noise and rounding, not gained by
+    the AGC), the signal is that of gain 1, and g = 1 changes nothing."""
+    cfg, g = _cfg(), 0.5
+    sel = _selected(n_per_sample=60)
+
+    def run(gain):
+        t = sel if gain is None else sel.append_column("agc_gain", pa.array(np.full(sel.num_rows, gain)))
+        out, _ = simulate_pulses(t, _info(), _cal(), cfg, progress=False, scene_builder=plate_scene)
+        return out.sort_by("pulse_id")
+
+    plain, ones, gained = run(None), run(1.0), run(g)
+    assert _same(plain, ones)
+    cal = _cal()
+
+    def pre_echo(t):  # the record starts 3.3-4.8 m of range (>= 22 ns) before the echo
+        return np.array([s[:15] for s in t.column("samples").to_pylist()], dtype=float)
+
+    expected_sd = np.sqrt(cal.noise_sd**2 + 1 / 12) / g
+    assert abs(pre_echo(gained).std(ddof=1) / expected_sd - 1) < 0.06
+    assert abs(pre_echo(plain).std(ddof=1) / (expected_sd * g) - 1) < 0.06
+    assert abs(pre_echo(gained).mean() - cal.noise_mean) < 0.1
+    noise = {"2010_12_1": dict(noise_mean=cal.noise_mean, noise_sd=cal.noise_sd)}
+    a_plain = feature_table(plain, noise)["Apeak"].mean()
+    a_gained = feature_table(gained, noise)["Apeak"].mean()
+    assert abs(a_gained / a_plain - 1) < 0.02  # ~105 DN, noise SD 3 DN over 180 pulses
+
+
 def test_same_seed_same_table_and_chunks_do_not_matter():
     cfg = _cfg()
     a, _ = _sim(cfg)

@@ -214,17 +214,17 @@ def test_real_chain_no_effect_names_nothing(tmp_path, overrides):
 BELOW_DETECTION = {
     "understory": "moves birch E by +4.5 SE at the paper's ~700 birch pulses of a dataset "
                   "(tests/test_campaign_agreement.py); this campaign has 88 and 115 birch pulses in its two datasets. "
-                  "On 2012_10_1 alone at the paper's counts (28 samples per species, density_scale 4.5: 676 birch, "
-                  "5830 pulses; fit_pulses 200) it ranks first with 2.48 [0.74, 2.64] around the true 2.5, but "
-                  "its reduction 0.0074 [-0.0034, 0.0182] is not significant (seed 11). On BIRCH_ONLY (2377 birch "
-                  "pulses) it shifts the birch E by ~0.15 pooled SDs (d of the campaign without effects +0.02/+0.11, "
-                  "with the understory -0.12/-0.08): verdict unexplained, understory ranks 4th, 1.19 [0.18, 2.30], "
-                  "reduction 0.0027 [-0.0055, 0.0110], behind look-alikes lad_shift, hotspot and leaf_albedo "
-                  "(fits on all pulses; seed 11). With the three species at BIRCH_ONLY's samples and density "
-                  "(14137 pulses, 2377 of them birch; fit_pulses 200) the look-alikes are held by raspberry and "
-                  "fireweed, but the birch shift is lost among the 30 cells x features: verdict unexplained (gap "
-                  "0.0241, floor 0.0045, mostly H and Npeaks), understory ranks 3rd, 0.0027 [0.0009, 2.35], "
-                  "reduction 0.00009 [-0.00006, 0.00024] (seed 11)",
+                  "Measured with twins at their real pulse's AGC gain and nested understory layers (seed 11): on "
+                  "BIRCH_ONLY (2377 birch pulses) the understory shifts birch E by ~0.2 and Apeak by ~0.1 pooled SDs "
+                  "like a 2 % brighter first order, and the look-alike hotspot 1.022 [1.000, 1.041] is named "
+                  "(reduction 0.0055 [0.0008, 0.0102]; understory 5th, fitted 0.04). With the three species at "
+                  "BIRCH_ONLY's samples and density (14139 pulses, 2377 of them birch; fit_pulses 200; 68 minutes "
+                  "of diagnose) raspberry and fireweed hold the look-alikes and the understory is named in round 1, "
+                  "but at 1.56 [0.25, 2.41] (true 2.5; reduction 0.0030 [0.0001, 0.0058]), and the gap goes "
+                  "0.0116 -> 0.0104 only (floor 0.0046): most of the rest is birch H (d -0.10, -0.07), which the "
+                  "CFD's echo timing explains, not an effect: run on the real waveforms of the campaign without effects, "
+                  "it puts birch echoes 0.087-0.092 m below their DR echoes after the range correction fitted on "
+                  "flat targets (the sensor's DR fraction is 0.35, the CFD's 0.5)",
 }
 """Effects that even a campaign of the paper's size shows by a few SE only (the effects.py
 docstring), on birch, of which this campaign has few pulses: expected to fail (not strictly).

@@ -144,6 +144,24 @@ def test_understory_fills_the_birch_crown_base_gap_without_changing_the_tree():
     np.testing.assert_array_equal(r0.triangles, r1.triangles)
 
 
+def test_understory_layers_of_one_seed_are_nested_in_their_lai():
+    """A higher understory LAI adds tufts to the same layer (common random numbers for the
+    diagnosis's fit): every blade of the LAI-1 layer, base and tip (points that the width
+    scaling to the exact LAI leaves in place), is a blade of the LAI-2 layer, in the same order."""
+    n_tree = (build_scene("birch", 3.0, 6).kind != 0).sum()
+    per_blade = load_outline("blade").n_triangles
+
+    def blades(lai):
+        s = build_scene("birch", 3.0, 6, understory=lai)
+        tri = s.triangles[n_tree:][s.kind[n_tree:] == 1].reshape(-1, per_blade, 3, 3)
+        return tri[:, 0, :2].mean(axis=1), tri[:, 1, 2]  # base (outline x = 0), tip (outline (1, 0))
+
+    (base1, tip1), (base2, tip2) = blades(1.0), blades(2.0)
+    assert 1.8 < len(base2) / len(base1) < 2.2
+    np.testing.assert_allclose(base2[: len(base1)], base1, atol=1e-5)
+    np.testing.assert_allclose(tip2[: len(tip1)], tip1, atol=1e-5)
+
+
 @pytest.mark.parametrize("seed", [12, 13])
 def test_clumping_keeps_the_lai_and_opens_gaps(seed):
     def gap(s):

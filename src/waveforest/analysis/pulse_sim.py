@@ -223,7 +223,7 @@ class SimPulses:
 
 def render_sigma(sigma: np.ndarray, t0_ns: np.ndarray, range_m: np.ndarray, setup: SensorSetup,
                  rng: np.random.Generator, sigma_total: np.ndarray | None = None,
-                 first_hit_counts: np.ndarray | None = None) -> SimPulses:
+                 first_hit_counts: np.ndarray | None = None, gain: np.ndarray | None = None) -> SimPulses:
     """sigma(t) -> waveforms (Eq. 7) -> CFD echoes, for a batch of pulses.
 
     Parameters
@@ -233,14 +233,24 @@ def render_sigma(sigma: np.ndarray, t0_ns: np.ndarray, range_m: np.ndarray, setu
     range_m : (n,) float64, R of Eq. 7, m
     setup : SensorSetup
     rng : numpy Generator (sampling phase, pre-trigger, noise)
+    gain : (n,) float64, optional
+        AGC gains (Eq. 1) of the real pulses these are twins of. Each waveform is then
+        recorded as the sensor records it, signal x g + noise (trigger, saturation, rounding
+        and clipping on the gained signal), and AGC-normalised as the real one is,
+        (V - c-bar)/g + c-bar: its noise has SD noise_sd / g and its rounding steps 1/g DN,
+        like the real normalised waveform's (the AGC does not gain the noise, METHOD.md b).
+        None: gain 1 (a pulse of no real recording).
     """
     from ..sensor import detect_echoes, render
+    from ..sensor.agc import divide_gain
 
     n = sigma.shape[0]
     r = render(sigma, t0_ns, range_m, setup.system, setup.noise_mean, setup.noise_sd, setup.sampling_ns, rng,
                record_ns=setup.record_ns, pre_trigger_m=tuple(setup.pre_trigger_m),
-               digitizer_max=setup.digitizer_max, cfd=setup.cfd, **setup.render_effects)
+               digitizer_max=setup.digitizer_max, cfd=setup.cfd, gain=gain, **setup.render_effects)
     samples = np.asarray(r.samples, dtype=np.float32)
+    if gain is not None:
+        samples = divide_gain(samples, gain, setup.noise_mean)
     lengths = np.full(n, samples.shape[1], dtype=np.int64)
     first = np.asarray(r.first_sample_ns, dtype=np.float64)
     times, amps, counts = detect_echoes(samples, lengths, setup.sampling_ns, setup.noise_mean, setup.noise_sd,
@@ -259,8 +269,10 @@ def render_sigma(sigma: np.ndarray, t0_ns: np.ndarray, range_m: np.ndarray, setu
 
 
 def trace_and_render(scene, beams, range_m: np.ndarray, mcrt: MCRTSetup, setup: SensorSetup,
-                     trace_seed: int, rng: np.random.Generator, threads: int | None = None):
-    """MCRT of ``beams`` through ``scene`` (a Scene or PreparedScene), then :func:`render_sigma`.
+                     trace_seed: int, rng: np.random.Generator, threads: int | None = None,
+                     gain: np.ndarray | None = None):
+    """MCRT of ``beams`` through ``scene`` (a Scene or PreparedScene), then :func:`render_sigma`
+    (``gain``: the AGC gains of the real pulses twinned, see there).
 
     Returns
     -------
@@ -270,5 +282,5 @@ def trace_and_render(scene, beams, range_m: np.ndarray, mcrt: MCRTSetup, setup: 
 
     res = trace(scene, beams, seed=int(trace_seed), threads=threads, **mcrt.kwargs())
     sim = render_sigma(res.sigma, res.t0_ns, np.asarray(range_m, dtype=float), setup, rng,
-                       sigma_total=res.total, first_hit_counts=res.first_hit_counts)
+                       sigma_total=res.total, first_hit_counts=res.first_hit_counts, gain=gain)
     return sim, res

@@ -104,12 +104,17 @@ def normalise_waveforms(samples, agc, a: float, b: float, n0: float) -> np.ndarr
     -------
     (n, n_s) float32
     """
+    return divide_gain(samples, agc_gain(agc, a, b), n0)
+
+
+def divide_gain(samples, gain, n0: float) -> np.ndarray:
+    """(V - n0)/g + n0 per waveform (Eq. 1 with the gains g given; g NaN: unchanged), float32 DN."""
     x = np.asarray(samples, dtype=np.float64)
     if x.ndim != 2:
         raise ValueError(f"samples must be 2-D, got shape {x.shape}")
-    g = agc_gain(agc, a, b)
+    g = np.asarray(gain, dtype=np.float64)
     if g.shape != (x.shape[0],):
-        raise ValueError(f"agc must have shape ({x.shape[0]},), got {g.shape}")
+        raise ValueError(f"gain must have shape ({x.shape[0]},), got {g.shape}")
     g = np.where(np.isfinite(g), g, 1.0)
     return ((x - n0) / g[:, None] + n0).astype(np.float32)
 

@@ -13,7 +13,8 @@ Effects (``waveforest.effects``, each off by default):
 
 - ``understory``: LAI of a grass layer ``effects.UNDERSTORY_HEIGHT_M`` tall under *trees*,
   built with the ``fresh_grass_low`` model and optics (no-op for low vegetation and
-  surfaces, which already fill the space near the ground).
+  surfaces, which already fill the space near the ground); the layers of one seed are nested
+  in their LAI up to :data:`UNDERSTORY_POOL_LAI` (a higher LAI adds tufts to the same ones).
 - ``clumping``: Thomas-process cluster radius, m, for shoot-based plots (shoots, tufts,
   dwarf-shrub stems; for dwarf shrubs it replaces their own ramet-cluster radius); no-op
   for trees (one plant) and surfaces.
@@ -43,7 +44,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..constants import KIND_GROUND, KIND_LEAF, KIND_WOOD
-from ..effects import UNDERSTORY_HEIGHT_M
+from ..effects import CATALOGUE, UNDERSTORY_HEIGHT_M
 from ..errors import WaveforestError
 from ..scene import Scene
 from .generic import build_layer, build_residue, build_surface, build_tufts
@@ -55,6 +56,10 @@ from .tree import allometric_leaf_area, build_tree
 
 UNDERSTORY_SPECIES = "fresh_grass_low"
 """Model and optics of the understory layer (effect ``understory``)."""
+
+UNDERSTORY_POOL_LAI = CATALOGUE["understory"].bounds[1]
+"""The understory layers of one seed are nested up to this LAI (``build_tufts``'s pool: one
+layer that grows with the effect's value, over its whole search range)."""
 
 _RHO_TAU_SLACK = 1e-9
 
@@ -216,7 +221,8 @@ def build(species: str, height: float, seed: int, *, ground_rho: float = 0.30,
     if understory > 0 and p.model == "tree":
         up = species_params(UNDERSTORY_SPECIES)
         under = build_tufts(up, UNDERSTORY_HEIGHT_M, np.random.default_rng(s_under),
-                            lad_by_name(up.lad), understory * PLOT_AREA_M2, 1.0, 0.0)
+                            lad_by_name(up.lad), understory * PLOT_AREA_M2, 1.0, 0.0,
+                            pool_area=UNDERSTORY_POOL_LAI * PLOT_AREA_M2)
         parts.append((under.leaves, up.leaf_rho, up.leaf_tau, KIND_LEAF))
         under_area = under.leaf_area_m2
 

@@ -60,9 +60,17 @@ def _disc(n: int, radius: float, rng: np.random.Generator) -> np.ndarray:
 
 def build_tufts(p: SpeciesParams, height: float, rng: np.random.Generator,
                 lad: LeafAngleDistribution, leaf_area: float, leaf_area_scale: float,
-                clumping: float) -> Plant:
-    """A grass plot: tufts of blades reaching the one-sided leaf area ``leaf_area`` (m^2)."""
+                clumping: float, pool_area: float | None = None) -> Plant:
+    """A grass plot: tufts of blades reaching the one-sided leaf area ``leaf_area`` (m^2).
+
+    ``pool_area`` (m^2, default ``leaf_area``): the random draws are those of a plot of that
+    leaf area, of which the first tufts that reach ``leaf_area`` are kept. Plots of one seed
+    and pool are then nested in their leaf area (a larger one holds every tuft of a smaller
+    one), so that a search over the leaf area sees the layer grow, not a new one at every
+    value (common random numbers; the understory effect).
+    """
     h = float(height)
+    target = float(leaf_area) if pool_area is None else max(float(pool_area), float(leaf_area))
     outline = load_outline(p.element)
     per = max(1, int(round(p["blades_per_tuft"])))
     width = p["blade_width_m"]
@@ -73,8 +81,8 @@ def build_tufts(p: SpeciesParams, height: float, rng: np.random.Generator,
     normals, lengths = [], []
     cum, first = 0.0, True
     expected = per * area_per_length * 0.5 * (lo + hi)
-    while cum < leaf_area:
-        m = int(np.ceil(BATCH_MARGIN * (leaf_area - cum) / expected)) + 1
+    while cum < target:
+        m = int(np.ceil(BATCH_MARGIN * (target - cum) / expected)) + 1
         nb = sample_normals(lad, m * per, rng)
         # the steepest in-plane line rises by mz and runs sideways by |n_z| per unit length
         mz = np.sqrt(np.clip(1.0 - nb[:, 2] ** 2, 0.0, 1.0))
@@ -92,13 +100,14 @@ def build_tufts(p: SpeciesParams, height: float, rng: np.random.Generator,
         cum += ln.sum() * area_per_length
     normals = np.concatenate(normals)
     lengths = np.concatenate(lengths)
-    tuft_area = lengths.reshape(-1, per).sum(axis=1) * area_per_length
-    n = int(np.searchsorted(np.cumsum(tuft_area), leaf_area)) + 1
+    cum_area = np.cumsum(lengths.reshape(-1, per).sum(axis=1) * area_per_length)
+    n_pool = int(np.searchsorted(cum_area, target)) + 1
+    n = int(np.searchsorted(cum_area, leaf_area)) + 1
     normals, lengths = normals[: n * per], lengths[: n * per]
-    factor = leaf_area / (tuft_area[:n].sum())
+    factor = leaf_area / cum_area[n - 1]
 
-    centre = positions(n, rng, clumping, p["plants_per_cluster"])
-    base_xy = wrap(np.repeat(centre, per, axis=0) + _disc(n * per, p["tuft_radius_m"], rng))
+    centre = positions(n_pool, rng, clumping, p["plants_per_cluster"])[:n]
+    base_xy = wrap(np.repeat(centre, per, axis=0) + _disc(n_pool * per, p["tuft_radius_m"], rng)[: n * per])
     base = np.concatenate([base_xy, np.zeros((n * per, 1))], axis=1)
     wf = width * factor * leaf_area_scale / (lengths * outline.width)
     leaves = place_leaves(outline, base, normals, np.broadcast_to(_UP, normals.shape), lengths, wf)
