@@ -56,6 +56,7 @@ import pyarrow as pa
 from ..constants import RANGE_PER_NS
 from ..errors import WaveforestError
 from ..io.tables import PULSE_SCHEMA, padded_to_list
+from ..sensor._checks import gain_or_one
 from ..sensor.agc import GAIN_COLUMN
 from .campaign_tables import dataset_row, divergence_mrad, read_datasets
 from .pulse_sim import (
@@ -253,8 +254,7 @@ def simulate_pulses(selected: pa.Table, dataset_info: pd.Series, calibration: Ca
                 offset[:, :2] = rng.normal(0.0, xy_error, (len(rows), 2))
             origin = sensor - d[["sample_x", "sample_y", "ground_z"]].to_numpy(float) + offset
             beams = Beams.from_divergence(origin, direction, div, r)
-            gain = d[GAIN_COLUMN].to_numpy(float) if GAIN_COLUMN in d else np.ones(len(d))
-            gain = np.where(np.isfinite(gain) & (gain > 0), gain, 1.0)
+            gain = gain_or_one(d[GAIN_COLUMN].to_numpy(float)) if GAIN_COLUMN in d else np.ones(len(d))
             sim, _ = trace_and_render(scene, beams, r, mcrt, setup, trace_seed, rng, threads, gain=gain)
             keep = sim.n_echoes > 0
             n_no_echo += int((~keep).sum())

@@ -55,3 +55,9 @@ def per_pulse(value, n: int, name: str, *, positive: bool = False, nonnegative: 
     if nonnegative and (vf < 0).any():
         raise ValueError(f"{name} must be >= 0")
     return v
+
+
+def gain_or_one(gain) -> np.ndarray:
+    """AGC gains with 1 where there is none (NaN or <= 0: a pulse without AGC), float64."""
+    g = np.asarray(gain, dtype=np.float64)
+    return np.where(np.isfinite(g) & (g > 0), g, 1.0)

@@ -87,9 +87,7 @@ def agc_gain(agc, a: float, b: float) -> np.ndarray:
 
 def normalise_intensity(intensity, agc, a: float, b: float) -> np.ndarray:
     """DR intensities normalised by Eq. 1 (unchanged where the AGC is NaN)."""
-    g = agc_gain(agc, a, b)
-    g = np.where(np.isfinite(g), g, 1.0)
-    return np.asarray(intensity, dtype=np.float64) / g
+    return np.asarray(intensity, dtype=np.float64) / _checks.gain_or_one(agc_gain(agc, a, b))
 
 
 def normalise_waveforms(samples, agc, a: float, b: float, n0: float) -> np.ndarray:
@@ -108,14 +106,13 @@ def normalise_waveforms(samples, agc, a: float, b: float, n0: float) -> np.ndarr
 
 
 def divide_gain(samples, gain, n0: float) -> np.ndarray:
-    """(V - n0)/g + n0 per waveform (Eq. 1 with the gains g given; g NaN: unchanged), float32 DN."""
+    """(V - n0)/g + n0 per waveform (Eq. 1 with the gains g given; no gain, NaN or <= 0: unchanged), float32 DN."""
     x = np.asarray(samples, dtype=np.float64)
     if x.ndim != 2:
         raise ValueError(f"samples must be 2-D, got shape {x.shape}")
-    g = np.asarray(gain, dtype=np.float64)
+    g = _checks.gain_or_one(gain)
     if g.shape != (x.shape[0],):
         raise ValueError(f"gain must have shape ({x.shape[0]},), got {g.shape}")
-    g = np.where(np.isfinite(g), g, 1.0)
     return ((x - n0) / g[:, None] + n0).astype(np.float32)
 
 
@@ -335,8 +332,7 @@ def normalise_pulses(pulses: pa.Table, a: float, b: float, n0: float) -> pa.Tabl
     """
     agc = pulses.column("agc").to_numpy(zero_copy_only=False).astype(np.float64)
     if np.isfinite(a) and np.isfinite(b):
-        g = agc_gain(agc, a, b)
-        g = np.where(np.isfinite(g), g, 1.0)
+        g = _checks.gain_or_one(agc_gain(agc, a, b))
     else:
         g = np.ones(pulses.num_rows)
     out = pulses

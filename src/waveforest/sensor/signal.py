@@ -178,8 +178,7 @@ def _check_sigma(sigma, t0_ns, range_m, gain):
 def saturation_levels(level: float, gain) -> np.ndarray:
     """Saturation levels L / g of pulses with AGC gains g in AGC-normalised DN (g not finite
     or <= 0, e.g. no AGC: 1)."""
-    g = np.asarray(gain, dtype=np.float64)
-    return float(level) / np.where(np.isfinite(g) & (g > 0), g, 1.0)
+    return float(level) / _checks.gain_or_one(gain)
 
 
 def _check_effects(noise_autocorr, nonlinearity, trigger_loss, n: int) -> np.ndarray:
