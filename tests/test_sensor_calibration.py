@@ -8,11 +8,14 @@ import pytest
 from reference_sensor import target_pulses, write_campaign_tables
 from scipy.special import erf
 
+from waveforest.analysis.simulate import load_calibration as load_sim_calibration
 from waveforest.errors import WaveforestError
 from waveforest.io.tables import list_to_padded, write_pulses
 from waveforest.sensor import (
+    CFDParams,
     SystemWaveform,
     calibrate_system_waveform,
+    cfd_of,
     load_calibration,
     load_system_waveform,
     noise_stats,
@@ -148,6 +151,11 @@ def test_calibration_stage_after_agc(tmp_path):
     loaded = load_calibration(tmp_path / "S.json")
     assert loaded["dataset"] == "2010_12_1" and loaded["system_waveform"] == "S.parquet"
     assert range_correction_of(loaded).is_identity or len(range_correction_of(loaded).apeak) >= 1
+    # targets only: no echo wider than the pulse, so the configured CFD is kept, and it travels with the file
+    assert not res["cfd_tuning"]["tuned"] and "width class" in res["cfd_tuning"]["reason"]
+    assert cfd_of(loaded) == CFDParams(fraction=0.5, arming_sd=4.0).resolved(res["fwhm_ns"])
+    sim_cal = load_sim_calibration(tmp_path / "S.parquet", tmp_path / "S.json")
+    assert sim_cal.cfd == cfd_of(loaded)
     assert (tmp_path / "S.png").stat().st_size > 1000
     assert est.s_sd is not None and est.meta["dataset"] == "2010_12_1"
 

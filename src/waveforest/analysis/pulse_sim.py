@@ -132,15 +132,18 @@ class SensorSetup:
 
     @classmethod
     def from_config(cls, cfg: dict, system, noise_mean: float, noise_sd: float, sampling_ns: float,
-                    render_effects: dict | None = None, range_correction=None) -> SensorSetup:
-        """The setup of the config's ``sensor`` section with a given S(t), noise and sampling."""
+                    render_effects: dict | None = None, range_correction=None, cfd=None) -> SensorSetup:
+        """The setup of the config's ``sensor`` section with a given S(t), noise and sampling.
+
+        ``cfd``: the calibration's CFD (that of its range correction); None = ``sensor.cfd``.
+        """
         from ..sensor import CFDParams, FeatureParams
 
         s = cfg["sensor"]
         return cls(
             system=system, noise_mean=float(noise_mean), noise_sd=float(noise_sd),
             sampling_ns=float(sampling_ns),
-            cfd=CFDParams.from_config(cfg).resolved(system.fwhm_ns),
+            cfd=(cfd or CFDParams.from_config(cfg)).resolved(system.fwhm_ns),
             features=FeatureParams.from_config(cfg),
             record_ns=float(s["record_ns"]), pre_trigger_m=tuple(s["pre_trigger_m"]),
             digitizer_max=int(s["digitizer_max"]), render_effects=dict(render_effects or {}),

@@ -83,23 +83,24 @@ _SCALARS = ["dataset", "pulse_id", "gps_time", "sensor_x", "sensor_y", "sensor_z
 
 @dataclass(frozen=True)
 class Calibration:
-    """A dataset's calibration: S(t), noise and the CFD range correction."""
+    """A dataset's calibration: S(t), noise, the CFD and its range correction (None: identity / from the config)."""
 
     system: object
     noise_mean: float
     noise_sd: float
     range_correction: object = None
+    cfd: object = None
 
 
 def load_calibration(system_path, json_path) -> Calibration:
-    """Read ``calibration/{dataset}.parquet`` (S(t)) and ``.json`` (noise_mean, noise_sd, range correction)."""
+    """Read ``calibration/{dataset}.parquet`` (S(t)) and ``.json`` (noise, the CFD and its range correction)."""
+    from ..sensor import cfd_of, load_system_waveform, range_correction_of
     from ..sensor import load_calibration as load_json
-    from ..sensor import load_system_waveform, range_correction_of
 
     meta = load_json(json_path)
     rc = range_correction_of(meta)
     return Calibration(load_system_waveform(system_path), float(meta["noise_mean"]), float(meta["noise_sd"]),
-                       None if rc.is_identity else rc)
+                       None if rc.is_identity else rc, cfd_of(meta))
 
 
 def plan(selected: pd.DataFrame, cfg: dict, dataset: str) -> pd.DataFrame:
@@ -221,7 +222,8 @@ def simulate_pulses(selected: pa.Table, dataset_info: pd.Series, calibration: Ca
     p = p[(p["chunk_hash"] % chunks) == chunk]
     seed = int(cfg["seed"])
     setup = SensorSetup.from_config(cfg, calibration.system, calibration.noise_mean, calibration.noise_sd,
-                                    float(dataset_info["sampling_ns"]), sensor_fx, calibration.range_correction)
+                                    float(dataset_info["sampling_ns"]), sensor_fx, calibration.range_correction,
+                                    calibration.cfd)
     mcrt = MCRTSetup.from_config(cfg, effects=mcrt_fx)
     veg = cfg["vegetation"]
     div = divergence_mrad(dataset_info)

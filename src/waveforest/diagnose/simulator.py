@@ -219,7 +219,7 @@ class StudySimulator:
         from ..sensor import CFDParams, FeatureParams, feature_table, range_correction_of
 
         cfg = self._cfg(seed)
-        params, cfd = FeatureParams.from_config(cfg), CFDParams.from_config(cfg)
+        params = FeatureParams.from_config(cfg)
         parts = []
         for ds, rows in pulses.groupby("dataset", sort=True):
             if ds not in self.selected:
@@ -235,7 +235,8 @@ class StudySimulator:
             if sim.num_rows == 0:
                 continue
             rc = {ds: range_correction_of(meta)} if self.range_correction else None
-            feats = feature_table(sim, {ds: meta}, params, cfd=cfd, range_corrections=rc)
+            feats = feature_table(sim, {ds: meta}, params, cfd=cal.cfd or CFDParams.from_config(cfg),
+                                  range_corrections=rc)
             parts.append(feats)
         if not parts:
             raise WaveforestError("diagnose: the simulation produced no pulse with an echo")

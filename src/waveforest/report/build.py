@@ -90,6 +90,10 @@ def _calibration(results: Path, used: set) -> Section | None:
         for k, v in meta.items():
             if isinstance(v, (int, float, str)) and not isinstance(v, bool):
                 row[k] = v
+        cfd = meta.get("cfd") or {}
+        row.update({f"cfd_{k}": cfd[k] for k in ("fraction", "delay_ns") if k in cfd})
+        if isinstance(meta.get("cfd_tuning"), dict):
+            row["cfd_tuned"] = bool(meta["cfd_tuning"].get("tuned"))
         agc = results / "agc" / f"{path.stem}.json"
         if agc.exists():
             used.add(agc)
@@ -103,11 +107,12 @@ def _calibration(results: Path, used: set) -> Section | None:
         rows.append(row)
     if not rows:
         return None
-    sec.table("Calibration per dataset (noise from the last samples of target pulses; AGC fit of Eq. 1)",
+    sec.table("Calibration per dataset (noise from the last samples of target pulses; AGC fit of Eq. 1; "
+              "CFD tuned against the DR ranges, METHOD.md f)",
               pd.DataFrame(rows))
     for png in sorted((results / "calibration").glob("*.png")):
         used.add(png)
-        sec.figure(f"S(t) of {png.stem}", png)
+        sec.figure(f"S(t) and CFD tuning of {png.stem}", png)
     return sec
 
 

@@ -15,7 +15,7 @@ CLI stages: ``waveforest agc``, ``waveforest calibrate``, ``waveforest features`
 """
 
 from .agc import agc_gain, fit_b, nested_cv, normalise_intensity, normalise_pulses, normalise_waveforms, peak_amplitudes
-from .calibration import calibrate_system_waveform, load_calibration, range_correction_of
+from .calibration import calibrate_system_waveform, cfd_of, load_calibration, range_correction_of
 from .cfd import Echoes, RangeCorrection, apply_range_correction, detect_echoes, fit_range_correction, gaussian_cfd_time
 from .features import FEATURE_NAMES, feature_table, first_echo_features
 from .noise import NoiseStats, ar1, noise_stats
@@ -32,7 +32,7 @@ __all__ = [
     "FeatureParams", "FEATURE_NAMES", "first_echo_features", "feature_table",
     "agc_gain", "normalise_intensity", "normalise_waveforms", "normalise_pulses", "peak_amplitudes",
     "nested_cv", "fit_b",
-    "calibrate_system_waveform", "load_calibration", "range_correction_of",
+    "calibrate_system_waveform", "cfd_of", "load_calibration", "range_correction_of",
     "NoiseStats", "noise_stats", "ar1",
     "read_targets", "read_datasets", "target_membership", "pulse_targets",
 ]

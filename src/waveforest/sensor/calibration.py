@@ -25,9 +25,14 @@ by 1 - f). Without them a model with the effect would apply it twice: once throu
 in the signal model. ``diagnose`` recalibrates in the same way for each value it tries
 (:class:`CalibrationPulses`).
 
-The same stage checks the CFD against the DR ranges (METHOD.md f) on all target pulses
-(calibration and AGC targets): the fraction with |dR| < 0.10 m and the bias, before and
-after the amplitude-dependent range correction it fits (:func:`fit_range_correction`).
+The same stage sets the CFD against the DR ranges (METHOD.md f) on the target pulses
+(calibration and AGC targets) and ``calibrate.cfd_pulses`` pulses drawn at random from the
+dataset (seeded), whose echoes span the widths of ground and vegetation: it tunes the CFD
+fraction and delay (``calibrate.tune_cfd``; cfd_tuning.py), fits the amplitude-dependent range
+correction dR(Apeak) on all of them (:func:`fit_range_correction`), and reports the paper's
+check (the fraction with |dR| < 0.10 m and the bias) on the target pulses before and after the
+correction. The JSON keeps the CFD with its correction (:func:`cfd_of`): every stage that
+detects echoes with this calibration uses that pair.
 """
 
 from __future__ import annotations
@@ -42,14 +47,15 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from ..constants import RANGE_PER_NS
 from ..errors import WaveforestError
 from ..io.tables import iter_pulses, list_to_padded
 from . import _checks
 from .agc import GAIN_COLUMN, _single_dataset, read_agc_metadata, write_json
-from .cfd import RangeCorrection, detect_echoes, fit_range_correction
+from .cfd import RangeCorrection
+from .cfd_tuning import WIDTH_EDGES, tune_cfd
+from .features import first_echo_features
 from .noise import noise_stats
-from .params import CFD_CHECK_M, FINE_NS, RANGE_GATE_M, CFDParams
+from .params import CFD_CHECK_M, FINE_NS, RANGE_GATE_M, CFDParams, FeatureParams
 from .signal import saturation_levels
 from .system_waveform import SystemWaveform
 from .targets import dataset_year, pulse_targets, read_datasets, read_targets  # noqa: F401 (re-exported)
@@ -187,15 +193,25 @@ def cfd_check(dr_minus_cfd_m) -> dict:
 _COLUMNS = ["dataset", "dir_z", "range_m", "sampling_ns", "samples", "echo_x", "echo_y", "echo_time_ns"]
 
 
-def _gather_target_pulses(path: Path, targets, datasets, batch_rows: int, progress: bool):
-    """Target pulses of a one-dataset pulse table: dict of arrays (small: targets only)."""
+def _gather_target_pulses(path: Path, targets, datasets, batch_rows: int, progress: bool, extra: int = 0,
+                          seed: int = 0):
+    """Target pulses of a one-dataset pulse table, and ``extra`` others drawn at random (seeded).
+
+    Returns (dataset, year, dict of arrays or None); ``target`` is -1 for a pulse off the targets.
+    """
     from tqdm import tqdm
 
     names: set = set()
     keep = []
     year = None
-    has_gain = GAIN_COLUMN in pq.read_schema(path).names
+    schema = pq.read_schema(path)
+    has_gain = GAIN_COLUMN in schema.names
     cols = _COLUMNS + ([GAIN_COLUMN] if has_gain else [])
+    n_rows = pq.read_metadata(path).num_rows
+    rng = np.random.default_rng([int(seed), 0xCFD])
+    drawn = np.zeros(n_rows, dtype=bool)
+    drawn[rng.choice(n_rows, size=min(int(extra), n_rows), replace=False)] = True
+    start = 0
     for batch in tqdm(iter_pulses(path, batch_rows, columns=cols), desc="calibrate: read", unit="batch",
                       disable=not progress):
         names.update(set(np.unique(batch.column("dataset").to_numpy(zero_copy_only=False).astype(str))))
@@ -203,7 +219,8 @@ def _gather_target_pulses(path: Path, targets, datasets, batch_rows: int, progre
         if year is None:
             year = dataset_year(datasets, name)
         tidx = pulse_targets(batch, targets, year)
-        on = np.flatnonzero(tidx >= 0)
+        on = np.flatnonzero((tidx >= 0) | drawn[start:start + batch.num_rows])
+        start += batch.num_rows
         if on.size:
             sub = batch.take(pa.array(on))
             keep.append((sub, tidx[on]))
@@ -262,8 +279,14 @@ class CalibrationPulses:
         return system
 
 
-def _target_pulses(pulses_path: Path, targets, datasets, cfg: dict, agc_fit, batch_rows: int, progress: bool):
-    """The target pulses of a pulse table: (CalibrationPulses, all target pulses, AGC metadata, usable mask)."""
+def _target_pulses(pulses_path: Path, targets, datasets, cfg: dict, agc_fit, batch_rows: int, progress: bool,
+                   extra: int = 0):
+    """The target pulses of a pulse table and ``extra`` random others.
+
+    Returns (CalibrationPulses, dict of arrays of all pulses read, AGC metadata, usable mask:
+    a first DR echo and a range, not clipped, and on a target within the zenith limit or off the
+    targets).
+    """
     if not pulses_path.exists():
         raise WaveforestError(f"{pulses_path}: no such file")
     sec = cfg.get("calibrate", {})
@@ -277,12 +300,14 @@ def _target_pulses(pulses_path: Path, targets, datasets, cfg: dict, agc_fit, bat
     meta = read_agc_metadata(pulses_path)
     if agc_fit:
         meta = {**meta, **{k: agc_fit[k] for k in ("a", "b", "n0") if k in agc_fit}}
-    name, year, d = _gather_target_pulses(pulses_path, targets, datasets, batch_rows, progress)
+    name, year, d = _gather_target_pulses(pulses_path, targets, datasets, batch_rows, progress, extra,
+                                          int(cfg.get("seed", 0)))
     if d is None:
         raise WaveforestError(f"{pulses_path}: no pulse of dataset {name} hits a target of year {year} in targets.csv")
     n0 = float(meta["n0"]) if meta.get("n0") is not None else None
-    is_cal = targets["calibration"].to_numpy(dtype=bool)[d["target"]]
-    hdrf = targets["hdrf"].to_numpy(np.float64)[d["target"]]
+    on_target = d["target"] >= 0
+    is_cal = on_target & targets["calibration"].to_numpy(dtype=bool)[d["target"]]
+    hdrf = np.where(on_target, targets["hdrf"].to_numpy(np.float64)[d["target"]], np.nan)
     cos_t = np.clip(-d["dir_z"], -1.0, 1.0)
     zen_ok = np.degrees(np.arccos(np.abs(cos_t))) <= max_zen + 1e-9
     raw_peak = np.nanmax(np.where(np.arange(d["samples"].shape[1])[None, :] < d["lengths"][:, None],
@@ -307,7 +332,7 @@ def _target_pulses(pulses_path: Path, targets, datasets, cfg: dict, agc_fit, bat
     pulses = CalibrationPulses(str(name), int(year), d["samples"][idx], d["lengths"][idx], d["sampling_ns"][idx],
                                d["t_echo"][idx], d["range_m"][idx], sigma, d["target"][idx], d["gain"][idx], noise,
                                window)
-    return pulses, d, meta, usable & zen_ok & not_sat
+    return pulses, d, meta, usable & not_sat & (zen_ok | ~on_target)
 
 
 def read_calibration_pulses(pulses_path, targets, datasets, cfg: dict, *, agc_fit: dict | None = None,
@@ -334,6 +359,23 @@ def model_sensor_effects(cfg: dict) -> dict:
     return calibration_effects((cfg.get("simulate") or {}).get("effects"))
 
 
+def _cfd_against_dr(d: dict, checkable, noise, system_fwhm_ns: float, cfg: dict):
+    """The CFD (tuned unless ``calibrate.tune_cfd`` is false) on the checkable pulses of ``d``.
+
+    Returns (CFDTuning, its CFDRanges, on-target mask over those pulses).
+    """
+    sec = cfg.get("calibrate", {})
+    idx = np.flatnonzero(checkable)
+    x, lens, dt, te = d["samples"][idx], d["lengths"][idx], d["sampling_ns"][idx], d["t_echo"][idx]
+    fp = FeatureParams.from_config(cfg)
+    width = first_echo_features(x, lens, dt, te, noise.mean, noise.sd, fp.segment_sd, fp.peak_rise_sd,
+                                echo_search_ns=fp.echo_search_ns)["FWHM"]
+    tuning = tune_cfd(x, lens, dt, te, width, noise.mean, noise.sd, CFDParams.from_config(cfg), system_fwhm_ns,
+                      tune=bool(sec.get("tune_cfd", True)), n_bins=int(sec.get("range_correction_bins", 8)),
+                      min_per_bin=int(sec.get("range_correction_min_pulses", 20)))
+    return tuning, tuning.ranges, d["target"][idx] >= 0
+
+
 def run(pulses_path, targets, datasets, out_path, json_path, cfg: dict, *, plot_path=None, agc_fit: dict | None = None,
         batch_rows: int = 65536, progress: bool = True) -> dict:
     """The ``calibrate`` stage: S(t), noise and the CFD/range-correction check of one dataset.
@@ -352,10 +394,8 @@ def run(pulses_path, targets, datasets, out_path, json_path, cfg: dict, *, plot_
     dict, the calibration JSON content.
     """
     sec = cfg.get("calibrate", {})
-    cfd = CFDParams.from_config(cfg)
-    max_echoes = int(cfg.get("sensor", {}).get("cfd", {}).get("max_echoes", 4))
     pulses, d, meta, checkable = _target_pulses(Path(pulses_path), targets, datasets, cfg, agc_fit, batch_rows,
-                                                progress)
+                                                progress, extra=int(sec.get("cfd_pulses", 8000)))
     name, year, noise, window = pulses.dataset, pulses.year, pulses.noise, pulses.window_ns
     effects = model_sensor_effects(cfg)
     system = pulses.system_waveform(effects)  # S(t) of the model that will use it
@@ -364,17 +404,10 @@ def run(pulses_path, targets, datasets, out_path, json_path, cfg: dict, *, plot_
         raise WaveforestError(f"dataset {name}: the calibrated S(t) has no defined FWHM; widen calibrate.window_ns")
     system.meta.update({"dataset": name, "year": int(year)})
 
-    # CFD vs DR ranges on all usable target pulses (METHOD.md f)
-    rc_cfd = cfd.resolved(fwhm)
-    chk = np.flatnonzero(checkable)
-    ech = detect_echoes(d["samples"][chk], d["lengths"][chk], d["sampling_ns"][chk], noise.mean, noise.sd, rc_cfd,
-                        max_echoes)
-    dr = (d["t_echo"][chk] - ech.times_ns[:, 0]) * RANGE_PER_NS
-    amp = ech.amplitudes[:, 0]
-    gate = np.isfinite(dr) & (np.abs(dr) < RANGE_GATE_M)
-    corr = fit_range_correction(amp[gate], dr[gate], n_bins=int(sec.get("range_correction_bins", 8)),
-                                min_per_bin=int(sec.get("range_correction_min_pulses", 20)))
-    dr_after = dr - corr(amp)
+    # CFD (tuned) and range correction against the DR ranges (METHOD.md f)
+    tuning, ranges, on_target = _cfd_against_dr(d, checkable, noise, fwhm, cfg)
+    dr, corr = ranges.dr_minus_cfd_m, ranges.correction
+    dr_after = ranges.residual_m
     per_target = {}
     tid = targets["target_id"].to_numpy()
     for k, c in zip(*np.unique(pulses.target, return_counts=True)):
@@ -389,10 +422,14 @@ def run(pulses_path, targets, datasets, out_path, json_path, cfg: dict, *, plot_
         "a": meta.get("a"), "b": meta.get("b"), "n0": meta.get("n0"),
         "sampling_ns": float(np.median(pulses.sampling_ns)),
         "window_ns": list(window), "cos_incidence": bool(sec.get("cos_incidence", False)),
-        "cfd": {"fraction": rc_cfd.fraction, "delay_ns": rc_cfd.delay_ns, "arming_sd": rc_cfd.arming_sd,
-                "dead_time_ns": rc_cfd.dead_time_ns},
+        "cfd": ranges.cfd.to_dict(),
+        "cfd_tuning": {"tuned": tuning.tuned, "reason": tuning.reason, "n_pulses": int(on_target.size),
+                       "n_off_targets": int((~on_target).sum()),
+                       "bias_per_width_class_m": ranges.class_bias(tuning.classes).tolist(),
+                       "width_class_edges_fwhm": list(WIDTH_EDGES), "grid": tuning.grid.to_dict("records")},
         "range_correction": corr.to_dict(),
-        "cfd_check_before": cfd_check(dr), "cfd_check_after": cfd_check(dr_after),
+        "cfd_check_before": cfd_check(dr[on_target]), "cfd_check_after": cfd_check(dr_after[on_target]),
+        "cfd_check_all_after": cfd_check(dr_after),
         "system_waveform": Path(out_path).name,
     }
     if result["cfd_check_after"]["n"] and result["cfd_check_after"]["frac_within_0_10_m"] < 0.95:
@@ -404,7 +441,8 @@ def run(pulses_path, targets, datasets, out_path, json_path, cfg: dict, *, plot_
     if plot_path is not None:
         from .plots import plot_system_waveform
 
-        plot_system_waveform(system, plot_path, title=f"S(t) of {name} ({pulses.target.size} pulses)")
+        plot_system_waveform(system, plot_path, title=f"S(t) of {name} ({pulses.target.size} pulses)",
+                             tuning=(tuning.grid, ranges.cfd) if tuning.tuned else None)
     return result
 
 
@@ -421,6 +459,12 @@ def load_calibration(path) -> dict:
     if missing:
         raise WaveforestError(f"{path}: calibration lacks {', '.join(missing)}")
     return d
+
+
+def cfd_of(calibration: dict) -> CFDParams | None:
+    """The CFD a calibration JSON's range correction was fitted with (None if absent: older files)."""
+    c = calibration.get("cfd")
+    return CFDParams.from_dict(c) if c else None
 
 
 def range_correction_of(calibration: dict) -> RangeCorrection:

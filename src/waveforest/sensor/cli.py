@@ -61,8 +61,11 @@ def calibrate(pulses, targets_csv, datasets_csv, out, json_out, plot, agc_fit, c
               plot_path=plot, agc_fit=fit)
     chk = res["cfd_check_after"]
     frac = "n/a" if chk["frac_within_0_10_m"] is None else f"{100 * chk['frac_within_0_10_m']:.1f} %"
+    c = res["cfd"]
+    how = "tuned" if res["cfd_tuning"]["tuned"] else "as configured"
     click.echo(f"calibrate: {res['dataset']}: S(t) FWHM {res['fwhm_ns']:.2f} ns from {res['n_pulses']} pulses, "
-               f"noise {res['noise_mean']:.2f} +- {res['noise_sd']:.2f} DN, CFD |dR| < 0.10 m: {frac}; "
+               f"noise {res['noise_mean']:.2f} +- {res['noise_sd']:.2f} DN, CFD f = {c['fraction']:.2f}, "
+               f"delay {c['delay_ns']:.2f} ns ({how}), targets' |dR| < 0.10 m: {frac}; "
                f"wrote {out} and {json_out}" + (f" and {plot}" if plot else ""))
 
 

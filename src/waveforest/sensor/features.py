@@ -204,7 +204,7 @@ PASS_THROUGH = ("sample_id", "species", "functional_group", "ground_z")
 
 
 def feature_table(pulses: pa.Table, noise: Mapping, params: FeatureParams | None = None, *,
-                  cfd: CFDParams | None = None, range_corrections: Mapping | None = None) -> pd.DataFrame:
+                  cfd: CFDParams | Mapping | None = None, range_corrections: Mapping | None = None) -> pd.DataFrame:
     """First-echo features of every pulse of a pulse table (real or simulated alike).
 
     Parameters
@@ -212,8 +212,8 @@ def feature_table(pulses: pa.Table, noise: Mapping, params: FeatureParams | None
     pulses : pa.Table with the pulse schema (io.tables), optionally the ``select`` columns.
     noise : mapping dataset -> calibration dict (noise_mean, noise_sd[, fwhm_ns]) or
         (mean, sd[, fwhm_ns]) tuple or NoiseStats.
-    params : FeatureParams.  cfd : CFDParams for pulses without an echo time (their own first
-        CFD echo; needs fwhm_ns in ``noise`` unless resolved).
+    params : FeatureParams.  cfd : CFDParams, or a mapping dataset -> CFDParams, for pulses
+        without an echo time (their own first CFD echo; needs fwhm_ns in ``noise`` unless resolved).
     range_corrections : mapping dataset -> RangeCorrection applied to those own CFD echoes.
 
     Returns
@@ -237,7 +237,7 @@ def feature_table(pulses: pa.Table, noise: Mapping, params: FeatureParams | None
         if missing.any():
             from .cfd import detect_echoes
 
-            c = (cfd or CFDParams()).resolved(fwhm)
+            c = ((cfd.get(name) if isinstance(cfd, Mapping) else cfd) or CFDParams()).resolved(fwhm)
             idx = np.flatnonzero(missing)
             ech = detect_echoes(samples[idx], lens[idx], dt[idx], mean[idx], sd[idx], c, max_echoes=1,
                                 range_correction=(range_corrections or {}).get(name))
@@ -292,17 +292,17 @@ def run(pulse_paths, calibration_paths, out_path, cfg: dict, *, batch_rows: int 
 
     from ..errors import WaveforestError
     from ..io.tables import check_pulses, iter_pulses, write_table
-    from .calibration import load_calibration, range_correction_of
+    from .calibration import cfd_of, load_calibration, range_correction_of
 
-    noise, corrections = {}, {}
+    noise, corrections, cfd = {}, {}, {}
     use_rc = bool(cfg.get("sensor", {}).get("cfd", {}).get("range_correction", True))
     for p in calibration_paths:
         c = load_calibration(p)
         noise[c["dataset"]] = c
+        cfd[c["dataset"]] = cfd_of(c) or CFDParams.from_config(cfg)
         if use_rc:
             corrections[c["dataset"]] = range_correction_of(c)
     params = FeatureParams.from_config(cfg)
-    cfd = CFDParams.from_config(cfg)
     parts = []
     for path in pulse_paths:
         path = Path(path)

@@ -128,6 +128,17 @@ class CFDParams:
         """The dead time in fine-grid steps."""
         return int(round(self.dead_time_ns / FINE_NS))
 
+    def to_dict(self) -> dict:
+        """fraction, delay_ns, arming_sd, dead_time_ns (as a calibration JSON stores them)."""
+        return {"fraction": self.fraction, "delay_ns": self.delay_ns, "arming_sd": self.arming_sd,
+                "dead_time_ns": self.dead_time_ns}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> CFDParams:
+        """Inverse of :meth:`to_dict`."""
+        return cls(fraction=float(d["fraction"]), delay_ns=d.get("delay_ns"), arming_sd=float(d["arming_sd"]),
+                   dead_time_ns=d.get("dead_time_ns"))
+
     @classmethod
     def from_config(cls, cfg: dict) -> CFDParams:
         """From the ``sensor.cfd`` section of a loaded config (or the whole config)."""

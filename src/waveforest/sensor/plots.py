@@ -1,4 +1,4 @@
-"""Figures of the sensor stages: S(t) with its spread, CV(b) of the AGC fit (PNG, atomic)."""
+"""Figures of the sensor stages: S(t) with its spread and the CFD tuning, CV(b) of the AGC fit (PNG, atomic)."""
 
 from __future__ import annotations
 
@@ -18,10 +18,15 @@ def _pyplot():
     return plt
 
 
-def plot_system_waveform(system, path, title: str = "System waveform S(t)") -> Path:
-    """S(t) (line) with +-1 SD over the calibration pulses (band), FWHM in the legend."""
+def plot_system_waveform(system, path, title: str = "System waveform S(t)", tuning=None) -> Path:
+    """S(t) (line) with +-1 SD over the calibration pulses (band), FWHM in the legend; with a
+    CFD ``tuning`` grid (DataFrame fraction, delay_ns, score_m) and its chosen ``cfd``, a second
+    panel maps the score (largest |bias| over echo-width classes) over (f, delay)."""
     plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(6.4, 4.0), dpi=120)
+    grid = None if tuning is None else tuning[0]
+    panels = 2 if grid is not None and len(grid) else 1
+    fig, axes = plt.subplots(1, panels, figsize=(6.4 * panels, 4.0), dpi=120, squeeze=False)
+    ax = axes[0, 0]
     t, s = system.t_ns, system.s
     if system.s_sd is not None:
         ax.fill_between(t, s - system.s_sd, s + system.s_sd, color="tab:blue", alpha=0.25, lw=0, label="±1 SD over pulses")
@@ -31,6 +36,19 @@ def plot_system_waveform(system, path, title: str = "System waveform S(t)") -> P
     ax.set_ylabel("S(t), DN m² per unit σ")
     ax.set_title(title)
     ax.legend(frameon=False, fontsize=8)
+    if panels == 2:
+        cfd = tuning[1]
+        ax = axes[0, 1]
+        piv = grid.pivot(index="delay_ns", columns="fraction", values="score_m")
+        f, d = piv.columns.to_numpy(float), piv.index.to_numpy(float)
+        im = ax.pcolormesh(f, d, 100 * piv.to_numpy(float), shading="nearest", cmap="viridis_r", vmax=20)
+        fig.colorbar(im, ax=ax, label="largest |median dR| of a width class, cm")
+        ax.plot([cfd.fraction], [cfd.delay_ns], marker="*", ms=14, color="tab:red", ls="none",
+                label=f"tuned: f = {cfd.fraction:.2f}, delay = {cfd.delay_ns:.2f} ns")
+        ax.set_xlabel("CFD fraction f")
+        ax.set_ylabel("CFD delay, ns")
+        ax.set_title("CFD tuning against the DR ranges (METHOD.md f)")
+        ax.legend(fontsize=8, loc="lower left", framealpha=0.8)
     fig.tight_layout()
     path = Path(path)
     with atomic_path(path) as tmp:
