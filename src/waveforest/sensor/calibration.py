@@ -204,8 +204,7 @@ def _gather_target_pulses(path: Path, targets, datasets, batch_rows: int, progre
     names: set = set()
     keep = []
     year = None
-    schema = pq.read_schema(path)
-    has_gain = GAIN_COLUMN in schema.names
+    has_gain = GAIN_COLUMN in pq.read_schema(path).names
     cols = _COLUMNS + ([GAIN_COLUMN] if has_gain else [])
     n_rows = pq.read_metadata(path).num_rows
     rng = np.random.default_rng([int(seed), 0xCFD])
@@ -362,7 +361,7 @@ def model_sensor_effects(cfg: dict) -> dict:
 def _cfd_against_dr(d: dict, checkable, noise, system_fwhm_ns: float, cfg: dict):
     """The CFD (tuned unless ``calibrate.tune_cfd`` is false) on the checkable pulses of ``d``.
 
-    Returns (CFDTuning, its CFDRanges, on-target mask over those pulses).
+    Returns (CFDTuning, on-target mask over those pulses).
     """
     sec = cfg.get("calibrate", {})
     idx = np.flatnonzero(checkable)
@@ -373,7 +372,7 @@ def _cfd_against_dr(d: dict, checkable, noise, system_fwhm_ns: float, cfg: dict)
     tuning = tune_cfd(x, lens, dt, te, width, noise.mean, noise.sd, CFDParams.from_config(cfg), system_fwhm_ns,
                       tune=bool(sec.get("tune_cfd", True)), n_bins=int(sec.get("range_correction_bins", 8)),
                       min_per_bin=int(sec.get("range_correction_min_pulses", 20)))
-    return tuning, tuning.ranges, d["target"][idx] >= 0
+    return tuning, d["target"][idx] >= 0
 
 
 def run(pulses_path, targets, datasets, out_path, json_path, cfg: dict, *, plot_path=None, agc_fit: dict | None = None,
@@ -405,7 +404,8 @@ def run(pulses_path, targets, datasets, out_path, json_path, cfg: dict, *, plot_
     system.meta.update({"dataset": name, "year": int(year)})
 
     # CFD (tuned) and range correction against the DR ranges (METHOD.md f)
-    tuning, ranges, on_target = _cfd_against_dr(d, checkable, noise, fwhm, cfg)
+    tuning, on_target = _cfd_against_dr(d, checkable, noise, fwhm, cfg)
+    ranges = tuning.ranges
     dr, corr = ranges.dr_minus_cfd_m, ranges.correction
     dr_after = ranges.residual_m
     per_target = {}
