@@ -1,7 +1,9 @@
-"""The analysis recovers the campaign's hidden sensor truth: AGC b (Eq. 1) and S(t) (Eq. 8).
+"""The analysis recovers the campaign's hidden sensor truth: AGC b (Eq. 1), S(t) (Eq. 8) and the
+DR discriminator that the CFD is tuned to (METHOD.md f).
 
 Full pulse density on the reference targets of two datasets, through the real pipeline
-stages (``ingest``, ``agc``, ``calibrate``); about 10 s.
+stages (``ingest``, ``agc``, ``calibrate``); about 10 s, and 20 s for the CFD on a campaign
+with vegetation.
 
 A target flown by two strips is seen at two ranges and incidence angles (a few % of
 amplitude) and, independently, at two AGC levels (the loop follows each strip's own
@@ -112,3 +114,51 @@ def test_calibration_recovers_the_true_system_waveform(recovered, ds):
     err = np.linalg.norm(s_rec - s_true) / np.linalg.norm(s_true)
     assert err < S_TOL
     assert out[ds][1]["noise_mean"] == pytest.approx(d["noise_mean_dn"], abs=0.05)
+
+
+CFD_TERM_TOL = 0.10
+"""Tuned CFD: its width term ln(f)/delay within 10 % of the DR discriminator's (the untuned
+starting pair 0.5, FWHM/2 is 34 % off the campaign's 0.35, FWHM/2)."""
+
+
+@pytest.fixture(scope="module")
+def vegetated(tmp_path_factory):
+    """The smoke campaign's vegetation (two samples of every species) through ingest, agc, calibrate."""
+    pytest.importorskip("waveforest.vegetation")
+    from waveforest.campaign import run
+    from waveforest.io.ingest import run as ingest
+    from waveforest.sensor import agc as agc_stage
+    from waveforest.sensor import calibration
+    from waveforest.sensor.targets import read_datasets, read_targets
+
+    tmp = tmp_path_factory.mktemp("cfd")
+    cfg = config.validate(yaml.safe_load(yaml.safe_dump({
+        "seed": 3, "datasets": DATASETS, "campaign": {"samples_per_species": 2, "n_rays": 500}})))
+    camp = tmp / "campaign"
+    run(cfg, camp, progress=False)
+    truth = json.loads((camp / "truth.json").read_text())
+    targets, datasets = read_targets(camp / "targets.csv"), read_datasets(camp / "datasets.csv")
+    out = {}
+    for ds in DATASETS:
+        pulses = tmp / f"{ds}.parquet"
+        ingest(camp / f"{ds}.las", pulses, dataset=ds, trajectory=camp / f"{ds}_trajectory.csv")
+        agc_stage.run(pulses, targets, datasets, tmp / f"{ds}_agc.parquet", tmp / f"{ds}_agc.json", cfg,
+                      progress=False)
+        out[ds] = calibration.run(tmp / f"{ds}_agc.parquet", targets, datasets, tmp / f"{ds}_S.parquet",
+                                  tmp / f"{ds}_S.json", cfg, progress=False)
+    return truth, out
+
+
+@pytest.mark.parametrize("ds", DATASETS)
+def test_cfd_tuning_recovers_the_dr_discriminator(vegetated, ds):
+    """METHOD.md f: the CFD tuned on the dataset's own waveforms against its DR ranges lies on the
+    ridge of the sensor's discriminator and leaves no echo-width class biased."""
+    import math
+
+    truth, out = vegetated
+    dr, cal = truth["datasets"][ds]["sensor"]["dr_cfd"], out[ds]
+    assert cal["cfd_tuning"]["tuned"], cal["cfd_tuning"]["reason"]
+    term = math.log(cal["cfd"]["fraction"]) / cal["cfd"]["delay_ns"]
+    assert term / (math.log(dr["fraction"]) / dr["delay_ns"]) == pytest.approx(1.0, abs=CFD_TERM_TOL)
+    assert np.all(np.abs(cal["cfd_tuning"]["bias_per_width_class_m"]) < 0.01)
+    assert cal["cfd_check_after"]["frac_within_0_10_m"] > 0.95  # the paper's criterion on the targets
