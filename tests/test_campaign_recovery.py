@@ -34,8 +34,9 @@ S_TOL = 0.03
 DATASETS = ["2010_12_1", "2012_10_1"]
 
 
-@pytest.fixture(scope="module")
-def recovered(tmp_path_factory):
+def _campaign_through_calibrate(tmp, campaign: dict):
+    """A virtual campaign (seed 3, ``campaign`` section) through ingest, agc and calibrate:
+    (truth, {dataset: (agc fit, calibration JSON, S(t) path, pulse table, targets.csv)})."""
     pytest.importorskip("waveforest.vegetation")
     from waveforest.campaign import run
     from waveforest.io.ingest import run as ingest
@@ -43,10 +44,7 @@ def recovered(tmp_path_factory):
     from waveforest.sensor import calibration
     from waveforest.sensor.targets import read_datasets, read_targets
 
-    tmp = tmp_path_factory.mktemp("recovery")
-    cfg = config.validate(yaml.safe_load(yaml.safe_dump({
-        "seed": 3, "datasets": DATASETS,
-        "campaign": {"samples_per_species": 1, "species": ["sand_road"], "n_rays": 500}})))
+    cfg = config.validate(yaml.safe_load(yaml.safe_dump({"seed": 3, "datasets": DATASETS, "campaign": campaign})))
     camp = tmp / "campaign"
     run(cfg, camp, progress=False)
     truth = json.loads((camp / "truth.json").read_text())
@@ -61,6 +59,13 @@ def recovered(tmp_path_factory):
                               tmp / f"{ds}_S.json", cfg, progress=False)
         out[ds] = (fit, cal, tmp / f"{ds}_S.parquet", pulses, camp / "targets.csv")
     return truth, out
+
+
+@pytest.fixture(scope="module")
+def recovered(tmp_path_factory):
+    """Targets only (one sand-road sample per year)."""
+    return _campaign_through_calibrate(tmp_path_factory.mktemp("recovery"),
+                                       {"samples_per_species": 1, "species": ["sand_road"], "n_rays": 500})
 
 
 @pytest.mark.parametrize("ds", DATASETS)
@@ -123,30 +128,8 @@ starting pair 0.5, FWHM/2 is 34 % off the campaign's 0.35, FWHM/2)."""
 
 @pytest.fixture(scope="module")
 def vegetated(tmp_path_factory):
-    """The smoke campaign's vegetation (two samples of every species) through ingest, agc, calibrate."""
-    pytest.importorskip("waveforest.vegetation")
-    from waveforest.campaign import run
-    from waveforest.io.ingest import run as ingest
-    from waveforest.sensor import agc as agc_stage
-    from waveforest.sensor import calibration
-    from waveforest.sensor.targets import read_datasets, read_targets
-
-    tmp = tmp_path_factory.mktemp("cfd")
-    cfg = config.validate(yaml.safe_load(yaml.safe_dump({
-        "seed": 3, "datasets": DATASETS, "campaign": {"samples_per_species": 2, "n_rays": 500}})))
-    camp = tmp / "campaign"
-    run(cfg, camp, progress=False)
-    truth = json.loads((camp / "truth.json").read_text())
-    targets, datasets = read_targets(camp / "targets.csv"), read_datasets(camp / "datasets.csv")
-    out = {}
-    for ds in DATASETS:
-        pulses = tmp / f"{ds}.parquet"
-        ingest(camp / f"{ds}.las", pulses, dataset=ds, trajectory=camp / f"{ds}_trajectory.csv")
-        agc_stage.run(pulses, targets, datasets, tmp / f"{ds}_agc.parquet", tmp / f"{ds}_agc.json", cfg,
-                      progress=False)
-        out[ds] = calibration.run(tmp / f"{ds}_agc.parquet", targets, datasets, tmp / f"{ds}_S.parquet",
-                                  tmp / f"{ds}_S.json", cfg, progress=False)
-    return truth, out
+    """The smoke campaign's vegetation: two samples of every species per year."""
+    return _campaign_through_calibrate(tmp_path_factory.mktemp("cfd"), {"samples_per_species": 2, "n_rays": 500})
 
 
 @pytest.mark.parametrize("ds", DATASETS)
@@ -156,7 +139,7 @@ def test_cfd_tuning_recovers_the_dr_discriminator(vegetated, ds):
     import math
 
     truth, out = vegetated
-    dr, cal = truth["datasets"][ds]["sensor"]["dr_cfd"], out[ds]
+    dr, cal = truth["datasets"][ds]["sensor"]["dr_cfd"], out[ds][1]
     assert cal["cfd_tuning"]["tuned"], cal["cfd_tuning"]["reason"]
     term = math.log(cal["cfd"]["fraction"]) / cal["cfd"]["delay_ns"]
     assert term / (math.log(dr["fraction"]) / dr["delay_ns"]) == pytest.approx(1.0, abs=CFD_TERM_TOL)
