@@ -10,7 +10,7 @@ import pyarrow as pa
 import pytest
 
 from waveforest import config
-from waveforest.analysis.pulse_sim import split_effects
+from waveforest.analysis.pulse_sim import SensorSetup, render_sigma, split_effects
 from waveforest.analysis.simulate import Calibration, load_calibration, plan, simulate_pulses
 from waveforest.analysis.synthetic import plate_scene, pulse_table
 from waveforest.constants import RANGE_PER_NS
@@ -148,6 +148,26 @@ def test_twins_are_recorded_at_the_real_pulses_agc_gain():
     a_plain = feature_table(plain, noise)["Apeak"].mean()
     a_gained = feature_table(gained, noise)["Apeak"].mean()
     assert abs(a_gained / a_plain - 1) < 0.02  # ~105 DN, noise SD 3 DN over 180 pulses
+
+
+def test_a_twin_at_low_gain_arms_on_the_recorded_noise():
+    """The DR circuits see the recorded signal: at gain g the normalised noise has SD sd / g, and
+    a CFD armed at 4 sd instead of 4 sd / g fires on it. With correlated noise (lag-1 0.6) and
+    g = 0.5 that put 6 % of first echoes > 5 ns before a plane's echo; armed on the recorded
+    noise, 0.3 %, as at g = 1 (0.1 %)."""
+    cfg, cal, n, r = _cfg(), _cal(), 3000, 1000.0
+    setup = SensorSetup.from_config(cfg, cal.system, cal.noise_mean, cal.noise_sd, 1.0,
+                                    render_effects={"noise_autocorr": 0.6})
+    sigma = np.zeros((n, 400))
+    sigma[:, 200] = 0.02  # a plane 10 ns into the profile: ~15 DN at gain 1
+    t0 = np.full(n, r / RANGE_PER_NS - 10.0)  # two-way time of bin 0, ns
+
+    def early(g):
+        p = render_sigma(sigma, t0, np.full(n, r), setup, np.random.default_rng(1), gain=np.full(n, g))
+        t = p.echo_times_ns[:, 0] + p.first_sample_ns
+        return np.mean(t < np.nanmedian(t) - 5.0)
+
+    assert early(0.5) < 0.01 and early(1.0) < 0.01
 
 
 def test_same_seed_same_table_and_chunks_do_not_matter():

@@ -242,7 +242,8 @@ def render_sigma(sigma: np.ndarray, t0_ns: np.ndarray, range_m: np.ndarray, setu
         and clipping on the gained signal), and AGC-normalised as the real one is,
         (V - c-bar)/g + c-bar: its noise has SD noise_sd / g and its rounding steps 1/g DN,
         like the real normalised waveform's (the AGC does not gain the noise, METHOD.md b).
-        None: gain 1 (a pulse of no real recording).
+        The CFD arms at ``cfd.arming_sd`` SDs of the recorded noise, as the DR circuits see
+        it: noise_sd / g in normalised DN. None: gain 1 (a pulse of no real recording).
     """
     from ..sensor import detect_echoes, render
     from ..sensor.agc import divide_gain
@@ -252,11 +253,13 @@ def render_sigma(sigma: np.ndarray, t0_ns: np.ndarray, range_m: np.ndarray, setu
                record_ns=setup.record_ns, pre_trigger_m=tuple(setup.pre_trigger_m),
                digitizer_max=setup.digitizer_max, cfd=setup.cfd, gain=gain, **setup.render_effects)
     samples = np.asarray(r.samples, dtype=np.float32)
+    noise_sd = setup.noise_sd
     if gain is not None:
         samples = divide_gain(samples, gain, setup.noise_mean)
+        noise_sd = setup.noise_sd / np.asarray(gain, dtype=np.float64)
     lengths = np.full(n, samples.shape[1], dtype=np.int64)
     first = np.asarray(r.first_sample_ns, dtype=np.float64)
-    times, amps, counts = detect_echoes(samples, lengths, setup.sampling_ns, setup.noise_mean, setup.noise_sd,
+    times, amps, counts = detect_echoes(samples, lengths, setup.sampling_ns, setup.noise_mean, noise_sd,
                                         setup.cfd, max_echoes=MAX_ECHOES,
                                         range_correction=setup.range_correction)
     no_trigger = ~np.isfinite(np.asarray(r.trigger_ns, dtype=float))

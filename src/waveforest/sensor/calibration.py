@@ -369,7 +369,8 @@ def _cfd_against_dr(d: dict, checkable, noise, system_fwhm_ns: float, cfg: dict)
     fp = FeatureParams.from_config(cfg)
     width = first_echo_features(x, lens, dt, te, noise.mean, noise.sd, fp.segment_sd, fp.peak_rise_sd,
                                 echo_search_ns=fp.echo_search_ns)["FWHM"]
-    tuning = tune_cfd(x, lens, dt, te, width, noise.mean, noise.sd, CFDParams.from_config(cfg), system_fwhm_ns,
+    armed_sd = noise.sd / _checks.gain_or_one(d["gain"][idx])  # the recorded noise, as the DR circuits see it
+    tuning = tune_cfd(x, lens, dt, te, width, noise.mean, armed_sd, CFDParams.from_config(cfg), system_fwhm_ns,
                       tune=bool(sec.get("tune_cfd", True)), n_bins=int(sec.get("range_correction_bins", 8)),
                       min_per_bin=int(sec.get("range_correction_min_pulses", 20)))
     return tuning, d["target"][idx] >= 0

@@ -115,7 +115,8 @@ def tune_cfd(samples, lengths, sampling_ns, dr_time_ns, width_ns, noise_mean, no
     ----------
     samples : (n, n_s) DN, AGC-normalised.  lengths : (n,).  sampling_ns : (n,) ns.
     dr_time_ns : (n,) first DR echo, ns from the first sample.  width_ns : (n,) FWHM of the
-        first echo at the DR time, ns.  noise_mean, noise_sd : DN.
+        first echo at the DR time, ns.  noise_mean, noise_sd : DN, scalars or (n,); the CFD arms
+        at ``arming_sd`` x noise_sd (the recorded noise: SD / AGC gain in normalised DN).
     start : the configured CFD (arming, dead time; its pair is kept if tuning is not possible).
     system_fwhm_ns : FWHM of S(t), ns.  tune : False = keep the start pair (its ranges only).
     n_bins, min_per_bin : range-correction fit.
