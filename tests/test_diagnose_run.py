@@ -255,8 +255,10 @@ pulses), against a pulse-to-pulse SD of ~190 DN ns; its centroid moves by 2 mm."
 # noise_autocorr 0.608 [0.413, 0.796], reduction 0.026 [0.009, 0.042], gap 0.0435 -> 0.0188,
 # floor 0.0236 (15 minutes; the CFD arming on the recorded noise, SD / gain, is what keeps
 # twins at low gain from firing on correlated noise: armed at 4 SD of the normalised noise the
-# "after" gap rose to 0.0573); nonlinearity 152.4 [147.9, 159.0], gap 0.311 -> 0.0263, floor
-# 0.029 (16 minutes, measured before that arming change).
+# "after" gap rose to 0.0573); trigger_loss 0.191 [0.131, 0.230], reduction 0.078 [0.044, 0.111],
+# gap 0.0935 -> 0.0311, floor 0.024 (15 minutes); hotspot 1.313 [1.283, 1.340] around 1.3,
+# gap 0.944 -> 0.0306, floor 0.035 (15 minutes); nonlinearity 152.4 [147.9, 159.0], gap 0.311 ->
+# 0.0263, floor 0.029 (16 minutes, measured before that arming change).
 @pytest.mark.slow
 @pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.xfail(reason=BELOW_DETECTION[n]))
                                   if n in BELOW_DETECTION else n for n in CATALOGUE])
