@@ -443,7 +443,7 @@ def run(pulses_path, targets, datasets, out_path, json_path, cfg: dict, *, plot_
         from .plots import plot_system_waveform
 
         plot_system_waveform(system, plot_path, title=f"S(t) of {name} ({pulses.target.size} pulses)",
-                             tuning=(tuning.grid, ranges.cfd) if tuning.tuned else None)
+                             tuning=tuning)
     return result
 
 

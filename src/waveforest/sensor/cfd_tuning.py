@@ -99,12 +99,16 @@ class CFDTuning:
     (and ``cfd`` the starting pair) when not asked for or a width class has too few pulses.
     """
 
-    cfd: CFDParams
     ranges: CFDRanges
     classes: np.ndarray
     grid: pd.DataFrame
     tuned: bool
     reason: str
+
+    @property
+    def cfd(self) -> CFDParams:
+        """The chosen CFD (that of ``ranges``)."""
+        return self.ranges.cfd
 
 
 def tune_cfd(samples, lengths, sampling_ns, dr_time_ns, width_ns, noise_mean, noise_sd, start: CFDParams,
@@ -130,7 +134,7 @@ def tune_cfd(samples, lengths, sampling_ns, dr_time_ns, width_ns, noise_mean, no
         c = base.resolved(system_fwhm_ns)
         why = ("not asked for" if not tune else f"echoes per width class {counts.tolist()} (edges {WIDTH_EDGES} "
                f"x FWHM); tuning needs >= {MIN_CLASS_PULSES} in each")
-        return CFDTuning(c, run(c), classes, pd.DataFrame(), False, why)
+        return CFDTuning(run(c), classes, pd.DataFrame(), False, why)
     rows, best = [], None
     for f in FRACTIONS:
         for d in DELAYS_FWHM:
@@ -143,5 +147,5 @@ def tune_cfd(samples, lengths, sampling_ns, dr_time_ns, width_ns, noise_mean, no
                          **{f"bias_m_w{k}": float(b) for k, b in enumerate(bias)}, "frac_within_0_10_m": within})
             if best is None or score < best[0]:
                 best = (score, rr)
-    return CFDTuning(best[1].cfd, best[1], classes, pd.DataFrame(rows), True,
+    return CFDTuning(best[1], classes, pd.DataFrame(rows), True,
                      f"smallest largest |median residual| over echo-width classes: {best[0]:.4f} m")

@@ -20,11 +20,10 @@ def _pyplot():
 
 def plot_system_waveform(system, path, title: str = "System waveform S(t)", tuning=None) -> Path:
     """S(t) (line) with +-1 SD over the calibration pulses (band), FWHM in the legend; with a
-    CFD ``tuning`` grid (DataFrame fraction, delay_ns, score_m) and its chosen ``cfd``, a second
-    panel maps the score (largest |bias| over echo-width classes) over (f, delay)."""
+    tuned CFD (``tuning``, a :class:`~waveforest.sensor.cfd_tuning.CFDTuning`), a second panel
+    maps its score (largest |bias| over echo-width classes) over (f, delay)."""
     plt = _pyplot()
-    grid = None if tuning is None else tuning[0]
-    panels = 2 if grid is not None and len(grid) else 1
+    panels = 2 if tuning is not None and tuning.tuned else 1
     fig, axes = plt.subplots(1, panels, figsize=(6.4 * panels, 4.0), dpi=120, squeeze=False)
     ax = axes[0, 0]
     t, s = system.t_ns, system.s
@@ -37,7 +36,7 @@ def plot_system_waveform(system, path, title: str = "System waveform S(t)", tuni
     ax.set_title(title)
     ax.legend(frameon=False, fontsize=8)
     if panels == 2:
-        cfd = tuning[1]
+        cfd, grid = tuning.cfd, tuning.grid
         ax = axes[0, 1]
         piv = grid.pivot(index="delay_ns", columns="fraction", values="score_m")
         f, d = piv.columns.to_numpy(float), piv.index.to_numpy(float)
