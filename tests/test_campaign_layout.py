@@ -103,6 +103,20 @@ def test_layout_follows_table1_and_method(layout, species):
     assert pdist(allxy).min() >= MIN_SAMPLE_DISTANCE_M
 
 
+@pytest.mark.parametrize("samples, seed", [(40, 1), (80, SEED)])
+def test_large_campaigns_keep_samples_and_targets_isolated(species, samples, seed):
+    """Stands of many samples are placed by their footprints: at 40 per species and year seed 1
+    once put two stands' samples 2.4 m apart; 80 did not fit at all."""
+    lay = build_layout(species, samples, seed)
+    f, t = lay.fields, lay.targets.drop_duplicates("site")
+    assert (f.groupby(["year", "species"]).size() == samples).all()
+    assert pdist(f[["x", "y"]].to_numpy()).min() >= MIN_SAMPLE_DISTANCE_M
+    # no sample pulse sees a target square, no target pulse sees a plant (layout.py isolation)
+    d = np.hypot(*(t[["x", "y"]].to_numpy()[:, None, :] - f[["x", "y"]].to_numpy()[None, :, :]).transpose(2, 0, 1))
+    need = np.maximum(t["side_m"] / np.sqrt(2) + 5.5, t["radius_m"] + 4.5 + 3 * np.sqrt(2)).to_numpy()
+    assert (d.min(axis=1) >= need).all()
+
+
 def test_layout_is_deterministic(layout, species):
     again = build_layout(species, 3, SEED)
     pd.testing.assert_frame_equal(layout.fields, again.fields)

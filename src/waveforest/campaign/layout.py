@@ -12,8 +12,12 @@ around the beam (METHOD.md d), at most 4.2 m from the sample; the beam crosses a
 5 m * tan(15 deg) = 1.3 m horizontally over a 5-m tree. Everything a pulse can see therefore
 lies within the sample's own 6 x 6 m scene or on open ground beyond it (the scene's ground),
 never on a neighbouring sample (>= 10 - 3 = 7 m away). Stands are at least
-``min_separation_m`` apart and targets keep ``targets.min_separation_m`` from stands and from
-each other.
+``min_separation_m`` apart, and the sample grids of two stands at least one grid spacing apart
+along s or w, so that samples of different stands keep those 10 m however many samples a stand
+holds. Targets keep ``targets.min_separation_m`` from stand centres and from each other, and
+enough distance from every sample that no sample's pulse sees a target square and no target's
+pulse sees a plant (:data:`SAMPLE_PULSE_REACH_M`, :data:`TARGET_PULSE_REACH_M`,
+:data:`PLANT_REACH_M`).
 
 The layout is drawn for every campaign year (2010, 2012) whatever datasets are generated,
 so a sample's position does not depend on the dataset selection; only the years of the
@@ -41,6 +45,17 @@ YEARS = (2010, 2012)
 
 DESIGN_YEAR = {"P10": 2010, "S10": 2010, "S12": 2012}
 """Field designs of Table 1 and their year."""
+
+SAMPLE_PULSE_REACH_M = 5.5
+"""How far from its sample a sample's pulse sees: 1.7 m (disc) + 2.5 m (receiver) + 1.3 m (beam
+crossing a 5-m tree), module docstring."""
+
+TARGET_PULSE_REACH_M = 4.5
+"""How far beyond a target's pulse disc (``radius_m``) its pulses see: <= 0.7 m disc margin +
+2.5 m receiver radius + 1.3 m beam crossing."""
+
+PLANT_REACH_M = 3.0 * np.sqrt(2.0)
+"""Half-diagonal of a sample's 6 x 6 m scene (how far its plant reaches from the sample), m."""
 
 MAX_PLACEMENT_TRIES = 20000
 """Rejection-sampling attempts when placing stands and targets with a minimum separation."""
@@ -123,8 +138,10 @@ def terrain_z(layout: dict, s, w) -> np.ndarray:
     return float(t["base_z"]) + float(t["slope_along"]) * np.asarray(s) + float(t["slope_across"]) * np.asarray(w)
 
 
-def _place(rng, n, half_s, half_w, min_sep, fixed: np.ndarray, fixed_sep: float, what: str) -> np.ndarray:
-    """n points uniform in [-half_s, half_s] x [-half_w, half_w], pairwise >= min_sep, >= fixed_sep from ``fixed``."""
+def _place(rng, n, half_s, half_w, min_sep, fixed: np.ndarray, fixed_sep: float, what: str,
+           clear=None) -> np.ndarray:
+    """n points uniform in [-half_s, half_s] x [-half_w, half_w], pairwise >= min_sep, >= fixed_sep
+    from ``fixed``; ``clear(i, p, pts)``, when given, must also accept point i at p beside ``pts``."""
     pts = np.empty((0, 2))
     tries = 0
     while len(pts) < n:
@@ -138,8 +155,28 @@ def _place(rng, n, half_s, half_w, min_sep, fixed: np.ndarray, fixed_sep: float,
             continue
         if len(fixed) and np.min(np.hypot(*(fixed - p).T)) < fixed_sep:
             continue
+        if clear is not None and not clear(len(pts), p, pts):
+            continue
         pts = np.vstack([pts, p])
     return pts
+
+
+def stand_grid(m: int, spacing: float) -> tuple[np.ndarray, np.ndarray]:
+    """Grid nodes of a stand of ``m`` samples: (s, w) offsets from its centre, m (rows along s)."""
+    c = int(np.ceil(np.sqrt(m))) if m else 0
+    r = -(-m // c) if m else 0
+    j = np.arange(m)
+    return (j // c - (r - 1) / 2) * spacing, (j % c - (c - 1) / 2) * spacing
+
+
+def _half_extents(counts: list[int], spacing: float) -> np.ndarray:
+    """(n, 2) half extents (s, w) of the node boxes of stands with ``counts`` samples, m."""
+    out = np.zeros((len(counts), 2))
+    for k, m in enumerate(counts):
+        gs, gw = stand_grid(m, spacing)
+        if m:
+            out[k] = gs.max(), gw.max()
+    return out
 
 
 def species_for_year(species: pd.DataFrame, year: int) -> pd.DataFrame:
@@ -189,13 +226,35 @@ def build_layout(species: pd.DataFrame, samples_per_species: int, seed: int) -> 
     half_w = float(area["across_m"]) / 2 - float(st["edge_margin_m"])
     n_stands = {int(y): int(c) for y, c in st["count"].items()}
     total = sum(n_stands[y] for y in YEARS)
-    centres = _place(rng, total, half_s, half_w, float(st["min_separation_m"]), np.empty((0, 2)), 0.0, "stands")
-    sites = load_targets()
-    tsep = float(lay["targets"]["min_separation_m"])
-    tcentres = _place(rng, len(sites), half_s, half_w, tsep, centres, tsep, "targets")
-
     spacing = float(st["sample_spacing_m"])
     jitter = float(st["sample_jitter_m"])
+    # samples per stand (the species' samples of a year dealt round-robin to its stands)
+    n_year = {y: samples_per_species * len(species_for_year(sp, y)) for y in YEARS}
+    counts = [len(range(k, n_year[y], n_stands[y])) for y in YEARS for k in range(n_stands[y])]
+    half = _half_extents(counts, spacing)
+
+    def stands_clear(i, p, pts):
+        # node boxes of two stands at least one grid spacing apart along s or w: their
+        # samples keep the within-stand distance (spacing - 2 jitter) whatever the jitter
+        gap = np.abs(pts - p) - half[:len(pts)] - half[i]
+        return bool(np.all(np.max(gap, axis=1) >= spacing))
+
+    centres = _place(rng, total, half_s, half_w, float(st["min_separation_m"]), np.empty((0, 2)), 0.0,
+                     f"stands of {samples_per_species} samples per species and year",
+                     stands_clear)
+    sites = load_targets()
+    tsep = float(lay["targets"]["min_separation_m"])
+    reach = np.maximum(np.asarray(sites["side_m"], dtype=float) / np.sqrt(2.0) + SAMPLE_PULSE_REACH_M,
+                       np.asarray(sites["radius_m"], dtype=float) + TARGET_PULSE_REACH_M + PLANT_REACH_M)
+    reach += np.sqrt(2.0) * jitter
+
+    def target_clear(i, p, pts):
+        # no sample's pulse sees the target square, no target pulse sees a plant (isolation)
+        gap = np.maximum(np.abs(centres - p) - half, 0.0)
+        return bool(np.min(np.hypot(gap[:, 0], gap[:, 1])) >= reach[i])
+
+    tcentres = _place(rng, len(sites), half_s, half_w, tsep, centres, tsep, "targets", target_clear)
+
     t = lay["terrain"]
     stand_rows, field_rows = [], []
     k0 = 0
@@ -205,13 +264,6 @@ def build_layout(species: pd.DataFrame, samples_per_species: int, seed: int) -> 
         order = rng.permutation(len(slugs))
         slugs = slugs[order]
         nst = n_stands[year]
-        per = -(-len(slugs) // nst)
-        cols = int(np.ceil(np.sqrt(per)))
-        extent = cols * spacing
-        if extent > float(st["min_separation_m"]) - spacing:
-            raise CampaignParamsError(
-                f"campaign.samples_per_species = {samples_per_species}: {per} samples per stand do not fit "
-                f"between stands {st['min_separation_m']} m apart (layout.yaml); use fewer samples")
         offsets = rng.normal(0.0, float(t["stand_z_sd"]), nst)
         for k in range(nst):
             cs, cw = centres[k0 + k]
@@ -223,11 +275,9 @@ def build_layout(species: pd.DataFrame, samples_per_species: int, seed: int) -> 
             m = len(mine)
             if m == 0:
                 continue
-            c = int(np.ceil(np.sqrt(m)))
-            r = -(-m // c)
-            j = np.arange(m)
-            gs = (j // c - (r - 1) / 2) * spacing + rng.uniform(-jitter, jitter, m)
-            gw = (j % c - (c - 1) / 2) * spacing + rng.uniform(-jitter, jitter, m)
+            gs, gw = stand_grid(m, spacing)
+            gs = gs + rng.uniform(-jitter, jitter, m)
+            gw = gw + rng.uniform(-jitter, jitter, m)
             zs = terrain_z(lay, cs + gs, cw + gw) + offsets[k] + rng.normal(0.0, float(t["sample_z_sd"]), m)
             for i, slug in enumerate(mine):
                 field_rows.append({"year": year, "stand_id": stand_id, "idx": i, "species": slug,
