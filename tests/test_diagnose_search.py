@@ -182,6 +182,19 @@ def test_fits_on_a_subset_and_tests_on_all_pulses():
                fit_keys=fit.assign(pulse_id=fit["pulse_id"] + 10_000))
 
 
+def test_look_alikes_are_significant_and_not_told_apart_from_the_best():
+    from waveforest.diagnose.search import look_alikes
+
+    def row(name, sig, lo, hi):
+        return {"name": name, "significant": sig, "vs_best_ci_low": lo, "vs_best_ci_high": hi}
+
+    rows = [row("lad_shift", False, 0.0, 0.0), row("hotspot", True, -0.01, 0.02),
+            row("understory", True, -0.02, 0.01), row("leaf_albedo", False, -0.01, 0.02),
+            row("specular", True, 0.005, 0.03)]  # significant, but reduces the gap less than the best
+    assert look_alikes(rows, "lad_shift") == ["hotspot", "understory"]
+    assert look_alikes(rows[:1], "lad_shift") == []
+
+
 def test_at_bound_is_the_far_edge_of_the_range():
     from waveforest.diagnose.search import at_bound
 

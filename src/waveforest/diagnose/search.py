@@ -43,7 +43,8 @@ Procedure (one *round*; :func:`search` runs up to ``rounds`` of them)
    lower-ranked candidate is never named in its place, even when its own interval clears zero: the data
    then say that another effect explains the gap better, only less certainly, and naming
    the narrower interval would name the wrong effect (seen with a hidden ``lad_shift``,
-   whose look-alike ``leaf_albedo`` ranked second). Stop when the best candidate is not
+   whose look-alike ``leaf_albedo`` ranked second); the reason then names the significant
+   candidates whose reduction is not told apart from the best's (:func:`look_alikes`). Stop when the best candidate is not
    significant, when ``rounds`` effects are named, or when the model's gap on all samples
    is no longer significant above the noise floor.
 
@@ -606,6 +607,13 @@ def _refit(named: list[NamedEffect], current: dict, ctx: _Context) -> dict:
     return current
 
 
+def look_alikes(rows: list[dict], best: str) -> list[str]:
+    """Candidates of one round (``candidates.csv`` rows) that reduce the gap significantly and
+    that the data cannot tell apart from ``best``: their ``vs_best`` interval covers 0."""
+    return [r["name"] for r in rows if r["name"] != best and r["significant"]
+            and r["vs_best_ci_low"] <= 0.0 <= r["vs_best_ci_high"]]
+
+
 # --------------------------------------------------------------------------------------
 # the search
 # --------------------------------------------------------------------------------------
@@ -739,8 +747,11 @@ def search(
         edge = (f" ({', '.join(pinned)} reduce{'s' if len(pinned) == 1 else ''} it more, but only with a fit at "
                 "the edge of the range)") if pinned else ""
         if not best.significant:
+            alike = look_alikes(rows[-len(results):], best.estimate.name)
+            alike_note = (f"; {', '.join(alike)} reduce{'s' if len(alike) == 1 else ''} it significantly, but "
+                          "not distinguishably from it (look-alikes these data cannot tell apart)") if alike else ""
             reason = (f"round {rnd}: the best candidate ({best.estimate.name}) does not reduce the gap significantly"
-                      + edge if baseline.significant else "the base model's gap is within the noise floor")
+                      + edge + alike_note if baseline.significant else "the base model's gap is within the noise floor")
             break
         win = best
         e = win.estimate
