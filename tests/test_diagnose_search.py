@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 import pytest
+from scipy.stats import norm
 
 from waveforest.diagnose import catalogue as cat
 from waveforest.diagnose.search import SearchSettings, parabolic_vertex, refinement_step, search, split_samples
@@ -20,11 +21,14 @@ def run_search(effects, *, seed=1, search_seed=3, perturb=None, settings=SETTING
     return search(study.keys, study.real(effects), study.simulate, settings, seed=search_seed)
 
 
-def assert_named(result, truth: dict):
+def assert_named(result, truth: dict, widen: float = 1.0):
+    """The named effects are ``truth``'s, each interval covers its true value (the interval's
+    sides stretched by ``widen`` about the fitted value), and the excess gap halves."""
     assert result.verdict == "named"
     assert {e.name for e in result.named} == set(truth)
     for e in result.named:
-        assert e.ci_low <= truth[e.name] <= e.ci_high, (e.name, e.value, e.ci_low, e.ci_high)
+        lo, hi = e.value - widen * (e.value - e.ci_low), e.value + widen * (e.ci_high - e.value)
+        assert lo <= truth[e.name] <= hi, (e.name, e.value, e.ci_low, e.ci_high)
     # the total gap shrinks by at least half (residual and baseline on the same samples); the
     # gap a perfect model leaves is the noise floor, so what must halve is the excess over it
     assert result.residual.excess <= 0.5 * result.baseline.excess
@@ -133,10 +137,16 @@ def test_settings_are_checked():
 @pytest.mark.slow
 @pytest.mark.parametrize("name", list(CATALOGUE))
 def test_every_effect_is_named_synthetic(name):
-    """Each effect at its realistic value, hidden in the toy study, is named and covered."""
+    """Each effect at its realistic value, hidden in the toy study, is named and covered.
+
+    Ten effects, one data set each: their 95 % intervals would miss somewhere in 40 % of
+    such runs (noise_autocorr, seed 1: 0.738 [0.704, 0.772] around 0.7; seeds 2-6 give
+    0.673-0.720, unbiased). Each is therefore held to its 99.5 % interval (the 95 % one
+    stretched by z(0.9975) / z(0.975); ~5 % for the ten together), and the 95 % coverage rate
+    itself is :func:`test_value_interval_coverage`'s."""
     truth = {name: CATALOGUE[name].test_value}
     res = run_search(truth, samples=16)
-    assert_named(res, truth)
+    assert_named(res, truth, widen=norm.ppf(0.9975) / norm.ppf(0.975))
 
 
 @pytest.mark.slow
