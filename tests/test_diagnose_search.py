@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -203,6 +205,21 @@ def test_look_alikes_are_significant_and_not_told_apart_from_the_best():
             row("specular", True, 0.005, 0.03)]  # significant, but reduces the gap less than the best
     assert look_alikes(rows, "lad_shift") == ["hotspot", "understory"]
     assert look_alikes(rows[:1], "lad_shift") == []
+
+
+def test_a_value_interval_that_holds_the_off_value_does_not_exclude_it():
+    from waveforest.diagnose.search import Estimate
+
+    def est(name, lo, hi):
+        u_lo, u_hi = cat.to_u(name, lo), cat.to_u(name, hi)
+        return Estimate(name, (u_lo + u_hi) / 2, (lo + hi) / 2, lo, hi, min(u_lo, u_hi), max(u_lo, u_hi))
+
+    assert not est("lad_shift", -2.46, 0.06).excludes_off  # off (0 deg) lies inside the range
+    assert est("lad_shift", -2.46, -0.5).excludes_off
+    assert not est("understory", 0.0, 1.9).excludes_off  # off at the range's lower bound
+    assert est("understory", 0.6, 2.9).excludes_off
+    assert est("clumping", 0.11, 0.19).excludes_off  # off = infinitely wide clusters, u = 0
+    assert not Estimate("clumping", 0.1, 0.5, 0.11, math.inf, 0.0, 0.45).excludes_off
 
 
 def test_at_bound_is_the_far_edge_of_the_range():
