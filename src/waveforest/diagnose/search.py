@@ -48,9 +48,9 @@ Procedure (one *round*; :func:`search` runs up to ``rounds`` of them)
    then say that another effect explains the gap better, only less certainly, and naming
    the narrower interval would name the wrong effect (seen with a hidden ``lad_shift``,
    whose look-alike ``leaf_albedo`` ranked second); the reason then names the significant
-   candidates whose reduction is not told apart from the best's (:func:`look_alikes`). Stop when the best candidate is not
-   significant, when ``rounds`` effects are named, or when the model's gap on all samples
-   is no longer significant above the noise floor.
+   candidates whose reduction is not told apart from the best's (:func:`look_alikes`).
+   Stop when the best candidate is not significant, when ``rounds`` effects are named, or
+   when the model's gap on all samples is no longer significant above the noise floor.
 
 Verdict: ``none`` when the base model's gap is not significant above its noise floor (no
 effect is named, whatever the candidates do); ``named`` when at least one effect was named;
@@ -740,8 +740,8 @@ def search(
             gb, gn, excess, red, reps = _test(current, tested_models, ctx)
             lo, hi = _gap.wald_interval(red, reps, df, settings.alpha)
             rel = red / excess if excess > 0 else math.nan
-            reduces = bool(baseline.significant and lo > 0 and rel >= settings.min_relative_reduction)
-            sig = reduces and est.excludes_off
+            sig = bool(baseline.significant and lo > 0 and rel >= settings.min_relative_reduction
+                       and est.excludes_off)
             results.append(Candidate(round=rnd, estimate=est, gap_base=gb, gap_new=gn, excess_base=excess,
                                      reduction=red, reduction_ci_low=float(lo), reduction_ci_high=float(hi),
                                      relative=float(rel), significant=sig, replicates=reps))
