@@ -207,6 +207,23 @@ def test_look_alikes_are_significant_and_not_told_apart_from_the_best():
     assert look_alikes(rows[:1], "lad_shift") == []
 
 
+def test_a_perfect_look_alike_is_reported_with_the_named_effect():
+    """``specular`` made to act exactly as ``hotspot`` (s -> hotspot 1 + s): whichever is named,
+    the other explained the gap as well and stands beside it in ``look_alikes``."""
+    study = SyntheticStudy(samples_per_species=12, pulses_per_sample=8, seed=1)
+
+    def simulate(pulses, effects, seed):
+        eff = dict(effects)
+        if "specular" in eff:
+            eff["hotspot"] = eff.get("hotspot", 1.0) + eff.pop("specular")
+        return study.simulate(pulses, eff, seed)
+
+    res = search(study.keys, study.real({"hotspot": 1.3}), simulate, SearchSettings(rounds=1, n_boot=100), seed=3)
+    assert res.verdict == "named" and len(res.named) == 1
+    e = res.named[0]
+    assert e.name in ("hotspot", "specular") and e.look_alikes == [{"hotspot": "specular"}.get(e.name, "hotspot")]
+
+
 def test_a_value_interval_that_holds_the_off_value_does_not_exclude_it():
     from waveforest.diagnose.search import Estimate
 

@@ -16,6 +16,7 @@ Layout (every number a plain float; ``.inf`` where an interval of ``nonlinearity
         reduction_ci_high: 0.12
         relative_reduction: 0.9   # share of the then excess gap removed
         round: 1
+        look_alikes: []       # candidates of that round that explained the gap as well
     simulate_effects: {understory: 1.43}   # base + named: paste into simulate.effects
     gap: {before: ..., before_ci: [..], after: ..., after_ci: [..], noise_floor: ...}
 

@@ -263,6 +263,10 @@ def summary_markdown(result: SearchResult, gap: pd.DataFrame, cand: pd.DataFrame
             lines.append(f"| {e.name} | {_fmt(e.value)} | [{_fmt(e.ci_low)}, {_fmt(e.ci_high)}] | {e.round} | "
                          f"{_fmt(e.gap_reduction)} [{_fmt(e.reduction_ci_low)}, {_fmt(e.reduction_ci_high)}] |")
         lines.append("")
+        for e in result.named:
+            if e.look_alikes:
+                lines += [f"{', '.join(e.look_alikes)} reduced the gap significantly too in round {e.round}, by an "
+                          f"amount not told apart from {e.name}'s: on these data, as good an explanation.", ""]
         model = {**base_effects, **result.effects}
         lines += [f"Use it: `simulate: {{effects: {{{', '.join(f'{k}: {v:.4g}' for k, v in model.items())}}}}}`.",
                   ""]

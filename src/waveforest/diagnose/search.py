@@ -295,6 +295,9 @@ class NamedEffect:
     reduction_ci_high: float
     relative_reduction: float
     round: int
+    look_alikes: list[str] = field(default_factory=list)
+    """Candidates of its round that reduced the gap significantly too, by an amount not told
+    apart from its own (:func:`look_alikes`): on these data, as good an explanation."""
 
 
 @dataclass
@@ -759,8 +762,8 @@ def search(
         pinned = [results[i].estimate.name for i in order[:list(order).index(inside[0])]]  # ranked above best
         edge = (f" ({', '.join(pinned)} reduce{'s' if len(pinned) == 1 else ''} it more, but only with a fit at "
                 "the edge of the range)") if pinned else ""
+        alike = look_alikes(rows[-len(results):], best.estimate.name)
         if not best.significant:
-            alike = look_alikes(rows[-len(results):], best.estimate.name)
             alike_note = (f"; {', '.join(alike)} reduce{'s' if len(alike) == 1 else ''} it significantly, but "
                           "not distinguishably from it (look-alikes these data cannot tell apart)") if alike else ""
             b = best.estimate
@@ -775,7 +778,7 @@ def search(
         named.append(NamedEffect(name=e.name, value=e.value, ci_low=e.ci_low, ci_high=e.ci_high,
                                  gap_reduction=win.reduction, reduction_ci_low=win.reduction_ci_low,
                                  reduction_ci_high=win.reduction_ci_high, relative_reduction=win.relative,
-                                 round=rnd))
+                                 round=rnd, look_alikes=alike))
         if settings.refit and len(named) > 1:
             current = _refit(named, current, ctx)
         if not report(current).significant:
