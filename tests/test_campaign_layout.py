@@ -117,6 +117,11 @@ def test_large_campaigns_keep_samples_and_targets_isolated(species, samples, see
     assert (d.min(axis=1) >= need).all()
 
 
+def test_too_many_samples_for_the_area_is_a_clear_error(species):
+    with pytest.raises(CampaignParamsError, match="cannot place 27 stands of 300 samples.*samples_per_species"):
+        build_layout(species, 300, SEED)
+
+
 def test_layout_is_deterministic(layout, species):
     again = build_layout(species, 3, SEED)
     pd.testing.assert_frame_equal(layout.fields, again.fields)

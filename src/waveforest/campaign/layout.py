@@ -139,7 +139,7 @@ def terrain_z(layout: dict, s, w) -> np.ndarray:
 
 
 def _place(rng, n, half_s, half_w, min_sep, fixed: np.ndarray, fixed_sep: float, what: str,
-           clear=None) -> np.ndarray:
+           clear=None, hint: str = "enlarge the area or lower the separation") -> np.ndarray:
     """n points uniform in [-half_s, half_s] x [-half_w, half_w], pairwise >= min_sep, >= fixed_sep
     from ``fixed``; ``clear(i, p, pts)``, when given, must also accept point i at p beside ``pts``."""
     pts = np.empty((0, 2))
@@ -148,8 +148,7 @@ def _place(rng, n, half_s, half_w, min_sep, fixed: np.ndarray, fixed_sep: float,
         tries += 1
         if tries > MAX_PLACEMENT_TRIES:
             raise CampaignParamsError(
-                f"layout.yaml: cannot place {n} {what} {min_sep} m apart in the study area; "
-                "enlarge the area or lower the separation")
+                f"layout.yaml: cannot place {n} {what} {min_sep} m apart in the study area; {hint}")
         p = np.array([rng.uniform(-half_s, half_s), rng.uniform(-half_w, half_w)])
         if len(pts) and np.min(np.hypot(*(pts - p).T)) < min_sep:
             continue
@@ -240,8 +239,8 @@ def build_layout(species: pd.DataFrame, samples_per_species: int, seed: int) -> 
         return bool(np.all(np.max(gap, axis=1) >= spacing))
 
     centres = _place(rng, total, half_s, half_w, float(st["min_separation_m"]), np.empty((0, 2)), 0.0,
-                     f"stands of {samples_per_species} samples per species and year",
-                     stands_clear)
+                     f"stands of {samples_per_species} samples per species and year", stands_clear,
+                     "lower campaign.samples_per_species, enlarge the area or lower the separation")
     sites = load_targets()
     tsep = float(lay["targets"]["min_separation_m"])
     reach = np.maximum(np.asarray(sites["side_m"], dtype=float) / np.sqrt(2.0) + SAMPLE_PULSE_REACH_M,
