@@ -162,8 +162,8 @@ def _place(rng, n, half_s, half_w, min_sep, fixed: np.ndarray, fixed_sep: float,
 
 def stand_grid(m: int, spacing: float) -> tuple[np.ndarray, np.ndarray]:
     """Grid nodes of a stand of ``m`` samples: (s, w) offsets from its centre, m (rows along s)."""
-    c = int(np.ceil(np.sqrt(m))) if m else 0
-    r = -(-m // c) if m else 0
+    c = max(1, int(np.ceil(np.sqrt(m))))
+    r = -(-m // c)
     j = np.arange(m)
     return (j // c - (r - 1) / 2) * spacing, (j % c - (c - 1) / 2) * spacing
 
@@ -172,8 +172,8 @@ def _half_extents(counts: list[int], spacing: float) -> np.ndarray:
     """(n, 2) half extents (s, w) of the node boxes of stands with ``counts`` samples, m."""
     out = np.zeros((len(counts), 2))
     for k, m in enumerate(counts):
-        gs, gw = stand_grid(m, spacing)
         if m:
+            gs, gw = stand_grid(m, spacing)
             out[k] = gs.max(), gw.max()
     return out
 

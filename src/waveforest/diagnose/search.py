@@ -751,18 +751,20 @@ def search(
         order = np.argsort([-c.reduction for c in results], kind="stable")
         inside = [i for i in order if not at_bound(results[i].estimate.name, results[i].estimate.u_hat)]
         best = results[inside[0] if inside else order[0]]
+        round_rows = []
         for rank, i in enumerate(order, start=1):
             c = results[i]
             dlo, dhi = _gap.wald_interval(best.reduction - c.reduction, best.replicates - c.replicates,
                                           df, settings.alpha)
-            rows.append({**c.row(), "rank": rank, "vs_best_ci_low": float(dlo), "vs_best_ci_high": float(dhi)})
+            round_rows.append({**c.row(), "rank": rank, "vs_best_ci_low": float(dlo), "vs_best_ci_high": float(dhi)})
+        rows += round_rows
         if not inside:
             reason = f"round {rnd}: every candidate's fit lies at the edge of its range"
             break
         pinned = [results[i].estimate.name for i in order[:list(order).index(inside[0])]]  # ranked above best
         edge = (f" ({', '.join(pinned)} reduce{'s' if len(pinned) == 1 else ''} it more, but only with a fit at "
                 "the edge of the range)") if pinned else ""
-        alike = look_alikes(rows[-len(results):], best.estimate.name)
+        alike = look_alikes(round_rows, best.estimate.name)
         if not best.significant:
             alike_note = (f"; {', '.join(alike)} reduce{'s' if len(alike) == 1 else ''} it significantly, but "
                           "not distinguishably from it (look-alikes these data cannot tell apart)") if alike else ""
