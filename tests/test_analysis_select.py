@@ -32,7 +32,7 @@ FIELDS = pd.DataFrame(
 ECHOES = [
     [(0.3, 0.3, 102.0)],                        # 0: T1 (0.42 m, H 2)
     [(0.4, 0.4, 102.0)],                        # 1: 0.57 m from T1: outside the tree radius
-    [(0.1, 0.0, 100.5)],                        # 2: T1 but H 0.5 < 1 m: dropped
+    [(0.1, 0.0, 100.5)],                        # 2: T1 but H 0.5 < 1 m: below its crown
     [(10.5, 0.0, 101.2)],                       # 3: L1 (0.5 m)
     [(10.0, 0.8, 101.3)],                       # 4: L1 0.8 m, L2 0.7 m -> L2
     [(20.0, 0.0, 0.5)],                         # 5: sample of another year
@@ -40,9 +40,10 @@ ECHOES = [
     [(10.0, -0.5, 101.5), (10.0, -0.5, 101.0)],  # 7: L1, two echoes
     [(10.9, 0.0, 101.0)],                       # 8: L1 (0.9 m)
     [(0.0, 10.2, 105.0)],                       # 9: T2, birch of 6 m: outside the comparison heights
+    [(0.0, 10.1, 100.3)],                       # 10: below T2's crown, but T2 is not compared: dropped
 ]
 
-EXPECTED = {0: "T1", 3: "L1", 4: "L2", 7: "L1", 8: "L1", 9: "T2"}
+EXPECTED = {0: "T1", 2: "T1", 3: "L1", 4: "L2", 7: "L1", 8: "L1", 9: "T2"}
 
 
 def _rules(min_pulses=2):
@@ -74,6 +75,21 @@ def test_flags():
     assert out3.loc[[3, 4, 8], "classification_set"].all()
 
 
+def test_below_crown_pulses_are_a_set_of_their_own():
+    """A first echo under a compared tree's crown joins that tree in below_crown_set only;
+    any sample that takes it by the ordinary rules wins."""
+    out = select_pulses(pulse_table("2010_12_1", ECHOES), FIELDS, 2010, _rules(min_pulses=1)).to_pandas()
+    out = out.set_index("pulse_id")
+    assert out.index[out["below_crown_set"]].tolist() == [2]
+    assert not out.loc[2, ["classification_set", "comparison_set"]].any()  # single echo, birch 3 m
+    assert out.loc[2, "first_echo_h_m"] == pytest.approx(0.5)
+    assert 10 not in out.index  # under a birch of 6 m
+    # a low echo inside a tree's radius and a low sample's radius belongs to the low sample
+    f = pd.concat([FIELDS, FIELDS.iloc[[2]].assign(sample_id="L3", x=0.6, y=0.0, ground_z=100.0)])
+    both = select_pulses(pulse_table("2010_12_1", [[(0.1, 0.0, 100.5)]]), f, 2010, _rules()).to_pandas()
+    assert both["sample_id"].tolist() == ["L3"] and not both["below_crown_set"].any()
+
+
 def test_far_candidates_are_not_missed():
     """Nine nearer tree samples fail the height rule; the farther low sample must still win."""
     rows = [dict(x=0.01 * (i + 1), y=0.0, ground_z=0.0, radius_m=0.5, is_tree=True) for i in range(9)]
@@ -100,13 +116,13 @@ def test_run_and_cli(tmp_path):
                        footprint_diameter_m=0.18, sampling_ns=1)]).to_csv(tmp_path / "datasets.csv", index=False)
     cfg = config.load(overrides={"select": {"min_pulses": 2}})
     s = run(pulses, tmp_path / "fields.csv", tmp_path / "datasets.csv", tmp_path / "sel.parquet", cfg)
-    assert (s.n_pulses, s.n_selected, s.n_samples) == (10, 6, 4)
+    assert (s.n_pulses, s.n_selected, s.n_samples, s.n_below_crown) == (11, 7, 4, 1)
     out = read_pulses(tmp_path / "sel.parquet")
     assert sorted(out.column("pulse_id").to_pylist()) == sorted(EXPECTED)
     main(["select", str(pulses), "--fields", str(tmp_path / "fields.csv"), "--datasets",
           str(tmp_path / "datasets.csv"), "--out", str(tmp_path / "cli.parquet"), "--config",
           str(_config_file(tmp_path, "select:\n  min_pulses: 2\n"))])
-    assert read_pulses(tmp_path / "cli.parquet").num_rows == 6
+    assert read_pulses(tmp_path / "cli.parquet").num_rows == 7
 
 
 def test_bad_tables(tmp_path, capsys):

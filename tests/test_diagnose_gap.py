@@ -52,6 +52,23 @@ def test_known_shift_gives_d_equal_to_shift_and_gap_k_squared():
     assert rep.significant
 
 
+def test_a_stratum_is_a_cell_of_its_own_and_keeps_its_samples():
+    """Rows with a stratum form their own cells ("a below crown"); a shift there shows there
+    only; the same samples hold pulses of both strata and are resampled as one cluster."""
+    rng = np.random.default_rng(11)
+    real = clustered(rng, species=("a",), samples=20, icc=0.0)
+    sim = clustered(rng, species=("a",), samples=20, icc=0.0)
+    for t in (real, sim):
+        t["stratum"] = np.where(np.arange(len(t)) % 3 == 0, "below crown", "")
+    sim.loc[sim["stratum"] != "", "H"] += 2.0
+    rep = G.gap_report(real, sim, n_boot=50, seed=2, features=("H",))
+    d = rep.cells.set_index(["dataset", "species"])["d"]
+    assert sorted(rep.cells["species"].unique()) == ["a", "a below crown"]
+    assert np.allclose(d.xs("a below crown", level="species"), 2.0, atol=0.5)
+    assert np.allclose(d.xs("a", level="species"), 0.0, atol=0.3)
+    assert len(G.sample_universe(real, sim)) == 20
+
+
 def test_identical_distributions_gap_is_noise():
     rng = np.random.default_rng(3)
     real = clustered(rng, samples=12, icc=0.3)

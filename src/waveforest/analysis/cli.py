@@ -63,13 +63,16 @@ def select(pulses, fields, datasets, out, cfg):
     PULSES is the AGC-normalised pulse table of one dataset (results/agc/{dataset}.parquet).
     Adds sample_id, species, functional_group, ground_z, height_m and the flags
     classification_set (single DR echo, species with >= select.min_pulses pulses) and
-    comparison_set (modelled species, birch 2.5-5 m).
+    comparison_set (modelled species, birch 2.5-5 m), and below_crown_set: pulses under a
+    comparison tree's crown whose first echo is lower than select.tree_min_echo_h_m (for
+    diagnose only).
     """
     from .select import run
 
     s = run(pulses, fields, datasets, out, cfg)
     click.echo(f"select: {s.dataset}: {s.n_selected} of {s.n_pulses} pulses on {s.n_samples} samples "
-               f"({s.n_classification} classification, {s.n_comparison} comparison) -> {out}")
+               f"({s.n_classification} classification, {s.n_comparison} comparison, {s.n_below_crown} below crown) "
+               f"-> {out}")
 
 
 @click.command("simulate")

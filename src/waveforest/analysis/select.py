@@ -11,12 +11,17 @@ A pulse belongs to a field sample of the dataset's year when its first DR echo
 When several samples qualify, the nearest one (horizontal distance) wins. The search is a
 KD-tree query over all pulses at once (no loop over pulses).
 
-Two flags mark the subsets the later stages use:
+Three flags mark the subsets the later stages use:
 
 * ``classification_set`` (METHOD i4): pulses with exactly one DR echo, of species with at
   least ``min_pulses`` such pulses in the dataset;
 * ``comparison_set`` (METHOD i1): pulses of the modelled species (``simulate.species``), for
-  species with a height window (birch: trees of 2.5-5 m) only samples inside it.
+  species with a height window (birch: trees of 2.5-5 m) only samples inside it;
+* ``below_crown_set`` (beyond the paper, for ``diagnose``): pulses whose first echo lies
+  within ``tree_radius_m`` of a comparison tree but lower than ``tree_min_echo_h_m``: the
+  ground or ground vegetation under the crown, seen through a gap in it. They are assigned
+  to that tree only when no sample takes them by the rules above, and are in neither other
+  set, so the paper's analyses do not see them.
 """
 
 from __future__ import annotations
@@ -34,7 +39,7 @@ from ..io.tables import list_to_padded
 SELECT_COLUMNS = (
     "sample_id", "species", "functional_group", "ground_z", "sample_x", "sample_y",
     "height_m", "is_tree", "sample_distance_m", "first_echo_h_m",
-    "classification_set", "comparison_set",
+    "classification_set", "comparison_set", "below_crown_set",
 )
 """Columns that :func:`select_pulses` appends to the pulse table (documented in run())."""
 
@@ -76,7 +81,8 @@ def first_echoes(pulses: pa.Table) -> np.ndarray:
     return out
 
 
-def match_samples(echo_xyz: np.ndarray, fields: pd.DataFrame, rules: SelectRules) -> tuple[np.ndarray, np.ndarray]:
+def match_samples(echo_xyz: np.ndarray, fields: pd.DataFrame, rules: SelectRules, *,
+                  below_crown: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Index of the field sample each first echo belongs to (-1: none) and the distance.
 
     Parameters
@@ -86,6 +92,9 @@ def match_samples(echo_xyz: np.ndarray, fields: pd.DataFrame, rules: SelectRules
     fields : DataFrame
         Field samples (columns x, y, ground_z, radius_m, is_tree).
     rules : SelectRules
+    below_crown : bool
+        Match instead the echoes that lie within ``tree_radius_m`` of a tree but lower than
+        ``tree_min_echo_h_m`` above its ground (those the tree rule leaves out).
 
     Returns
     -------
@@ -118,7 +127,7 @@ def match_samples(echo_xyz: np.ndarray, fields: pd.DataFrame, rules: SelectRules
     ii = np.where(found, i, 0)
     valid = found & (d <= radius[ii])
     low = is_tree[ii] & (z[:, None] - ground[ii] < rules.tree_min_echo_h_m)
-    valid &= ~low
+    valid &= low if below_crown else ~low
     first = np.argmax(valid, axis=1)
     hit = valid[np.arange(len(xy)), first]
     sub_index = np.where(hit, ii[np.arange(len(xy)), first], -1)
@@ -126,6 +135,17 @@ def match_samples(echo_xyz: np.ndarray, fields: pd.DataFrame, rules: SelectRules
     index[ok_rows] = sub_index
     distance[ok_rows] = sub_dist
     return index, distance
+
+
+def comparison_samples(fields: pd.DataFrame, rules: SelectRules) -> np.ndarray:
+    """(J,) bool: which field samples are compared with simulations (modelled species, in
+    their height window)."""
+    species = fields["species"].to_numpy(object)
+    height = fields["height_m"].to_numpy(float)
+    out = np.isin(species, np.array(rules.comparison_species, dtype=object))
+    for sp, (lo, hi) in rules.height_range_m.items():
+        out &= (species != sp) | ((height >= lo) & (height <= hi))
+    return out
 
 
 def select_pulses(pulses: pa.Table, fields: pd.DataFrame, year: int, rules: SelectRules) -> pa.Table:
@@ -149,20 +169,24 @@ def select_pulses(pulses: pa.Table, fields: pd.DataFrame, year: int, rules: Sele
     f = fields[fields["year"] == year].reset_index(drop=True)
     echo = first_echoes(pulses)
     idx, dist = match_samples(echo, f, rules)
+    under, under_dist = match_samples(echo, f, rules, below_crown=True)
+    compared = comparison_samples(f, rules)
+    below = (idx < 0) & (under >= 0)
+    below[below] = compared[under[below]]
+    idx = np.where(below, under, idx)
+    dist = np.where(below, under_dist, dist)
     keep = np.flatnonzero(idx >= 0)
+    below = below[keep]
     out = pulses.take(pa.array(keep, type=pa.int64()))
     s = f.iloc[idx[keep]].reset_index(drop=True)
     species = s["species"].to_numpy(object)
     n_echoes = out.column("n_echoes").to_numpy(zero_copy_only=False).astype(np.int64)
-    single = n_echoes == 1
+    single = (n_echoes == 1) & ~below
     counts = pd.Series(species[single]).value_counts()
     frequent = np.isin(species, counts.index[counts >= rules.min_pulses].to_numpy(object))
     classification = single & frequent
     height = s["height_m"].to_numpy(float)
-    comparison = np.isin(species, np.array(rules.comparison_species, dtype=object))
-    for sp, (lo, hi) in rules.height_range_m.items():
-        this = species == sp
-        comparison &= ~this | ((height >= lo) & (height <= hi))
+    comparison = compared[idx[keep]] & ~below
     ground_z = s["ground_z"].to_numpy(float)
     columns = {
         "sample_id": pa.array(s["sample_id"].astype(str).to_list(), pa.string()),
@@ -177,6 +201,7 @@ def select_pulses(pulses: pa.Table, fields: pd.DataFrame, year: int, rules: Sele
         "first_echo_h_m": pa.array(echo[keep, 2] - ground_z, pa.float64()),
         "classification_set": pa.array(classification, pa.bool_()),
         "comparison_set": pa.array(comparison, pa.bool_()),
+        "below_crown_set": pa.array(below, pa.bool_()),
     }
     for name in SELECT_COLUMNS:
         if name in out.column_names:
@@ -202,6 +227,7 @@ class SelectSummary:
     n_selected: int
     n_classification: int
     n_comparison: int
+    n_below_crown: int
     n_samples: int
 
 
@@ -218,7 +244,8 @@ def run(pulses_path, fields_path, datasets_path, out_path, cfg: dict) -> SelectS
         Output Parquet: the selected pulse rows with the columns of :data:`SELECT_COLUMNS`
         (sample_id, species, functional_group, ground_z (m), sample_x/_y (m), height_m (field
         max height, m), is_tree, sample_distance_m (first echo to sample, horizontal, m),
-        first_echo_h_m (first echo above ground_z, m), classification_set, comparison_set).
+        first_echo_h_m (first echo above ground_z, m), classification_set, comparison_set,
+        below_crown_set).
     cfg : dict
         Loaded study config (sections ``select`` and ``simulate``).
     """
@@ -237,9 +264,10 @@ def run(pulses_path, fields_path, datasets_path, out_path, cfg: dict) -> SelectS
     out = select_pulses(pulses, fields, year, SelectRules.from_config(cfg))
     write_pulses(out, out_path)
     flags = {c: int(np.count_nonzero(out.column(c).to_numpy(zero_copy_only=False)))
-             for c in ("classification_set", "comparison_set")}
+             for c in ("classification_set", "comparison_set", "below_crown_set")}
     return SelectSummary(
         dataset=name, n_pulses=pulses.num_rows, n_selected=out.num_rows,
         n_classification=flags["classification_set"], n_comparison=flags["comparison_set"],
+        n_below_crown=flags["below_crown_set"],
         n_samples=len(set(out.column("sample_id").to_pylist())),
     )

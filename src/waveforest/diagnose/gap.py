@@ -1,7 +1,10 @@
 """The gap: a documented measure of disagreement between real and simulated features.
 
-A *cell* is one dataset x species; in it, each waveform feature f (METHOD.md h: H, Npeaks,
-Apeak, FWHM, E) has real values x (n_r pulses) and simulated values y (n_s pulses).
+A *cell* is one dataset x species (x stratum: feature tables may carry a ``stratum`` column,
+e.g. "below crown", which splits a species' pulses into cells labelled "birch below crown";
+the bootstrap still resamples the species' samples with all their pulses); in it, each
+waveform feature f (METHOD.md h: H, Npeaks, Apeak, FWHM, E) has real values x (n_r pulses)
+and simulated values y (n_s pulses).
 
 Per cell and feature
 --------------------
@@ -153,7 +156,7 @@ class GapData:
     Attributes
     ----------
     cells : DataFrame
-        C rows: dataset, species (the cells present in the real table).
+        C rows: dataset, species (the cell label: species and stratum; the cells present in the real table).
     features : tuple of str
         F feature names.
     floors : (F,) float64
@@ -223,7 +226,7 @@ class GapData:
         if universe is None:
             universe = sample_universe(real, sim)
         ds_names = pd.Index(sorted(real["dataset"].astype(str).unique()))
-        sp_names = pd.Index(sorted(real["species"].astype(str).unique()))
+        sp_names = pd.Index(sorted(cell_label(real).unique()))
         code = _cell_codes(real, ds_names, sp_names)
         present = np.unique(code)
         lookup = np.full(len(ds_names) * len(sp_names), -1)
@@ -278,10 +281,19 @@ def _require(table: pd.DataFrame, columns, what: str) -> None:
         raise WaveforestError(f"{what}: missing column(s) {', '.join(missing)}")
 
 
+def cell_label(table: pd.DataFrame) -> pd.Series:
+    """The species of each row, followed by its ``stratum`` where it has one (module docstring)."""
+    species = table["species"].astype(str)
+    if "stratum" not in table:
+        return species
+    stratum = table["stratum"].fillna("").astype(str)
+    return species.where(stratum == "", species + " " + stratum)
+
+
 def _cell_codes(table: pd.DataFrame, ds_names: pd.Index, sp_names: pd.Index) -> np.ndarray:
-    """``dataset index * n_species + species index`` per row; -1 where either is unknown."""
+    """``dataset index * n_labels + cell label index`` per row; -1 where either is unknown."""
     d = ds_names.get_indexer(table["dataset"].astype(str))
-    s = sp_names.get_indexer(table["species"].astype(str))
+    s = sp_names.get_indexer(cell_label(table))
     return np.where((d >= 0) & (s >= 0), d * len(sp_names) + s, -1)
 
 
@@ -628,7 +640,7 @@ def _wasserstein(data: GapData, pooled: np.ndarray, weights: np.ndarray, q) -> t
     uni = data.universe.index
     by_cell = []
     for table in (data.real, data.sim):
-        key = table["dataset"].astype(str) + "\x00" + table["species"].astype(str)
+        key = table["dataset"].astype(str) + "\x00" + cell_label(table)
         by_cell.append((key.to_numpy(), uni.get_indexer(table["sample_id"].astype(str))))
     for c, (ds, sp) in enumerate(data.cells.itertuples(index=False)):
         sel = [k == f"{ds}\x00{sp}" for k, _ in by_cell]

@@ -9,9 +9,12 @@ targets.csv. Steps:
 1. **Pulses.** The comparison pulses of the modelled species (``select``'s
    ``comparison_set``, ``simulate.species``) of ``diagnose.datasets`` (default: the
    comparison datasets), and their real features, with ``compare``'s rules
-   (:func:`.simulator.apply_rules`). Candidates are fitted on at most
-   ``diagnose.fit_pulses`` of them per dataset x species (a seeded hash order, so the
-   subset does not depend on the order of the files) and tested on all.
+   (:func:`.simulator.apply_rules`); with ``diagnose.below_crown``, also, as a stratum of
+   their own (``stratum`` :data:`.simulator.BELOW_CROWN`), the pulses whose first echo lies
+   under a comparison tree's crown (``below_crown_set``): the ground seen through gaps in
+   the crown, where vegetation under the trees shows. Candidates are fitted on at most
+   ``diagnose.fit_pulses`` of them per dataset x species x stratum (a seeded hash order, so
+   the subset does not depend on the order of the files) and tested on all.
 2. **Search** (:func:`.search.search`) with the study's simulation chain
    (:class:`.simulator.StudySimulator`) on top of ``simulate.effects`` (the base model).
 3. **After.** All pulses are simulated again with a fresh seed, independent of the search,
@@ -42,8 +45,9 @@ from . import catalogue as cat
 from . import gap as _gap
 from .model import model_dict, write_model
 from .search import SearchResult, SearchSettings, search
+from .simulator import BELOW_CROWN, own_cfd_echoes
 
-KEY_COLUMNS = ("dataset", "pulse_id", "sample_id", "species", "is_tree", "comparison_set")
+KEY_COLUMNS = ("dataset", "pulse_id", "sample_id", "species", "is_tree", "comparison_set", "below_crown_set")
 """``select`` columns that identify a pulse to simulate."""
 
 OUTPUT_NAMES = {
@@ -90,33 +94,37 @@ def pulse_keys(selected: dict, cfg: dict, cap: int | None = None) -> pd.DataFram
     cfg : dict
         Loaded study config.
     cap : int, optional
-        At most this many pulses per dataset x species (a seeded random subset: a smaller
-        cap gives a subset of a larger one); None = all.
+        At most this many pulses per dataset x species x stratum (a seeded random subset: a
+        smaller cap gives a subset of a larger one); None = all.
 
     Returns
     -------
     DataFrame
-        dataset, pulse_id, sample_id, species, is_tree; sorted by dataset and pulse_id.
+        dataset, pulse_id, sample_id, species, is_tree, stratum (:data:`.simulator.BELOW_CROWN` or "");
+        sorted by dataset and pulse_id.
     """
     from ..analysis.pulse_sim import hash_ids, stable_hash
 
     species = [str(s) for s in cfg["simulate"]["species"]]
+    optional = ("is_tree", "below_crown_set")  # select tables of other tools may lack them
     parts = []
     for ds, table in sorted(selected.items()):
-        missing = [c for c in KEY_COLUMNS if c not in table.column_names and c != "is_tree"]
+        missing = [c for c in KEY_COLUMNS if c not in table.column_names and c not in optional]
         if missing:
             raise WaveforestError(f"select table of {ds} lacks column(s) {', '.join(missing)}")
         df = table.select([c for c in KEY_COLUMNS if c in table.column_names]).to_pandas()
-        df = df[df["comparison_set"].fillna(False).astype(bool) & df["species"].astype(str).isin(species)]
-        df = df.drop(columns="comparison_set")
-        if "is_tree" not in df.columns:
-            df["is_tree"] = False
+        df = df.reindex(columns=list(KEY_COLUMNS), fill_value=False)
+        below = df["below_crown_set"].fillna(False).astype(bool) & bool(cfg["diagnose"]["below_crown"])
+        df = df[(df["comparison_set"].fillna(False).astype(bool) | below) & df["species"].astype(str).isin(species)]
+        df = df.assign(stratum=np.where(below[df.index], BELOW_CROWN, "")).drop(
+            columns=["comparison_set", "below_crown_set"])
         if cap is not None:
             rank = hash_ids(stable_hash(int(cfg["seed"]), ds, "diagnose"), df["pulse_id"].to_numpy(np.int64))
             df = df.assign(_rank=rank).sort_values(["_rank", "pulse_id"])
-            df = df.groupby("species", sort=False).head(int(cap)).drop(columns="_rank")
+            df = df.groupby(["species", "stratum"], sort=False).head(int(cap)).drop(columns="_rank")
         parts.append(df)
-    keys = pd.concat(parts, ignore_index=True) if parts else pd.DataFrame(columns=list(KEY_COLUMNS))
+    keys = pd.concat(parts, ignore_index=True) if parts else pd.DataFrame(
+        columns=["dataset", "pulse_id", "sample_id", "species", "is_tree", "stratum"])
     keys["sample_id"] = keys["sample_id"].astype(str)
     keys["species"] = keys["species"].astype(str)
     keys["dataset"] = keys["dataset"].astype(str)
@@ -131,12 +139,48 @@ def real_features(features: pd.DataFrame, keys: pd.DataFrame, cfg: dict) -> pd.D
     if "source" in f.columns:
         f = f[f["source"].astype(str) == "real"]
     f["dataset"] = f["dataset"].astype(str)
-    key_cols = ["dataset", "pulse_id", "sample_id", "species", "is_tree"]
-    f = f.drop(columns=[c for c in ("sample_id", "species", "is_tree") if c in f.columns])
+    key_cols = ["dataset", "pulse_id", "sample_id", "species", "is_tree", "stratum"]
+    f = f.drop(columns=[c for c in key_cols[2:] if c in f.columns])
     real = keys[key_cols].merge(f, on=["dataset", "pulse_id"], how="inner", validate="one_to_one")
     if real.empty:
         raise WaveforestError("diagnose: no real feature row matches the selected comparison pulses")
     return apply_rules(real, cfg)
+
+
+def below_crown_own_echoes(real: pd.DataFrame, keys: pd.DataFrame, selected: dict, calibrations: dict,
+                           cfg: dict) -> pd.DataFrame:
+    """``real`` with its below-crown rows' features taken at their own first CFD echo, the
+    detector of their twins (:func:`.simulator.own_cfd_echoes`), then ``compare``'s rules.
+
+    Parameters
+    ----------
+    real : DataFrame
+        :func:`real_features` of ``keys``.
+    keys : DataFrame
+        :func:`pulse_keys`.
+    selected : dict
+        Dataset -> ``select`` pa.Table (the waveforms).
+    calibrations : dict
+        Dataset -> (Calibration of :mod:`waveforest.analysis.simulate`, calibration JSON dict).
+    cfg : dict
+        Loaded study config.
+    """
+    import pyarrow as pa
+    import pyarrow.compute as pc
+
+    from ..sensor import FeatureParams, feature_table
+
+    below = keys[keys["stratum"] == BELOW_CROWN]
+    if below.empty:
+        return real
+    parts = []
+    for ds, rows in below.groupby("dataset", sort=True):
+        table = selected[ds]
+        sub = table.filter(pc.is_in(table.column("pulse_id"), value_set=pa.array(rows["pulse_id"].to_numpy(np.int64))))
+        cal, meta = calibrations[ds]
+        parts.append(feature_table(own_cfd_echoes(sub, cal, cfg), {ds: meta}, FeatureParams.from_config(cfg)))
+    own = real_features(pd.concat(parts, ignore_index=True), below, cfg)
+    return pd.concat([real[real["stratum"] != BELOW_CROWN], own], ignore_index=True)
 
 
 def signatures(result: SearchResult, settings: SearchSettings) -> pd.DataFrame:
@@ -246,7 +290,9 @@ def summary_markdown(result: SearchResult, gap: pd.DataFrame, cand: pd.DataFrame
         "",
         "The gap is the mean over dataset x species x feature cells of d^2 + ln(SD ratio)^2 (d = mean "
         "difference in pooled SDs; src/waveforest/diagnose/gap.py); the noise floor is the gap that "
-        "sampling noise alone gives (cluster bootstrap over field samples).",
+        "sampling noise alone gives (cluster bootstrap over field samples). With diagnose.below_crown, "
+        "a tree species' pulses whose first echo lies lower than select.tree_min_echo_h_m, the ground "
+        "seen through gaps in its crowns, form the cells '<species> below crown'.",
         "",
         f"- base model: gap {_fmt(tot['gap_before'])} [{_fmt(tot['before_ci_low'])}, "
         f"{_fmt(tot['before_ci_high'])}], noise floor {_fmt(tot['noise_floor'])}",
@@ -433,6 +479,7 @@ def run(selected_paths, real_paths, calibration_paths, out_dir, cfg: dict, *, da
             if not systems[ds].exists():
                 raise WaveforestError(f"{systems[ds]}: no such S(t) file (calibration of {ds})")
             calibrations[ds] = (load_calibration(systems[ds], metas[ds]), load_json(metas[ds]))
+        real = below_crown_own_echoes(real, keys, selected, calibrations, cfg)
         simulator = StudySimulator(selected, read_datasets(datasets_path), calibrations, cfg, base_effects=base,
                                    range_correction=use_rc,
                                    calibration_pulses=_calibration_pulses(agc_paths, targets_path, datasets_path,

@@ -122,8 +122,9 @@ def _selection(results: Path, used: set) -> Section | None:
     frames = []
     for p in sorted((results / "select").glob("*.parquet")):
         cols = [c for c in ("dataset", "species", "functional_group", "sample_id", "classification_set",
-                            "comparison_set") if c in pq.read_schema(p).names]
-        frames.append(pq.read_table(p, columns=cols).to_pandas())
+                            "comparison_set", "below_crown_set") if c in pq.read_schema(p).names]
+        t = pq.read_table(p, columns=cols).to_pandas()
+        frames.append(t.assign(below_crown_set=t.get("below_crown_set", False)))  # older select tables lack it
     if not frames:
         return None
     df = pd.concat(frames, ignore_index=True)
@@ -131,10 +132,12 @@ def _selection(results: Path, used: set) -> Section | None:
         return None
     g = df.groupby(["dataset", "functional_group", "species"], sort=True)
     t = g.agg(pulses=("species", "size"), samples=("sample_id", "nunique"),
-              classification=("classification_set", "sum"), comparison=("comparison_set", "sum")).reset_index()
+              classification=("classification_set", "sum"), comparison=("comparison_set", "sum"),
+              below_crown=("below_crown_set", "sum")).reset_index()
     sec = Section("Selected pulses (METHOD.md i1, i4)")
     sec.text("Pulses whose first DR echo hit a field sample; `classification`: single DR echo of a species "
-             "with enough pulses; `comparison`: modelled species (birch 2.5-5 m).")
+             "with enough pulses; `comparison`: modelled species (birch 2.5-5 m); `below_crown`: first echo "
+             "under the crown of a comparison tree, lower than the tree rule's height (diagnose only).")
     sec.table("Selected pulses per dataset and species", t)
     return sec
 
