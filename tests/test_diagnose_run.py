@@ -320,9 +320,9 @@ def test_real_chain_no_effect_names_nothing(tmp_path, overrides):
 # twins at low gain from firing on correlated noise: armed at 4 SD of the normalised noise the
 # "after" gap rose to 0.0573); trigger_loss 0.191 [0.131, 0.230], reduction 0.078 [0.044, 0.111],
 # gap 0.0935 -> 0.0311, floor 0.024 (15 minutes); hotspot 1.313 [1.283, 1.340] around 1.3,
-# gap 0.944 -> 0.0306, floor 0.035 (15 minutes); nonlinearity 152.4 [147.9, 159.0], gap 0.311 ->
-# 0.0263, floor 0.029 (16 minutes, measured before that arming change); with that change too
-# (each 24-29 minutes beside another run): specular 0.320 [0.296, 0.347] around 0.3, gap 0.618
+# gap 0.944 -> 0.0306, floor 0.035 (15 minutes); with that change too: nonlinearity 152.4 [147.9,
+# 159.0], gap 0.308 -> 0.0237, floor 0.0281 (15 minutes; before it, the same interval), and
+# (each 24-29 minutes beside another run) specular 0.320 [0.296, 0.347] around 0.3, gap 0.618
 # -> 0.0299, floor 0.0341; leaf_albedo 0.852 [0.848, 0.858] around 0.85, gap 1.81 -> 0.022, floor
 # 0.0445; lad_shift 15.05 [12.44, 15.98] around 15, gap 0.540 -> 0.0196, floor 0.0321.
 @pytest.mark.slow
