@@ -224,6 +224,19 @@ class SimPulses:
                                    echo_search_ns=setup.features.echo_search_ns)
 
 
+def twin_echoes(samples, lengths, sampling_ns, setup: SensorSetup, gain=None):
+    """CFD echoes of AGC-normalised waveforms, found as a simulated twin's are.
+
+    The setup's CFD and range correction, armed on the recorded noise: noise_sd / g in
+    normalised DN (``gain`` None: g = 1). Returns :class:`waveforest.sensor.Echoes`.
+    """
+    from ..sensor import detect_echoes
+
+    noise_sd = setup.noise_sd if gain is None else setup.noise_sd / np.asarray(gain, dtype=np.float64)
+    return detect_echoes(samples, lengths, sampling_ns, setup.noise_mean, noise_sd, setup.cfd,
+                         max_echoes=MAX_ECHOES, range_correction=setup.range_correction)
+
+
 def render_sigma(sigma: np.ndarray, t0_ns: np.ndarray, range_m: np.ndarray, setup: SensorSetup,
                  rng: np.random.Generator, sigma_total: np.ndarray | None = None,
                  first_hit_counts: np.ndarray | None = None, gain: np.ndarray | None = None) -> SimPulses:
@@ -245,7 +258,7 @@ def render_sigma(sigma: np.ndarray, t0_ns: np.ndarray, range_m: np.ndarray, setu
         The CFD arms at ``cfd.arming_sd`` SDs of the recorded noise, as the DR circuits see
         it: noise_sd / g in normalised DN. None: gain 1 (a pulse of no real recording).
     """
-    from ..sensor import detect_echoes, render
+    from ..sensor import render
     from ..sensor.agc import divide_gain
 
     n = sigma.shape[0]
@@ -253,15 +266,11 @@ def render_sigma(sigma: np.ndarray, t0_ns: np.ndarray, range_m: np.ndarray, setu
                record_ns=setup.record_ns, pre_trigger_m=tuple(setup.pre_trigger_m),
                digitizer_max=setup.digitizer_max, cfd=setup.cfd, gain=gain, **setup.render_effects)
     samples = np.asarray(r.samples, dtype=np.float32)
-    noise_sd = setup.noise_sd
     if gain is not None:
         samples = divide_gain(samples, gain, setup.noise_mean)
-        noise_sd = setup.noise_sd / np.asarray(gain, dtype=np.float64)
     lengths = np.full(n, samples.shape[1], dtype=np.int64)
     first = np.asarray(r.first_sample_ns, dtype=np.float64)
-    times, amps, counts = detect_echoes(samples, lengths, setup.sampling_ns, setup.noise_mean, noise_sd,
-                                        setup.cfd, max_echoes=MAX_ECHOES,
-                                        range_correction=setup.range_correction)
+    times, amps, counts = twin_echoes(samples, lengths, setup.sampling_ns, setup, gain)
     no_trigger = ~np.isfinite(np.asarray(r.trigger_ns, dtype=float))
     counts = np.where(no_trigger, 0, counts).astype(np.int16)
     times = np.where(no_trigger[:, None], np.nan, times)

@@ -743,8 +743,7 @@ def search(
             gb, gn, excess, red, reps = _test(current, tested_models, ctx)
             lo, hi = _gap.wald_interval(red, reps, df, settings.alpha)
             rel = red / excess if excess > 0 else math.nan
-            sig = bool(baseline.significant and lo > 0 and rel >= settings.min_relative_reduction
-                       and est.excludes_off)
+            sig = bool(lo > 0 and rel >= settings.min_relative_reduction and est.excludes_off)
             results.append(Candidate(round=rnd, estimate=est, gap_base=gb, gap_new=gn, excess_base=excess,
                                      reduction=red, reduction_ci_low=float(lo), reduction_ci_high=float(hi),
                                      relative=float(rel), significant=sig, replicates=reps))

@@ -108,7 +108,7 @@ def own_cfd_echoes(pulses: pa.Table, calibration, cfg: dict) -> pa.Table:
     """``pulses`` with their DR echoes replaced by the CFD echoes of their own waveforms.
 
     The CFD, its range correction and its arming on the recorded noise (noise SD / AGC gain)
-    are those that give a simulated twin its echoes (:func:`waveforest.analysis.pulse_sim.render_sigma`);
+    are those that give a simulated twin its echoes (:func:`waveforest.analysis.pulse_sim.twin_echoes`);
     a pulse without a CFD echo is left out, as a twin without one is.
 
     Parameters
@@ -120,18 +120,19 @@ def own_cfd_echoes(pulses: pa.Table, calibration, cfg: dict) -> pa.Table:
     cfg : dict
         Loaded study config (``sensor.cfd`` when the calibration has no CFD).
     """
+    from ..analysis.pulse_sim import SensorSetup, twin_echoes
     from ..io.tables import list_to_padded, padded_to_list
-    from ..sensor import CFDParams, detect_echoes
     from ..sensor._checks import gain_or_one
     from ..sensor.agc import GAIN_COLUMN
 
     samples, lengths = list_to_padded(pulses.column("samples"))
+    sampling = pulses.column("sampling_ns").to_numpy(zero_copy_only=False)
     gain = gain_or_one(pulses.column(GAIN_COLUMN).to_numpy(zero_copy_only=False)) if GAIN_COLUMN in \
-        pulses.column_names else np.ones(pulses.num_rows)
-    cfd = (calibration.cfd or CFDParams.from_config(cfg)).resolved(calibration.system.fwhm_ns)
-    times, _, counts = detect_echoes(samples, lengths, pulses.column("sampling_ns").to_numpy(zero_copy_only=False),
-                                     calibration.noise_mean, calibration.noise_sd / gain, cfd, max_echoes=4,
-                                     range_correction=calibration.range_correction)
+        pulses.column_names else None
+    setup = SensorSetup.from_config(cfg, calibration.system, calibration.noise_mean, calibration.noise_sd,
+                                    float(sampling[0]) if len(sampling) else 1.0,
+                                    range_correction=calibration.range_correction, cfd=calibration.cfd)
+    times, _, counts = twin_echoes(samples, lengths, sampling, setup, gain)
     counts = counts.astype(np.int64)
     out = pulses.set_column(pulses.schema.get_field_index("echo_time_ns"), "echo_time_ns",
                             padded_to_list(np.nan_to_num(times), counts, pa.float64()))
