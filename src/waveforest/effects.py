@@ -37,9 +37,9 @@ which prints each effect's largest shift):
   selection keeps a tree's pulses only with a first echo above 1 m and the birch waveform
   features only above 1.5 m (METHOD.md i1, i4), so the layer shows through multiple
   scattering alone. It does show, strongly, in the pulses that reach the ground through
-  gaps in the crowns (``select``'s ``below_crown_set``), which ``diagnose`` compares as a
-  stratum of their own with ``diagnose.below_crown``: there it raises E and Apeak by 2.5-4
-  pooled SDs.
+  gaps in the crowns (first echo under 1 m within 0.5 m of the stem), which ``diagnose``
+  compares as a stratum of their own with ``diagnose.below_crown``: there it raises E and
+  Apeak by 2.5-4 pooled SDs.
 - ``clumping`` 0.15 m: the value is the SD of the Thomas-process displacement around a
   cluster centre (vegetation/placement.py), so a *smaller* radius is *stronger* clumping
   (radius >> plant spacing is uniform again). Raspberry canes rise from one root crown and

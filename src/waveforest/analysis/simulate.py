@@ -175,7 +175,8 @@ class SimulateSummary:
 
 def simulate_pulses(selected: pa.Table, dataset_info: pd.Series, calibration: Calibration, cfg: dict, *,
                     chunk: int = 0, chunks: int = 1, effects: dict | None = None, progress: bool = True,
-                    threads: int | None = None, scene_builder=None) -> tuple[pa.Table, SimulateSummary]:
+                    threads: int | None = None, scene_builder=None, stream: int = 0
+                    ) -> tuple[pa.Table, SimulateSummary]:
     """Simulate the pulses of ``selected`` that fall into ``chunk`` (see module docstring).
 
     Parameters
@@ -196,6 +197,9 @@ def simulate_pulses(selected: pa.Table, dataset_info: pd.Series, calibration: Ca
     scene_builder : callable, optional
         ``f(species, height, seed, **kwargs) -> Scene``; default
         :func:`waveforest.vegetation.build_scene`.
+    stream : int
+        0: the study's random numbers; k > 0: an independent draw of the rays, noise,
+        sampling phase and ``xy_error`` offsets over the same plants.
 
     Returns
     -------
@@ -248,7 +252,7 @@ def simulate_pulses(selected: pa.Table, dataset_info: pd.Series, calibration: Ca
         n_no_echo += int((~ok).sum())
         if ok.any():
             rows, sensor, direction, r, d = rows[ok], sensor[ok], direction[ok], r[ok], d[ok]
-            ss = seed_sequence(seed, dataset, "pulses", sample_id, inst)
+            ss = seed_sequence(seed, dataset, "pulses", sample_id, inst, *((int(stream),) if stream else ()))
             trace_seed = int(ss.spawn(1)[0].generate_state(1, dtype=np.uint64)[0] >> np.uint64(1))
             rng = np.random.default_rng(ss)
             offset = np.zeros_like(sensor)
