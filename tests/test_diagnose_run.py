@@ -104,8 +104,9 @@ def test_real_below_crown_echoes_are_found_as_a_twins_are():
 def test_pulses_under_the_crowns_are_chosen_by_their_own_cfd_echo():
     """with_pulses_under_crowns re-draws below_crown_set with select's rules on each pulse's own
     CFD echoes: a pulse whose DR echo missed the tree joins when its waveform's first echo lies
-    under the crown; one the DR put there leaves when its waveform shows the crown first; a
-    pulse select gave a sample keeps it. The rows carry their CFD echo positions."""
+    under the crown, and so does one whose DR fired on a crown return its waveform does not
+    show; one the DR put there leaves when its waveform shows the crown first; a crown pulse by
+    both stays. The rows carry their CFD echo positions."""
     from waveforest import config
     from waveforest.analysis.select import SelectRules, select_pulses
     from waveforest.analysis.simulate import Calibration
@@ -115,19 +116,20 @@ def test_pulses_under_the_crowns_are_chosen_by_their_own_cfd_echo():
 
     fields = pd.DataFrame([dict(sample_id="T1", year=2010, species="birch", functional_group="broadleaf", x=0.0,
                                 y=0.0, ground_z=100.0, height_m=3.0, radius_m=0.5, is_tree=True)])
-    truth = [[(0.1, 0.0, 100.0)], [(0.2, 0.0, 101.5), (0.2, 0.0, 100.0)], [(0.0, 0.1, 102.0)]]
-    seen_by_dr = [[(3.0, 0.0, 102.0)], [(0.2, 0.0, 100.0)], [(0.0, 0.1, 102.0)]]
+    truth = [[(0.1, 0.0, 100.0)], [(0.2, 0.0, 101.5), (0.2, 0.0, 100.0)], [(0.0, 0.1, 102.0)],
+             [(0.0, -0.1, 100.0)]]
+    seen_by_dr = [[(3.0, 0.0, 102.0)], [(0.2, 0.0, 100.0)], [(0.0, 0.1, 102.0)], [(0.0, -0.1, 101.5)]]
     agc = pulse_table("2010_12_1", truth)
     dr = pulse_table("2010_12_1", seen_by_dr)
     for name in ("n_echoes", "echo_x", "echo_y", "echo_z", "echo_time_ns", "echo_intensity"):
         agc = agc.set_column(agc.schema.get_field_index(name), name, dr.column(name))
     cfg = config.load()
     selected = select_pulses(agc, fields, 2010, SelectRules.from_config(cfg))
-    assert selected.column("pulse_id").to_pylist() == [1, 2]  # by the DR: 1 under the crown, 2 in it
-    assert selected.column("below_crown_set").to_pylist() == [True, False]
+    assert selected.column("pulse_id").to_pylist() == [1, 2, 3]  # by the DR: 1 under the crown, 2 and 3 in it
+    assert selected.column("below_crown_set").to_pylist() == [True, False, False]
     out = with_pulses_under_crowns(selected, agc, fields, 2010, Calibration(gaussian_system_waveform(7.0, 1.0),
                                                                              10.0, 1.0), cfg).to_pandas()
-    assert out.set_index("pulse_id")["below_crown_set"].to_dict() == {2: False, 0: True}
+    assert out.set_index("pulse_id")["below_crown_set"].to_dict() == {2: False, 0: True, 3: True}
     own = out[out["pulse_id"] == 0].iloc[0]
     assert own["echo_z"][0] == pytest.approx(100.0, abs=0.05) and own["first_echo_h_m"] == pytest.approx(0.0, abs=0.05)
     assert out.columns.tolist() == selected.column_names

@@ -369,12 +369,12 @@ class StudySimulator:
             if ds not in self.selected:
                 raise WaveforestError(f"diagnose: no select table for dataset {ds}")
             table = self.selected[ds]
-            below = set(rows.loc[rows["stratum"] == BELOW_CROWN, "pulse_id"]) if "stratum" in rows else set()
+            below = rows.loc[rows["stratum"] == BELOW_CROWN, "pulse_id"] if "stratum" in rows else []
             ids = rows["pulse_id"].to_numpy(np.int64)
             sub = table.filter(pc.is_in(table.column("pulse_id"), value_set=pa.array(ids)))
             sub = sub.set_column(sub.schema.get_field_index("comparison_set"), "comparison_set",
                                  pa.array(np.ones(sub.num_rows, bool)))
-            under = np.isin(sub.column("pulse_id").to_numpy(), np.fromiter(below, np.int64, len(below)))
+            under = np.isin(sub.column("pulse_id").to_numpy(), np.asarray(below, np.int64))
             feats = [self._features(sub.filter(pa.array(~under)), ds, model, cfg)] if (~under).any() else []
             feats += self._below_crown(sub.filter(pa.array(under)), ds, model, cfg) if under.any() else []
             feats = [f for f in feats if f is not None]
