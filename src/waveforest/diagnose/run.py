@@ -404,7 +404,6 @@ def write_outputs(out_dir, result: SearchResult, gap: pd.DataFrame, cand: pd.Dat
 def _calibration_pulses(agc_paths, targets_path, datasets_path, selected: dict, settings: SearchSettings,
                         cfg: dict) -> dict:
     """Dataset -> calibration-target pulses, read only when a calibration-shaping candidate is tried."""
-    from ..sensor.agc import read_agc_metadata
     from ..sensor.calibration import CALIBRATION_EFFECTS, read_calibration_pulses
     from ..sensor.targets import read_datasets, read_targets
 
@@ -413,8 +412,7 @@ def _calibration_pulses(agc_paths, targets_path, datasets_path, selected: dict, 
     if targets_path is None:
         raise WaveforestError("diagnose: AGC-normalised pulse tables given without targets.csv")
     targets, datasets = read_targets(targets_path), read_datasets(datasets_path)
-    paths = _by_dataset(agc_paths, lambda p: (str(read_agc_metadata(p).get("dataset", p.stem)), p),
-                        "AGC-normalised pulse table")
+    paths = _agc_by_dataset(agc_paths)
     return {ds: read_calibration_pulses(paths[ds], targets, datasets, cfg) for ds in selected if ds in paths}
 
 
@@ -422,13 +420,11 @@ def _with_pulses_under_crowns(selected: dict, agc_paths, fields, datasets_path, 
     """:func:`with_pulses_under_crowns` of every diagnosed dataset (``diagnose.below_crown``)."""
     from ..analysis.campaign_tables import dataset_row, read_datasets
     from ..io.tables import read_pulses
-    from ..sensor.agc import read_agc_metadata
 
     if not agc_paths or fields is None:
         raise WaveforestError("diagnose.below_crown: the AGC-normalised pulse tables (--agc) and fields.csv are "
                               "needed to find the pulses under the crowns")
-    paths = _by_dataset(agc_paths, lambda p: (str(read_agc_metadata(p).get("dataset", p.stem)), p),
-                        "AGC-normalised pulse table")
+    paths = _agc_by_dataset(agc_paths)
     missing = sorted(set(selected) - set(paths))
     if missing:
         raise WaveforestError(f"diagnose.below_crown: no AGC-normalised pulse table of {', '.join(missing)}")
@@ -436,6 +432,14 @@ def _with_pulses_under_crowns(selected: dict, agc_paths, fields, datasets_path, 
     return {ds: with_pulses_under_crowns(table, read_pulses(paths[ds]), fields,
                                          int(dataset_row(datasets, ds, datasets_path)["year"]), calibrations[ds][0],
                                          cfg) for ds, table in selected.items()}
+
+
+def _agc_by_dataset(agc_paths) -> dict:
+    """Dataset -> path of its AGC-normalised pulse table (the dataset named in its metadata)."""
+    from ..sensor.agc import read_agc_metadata
+
+    return _by_dataset(agc_paths, lambda p: (str(read_agc_metadata(p).get("dataset", p.stem)), p),
+                       "AGC-normalised pulse table")
 
 
 def _by_dataset(paths, reader, what: str) -> dict:

@@ -345,8 +345,9 @@ class StudySimulator:
             feats = self._features(turned, ds, model, cfg, stream=k)
             if feats is None:
                 continue
-            where = dict(zip(ids.tolist(), range(len(ids))))
-            rows = turned.take(pa.array([where[i] for i in feats["pulse_id"].to_numpy(np.int64)], pa.int64()))
+            order = np.argsort(ids)
+            rows = turned.take(pa.array(order[np.searchsorted(ids, feats["pulse_id"].to_numpy(np.int64),
+                                                              sorter=order)]))
             under = (feats["H"].to_numpy(float) < low) & (stem_distance(rows, feats["echo_z"].to_numpy(float))
                                                           <= radius)
             found.append(feats[under])
