@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import contextlib
+import sys
 import warnings
 
 import click
+from tqdm import tqdm
 
 from ..cliutil import stage_options
 
@@ -15,9 +17,7 @@ def _warnings_to_stderr():
     """Show every warning once as ``waveforest: warning: ...`` (clear of progress bars)."""
 
     def show(message, category, filename, lineno, file=None, line=None):
-        from tqdm import tqdm
-
-        tqdm.write(f"waveforest: warning: {message}", file=click.get_text_stream("stderr"))
+        tqdm.write(f"waveforest: warning: {message}", file=sys.stderr)
 
     with warnings.catch_warnings():
         warnings.simplefilter("always")

@@ -33,7 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import WaveforestError
+from ..errors import WaveforestError, WaveforestWarning
 
 LAS_SIGNATURE = b"LASF"
 LASF_SPEC = b"LASF_Spec"
@@ -91,7 +91,7 @@ class LasWaveformError(WaveforestError):
     """A LAS waveform file that cannot be read (or a table that cannot be written as one)."""
 
 
-class LasWaveformWarning(UserWarning):
+class LasWaveformWarning(WaveforestWarning):
     """Something odd but readable in a LAS waveform file (the data are still trusted)."""
 
 

@@ -17,6 +17,7 @@ import html
 import json
 import os
 import platform
+import re
 from dataclasses import dataclass, field
 from importlib import metadata
 from pathlib import Path
@@ -32,10 +33,6 @@ from ..atomic import atomic_path
 
 MAX_TABLE_ROWS = 400
 """Longest table shown in full; longer ones are cut (the CSV holds all rows)."""
-
-PACKAGES = ("waveforest", "numpy", "numba", "embreex", "scipy", "pandas", "pyarrow", "scikit-learn",
-            "matplotlib", "laspy", "snakemake", "click", "pyyaml", "jsonschema")
-"""Packages whose versions the report lists."""
 
 SKIP_DIRS = ("campaign", "logs", "report", ".snakemake")
 """Folders of the results tree not searched for further tables and figures."""
@@ -60,13 +57,20 @@ class Section:
 
 
 def versions() -> dict:
-    """Installed versions of the packages of :data:`PACKAGES` and of Python."""
-    out = {"python": platform.python_version()}
-    for p in PACKAGES:
+    """Python, waveforest and every package waveforest requires, with their installed versions.
+
+    The list comes from the installed distribution's own requirements (pyproject.toml), so it
+    names exactly what ran; ``requirements-lock.txt`` pins the same names for a rerun.
+    """
+    out = {"python": platform.python_version(), "platform": platform.platform(), "waveforest": metadata.version("waveforest")}
+    for req in metadata.requires("waveforest") or []:
+        if "extra ==" in req:
+            continue
+        name = re.split(r"[\s\[<>=!~;]", req, maxsplit=1)[0]
         try:
-            out[p] = metadata.version(p)
+            out[name] = metadata.version(name)
         except metadata.PackageNotFoundError:
-            out[p] = "not installed"
+            out[name] = "not installed"
     return out
 
 
