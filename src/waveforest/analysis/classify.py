@@ -29,7 +29,7 @@ import pandas as pd
 
 from .. import __version__
 from ..atomic import atomic_path
-from ..errors import WaveforestError
+from ..errors import WaveforestError, WaveforestWarning
 from . import lda
 
 THREE_SPECIES_FEATURES = ("Apeak", "FWHM", "E")
@@ -60,7 +60,7 @@ def normalise(df: pd.DataFrame, features, normaliser: str, reference: pd.DataFra
     reference = df if reference is None else reference
     ref = reference[reference["species"].astype(str) == normaliser]
     if ref.empty:
-        warnings.warn(f"no {normaliser} pulses: features are not normalised", stacklevel=2)
+        warnings.warn(f"no {normaliser} pulses: features are not normalised", WaveforestWarning, stacklevel=2)
         return df, {"species": None, "n": 0}
     record = {"species": normaliser, "n": int(len(ref))}
     for f in features:

@@ -60,7 +60,7 @@ import pyarrow.parquet as pq
 from scipy.optimize import minimize_scalar
 
 from ..atomic import atomic_path
-from ..errors import WaveforestError
+from ..errors import WaveforestError, WaveforestWarning
 from ..io.tables import check_pulses, iter_pulses, list_to_padded
 from . import _checks
 from .noise import tail_samples
@@ -458,7 +458,7 @@ def run(pulses_path, targets, datasets, out_path, fit_path, cfg: dict, *, plot_p
     bounds = tuple(sec.get("b_bounds", (0.0, 0.05)))
     if agc_n == 0:
         warnings.warn(f"{pulses_path}: dataset {name} has no AGC values; waveforms are not normalised (b = NaN)",
-                      stacklevel=2)
+                      WaveforestWarning, stacklevel=2)
         a = b = cv_before = cv_after = float("nan")
         grid = curve = np.empty(0)
         eff_bounds = (float("nan"), float("nan"))
@@ -467,7 +467,7 @@ def run(pulses_path, targets, datasets, out_path, fit_path, cfg: dict, *, plot_p
         all_agc = np.array([agc_min, agc_max])
         eff_bounds = feasible_b_bounds(all_agc, a, bounds)
         if n_missing:
-            warnings.warn(f"{pulses_path}: {n_missing} pulse(s) without AGC are left unnormalised", stacklevel=2)
+            warnings.warn(f"{pulses_path}: {n_missing} pulse(s) without AGC are left unnormalised", WaveforestWarning, stacklevel=2)
         if fixed is not None:
             b, grid, curve = float(fixed), np.empty(0), np.empty(0)
             agc_gain(all_agc, a, b)  # raises if the fixed b makes a gain <= 0

@@ -47,7 +47,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from ..errors import WaveforestError
+from ..errors import WaveforestError, WaveforestWarning
 from ..io.tables import iter_pulses, list_to_padded
 from . import _checks
 from .agc import GAIN_COLUMN, _single_dataset, read_agc_metadata, write_json
@@ -435,7 +435,7 @@ def run(pulses_path, targets, datasets, out_path, json_path, cfg: dict, *, plot_
     }
     if result["cfd_check_after"]["n"] and result["cfd_check_after"]["frac_within_0_10_m"] < 0.95:
         warnings.warn(f"dataset {name}: CFD vs DR ranges: only {result['cfd_check_after']['frac_within_0_10_m']:.1%} "
-                      "within 0.10 m (the paper's criterion is > 95 %); consider tuning sensor.cfd", stacklevel=2)
+                      "within 0.10 m (the paper's criterion is > 95 %); consider tuning sensor.cfd", WaveforestWarning, stacklevel=2)
     system.meta.update({k: result[k] for k in ("noise_mean", "noise_sd", "n_pulses")})
     system.save(out_path)
     write_json(result, json_path)

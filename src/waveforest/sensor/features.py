@@ -36,6 +36,7 @@ import pyarrow as pa
 from numba import njit, prange
 
 from ..constants import RANGE_PER_NS
+from ..errors import WaveforestError, WaveforestWarning
 from ..io.tables import PULSE_SCHEMA, list_to_padded
 from . import _checks
 from .noise import NoiseStats
@@ -243,7 +244,7 @@ def feature_table(pulses: pa.Table, noise: Mapping, params: FeatureParams | None
                                 range_correction=(range_corrections or {}).get(name))
             t_echo[idx] = ech.times_ns[:, 0]
             warnings.warn(f"dataset {name}: {idx.size} pulse(s) without an echo time; their first CFD echo is used",
-                          stacklevel=2)
+                          WaveforestWarning, stacklevel=2)
     if n and samples.shape[1] == 0:
         samples = np.zeros((n, 1), dtype=np.float32)
     feats = first_echo_features(samples, lens, dt, t_echo, mean, sd, params.segment_sd, params.peak_rise_sd,
@@ -290,7 +291,6 @@ def run(pulse_paths, calibration_paths, out_path, cfg: dict, *, batch_rows: int 
 
     from tqdm import tqdm
 
-    from ..errors import WaveforestError
     from ..io.tables import check_pulses, iter_pulses, write_table
     from .calibration import cfd_of, load_calibration, range_correction_of
 
