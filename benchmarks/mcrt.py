@@ -16,10 +16,10 @@ Figures (``name: value unit``), canopy first, then ``<species>_...`` for each sp
   default of :func:`trace`); ``mrays_per_s``: Embree rays (intersect + occlusion) per second
   of the default trace;
 * ``embree_floor_ms_per_pulse``: the same rays (recorded during a trace) replayed through the
-  bare Embree calls (of :mod:`waveforest.mcrt.rtc`, so in its Z-order), intersect + occlusion,
+  bare Embree calls (of :mod:`waveforest.mcrt.backends.embree`, so in its Z-order), intersect + occlusion,
   the calls dealt out to one worker thread per core; ``trace_over_floor``: the ratio
   (target <= 2); ``embreex_floor_ms_per_pulse``: the same rays through embreex's ``run``
-  (split over Python threads), the path the tracer used before :mod:`waveforest.mcrt.rtc`;
+  (split over Python threads), the path the tracer used before :mod:`waveforest.mcrt.backends.embree`;
 * ``ms_per_pulse_amortised_<k>``: tracing plus the scene build shared by k pulses (a pool of
   instances; target <= 100 ms), on the BVH quality :func:`trace` builds for k pulses
   (:func:`waveforest.mcrt.tracer.bvh_quality`: HIGH from 12 pulses of 30,000 rays on);

@@ -4,8 +4,9 @@ import numpy as np
 import pytest
 
 from waveforest.constants import C_M_PER_NS
-from waveforest.mcrt import Beams, DirectEmbreeIntersector, EmbreeIntersector, NumpyIntersector, prepare, rtc, trace
+from waveforest.mcrt import Beams, DirectEmbreeIntersector, EmbreeIntersector, NumpyIntersector, prepare, trace
 from waveforest.mcrt import synthetic as syn
+from waveforest.mcrt.backends import embree as rtc
 from waveforest.scene import Scene
 
 T_RTOL = 1e-5  # float32 Embree vs float64 NumPy hit distance

@@ -8,14 +8,14 @@ Public API::
     res = trace(prepared, beams, n_rays=30000, max_order=10, seed=1)
     res.sigma, res.t0_ns, res.bin_ns, res.order_totals, res.first_hit_counts
 
-Modules: :mod:`.beams` (pulses), :mod:`.embree` (intersectors, :func:`prepare`),
-:mod:`.rtc` (Embree called from Numba), :mod:`.kernels` (Numba kernels), :mod:`.tracer` (wavefront orchestration),
-:mod:`.synthetic` (scenes with analytic answers), :mod:`.runner` (the ``trace`` stage).
+Modules: :mod:`.beams` (pulses), :mod:`.prepare` (a scene made ready, :func:`prepare`),
+:mod:`.backends` (intersectors behind one interface), :mod:`.kernels` (Numba kernels),
+:mod:`.tracer` (wavefront orchestration), :mod:`.threads` (thread counts).
 """
 
+from .backends import DirectEmbreeIntersector, EmbreeIntersector, NumpyIntersector
 from .beams import Beams, direction_from_angles
-from .embree import EmbreeIntersector, NumpyIntersector, PreparedScene, prepare
-from .rtc import DirectEmbreeIntersector
+from .prepare import PreparedScene, prepare
 from .tracer import DEFAULT_WINDOW_NS, TraceResult, trace
 
 __all__ = [

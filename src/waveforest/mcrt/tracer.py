@@ -21,7 +21,7 @@ draw) (:mod:`.kernels`), so the same seed gives the identical result whatever th
 the chunking and the parallel mode.
 
 Embree: the default intersector calls ``rtcIntersect1`` / ``rtcOccluded1`` from Numba kernels
-(:mod:`.rtc`) on a BVH of HIGH build quality; profiled on the vegetation scenes (30,000 rays,
+(:mod:`.backends.embree`) on a BVH of HIGH build quality; profiled on the vegetation scenes (30,000 rays,
 10 orders), the Embree calls take ~80 % of the CPU time of a pulse, the scattering kernel
 ~13 %, emission, compaction, binning and Python the rest.
 
@@ -46,9 +46,9 @@ from ..constants import BIN_NS, C_M_PER_NS, RANGE_PER_NS, RAY_EPS_M
 from ..effects import CATALOGUE, SPECULAR_PHONG_EXPONENT
 from ..scene import Scene
 from .beams import Beams
-from .embree import PreparedScene, prepare
-from .kernels import MISS_KIND, BeamFrame, Scattered, accumulate, beam_keys, compact, emit_rays, scatter
-from .rtc import MIN_PARALLEL_RAYS, NumbaThreads, take_rays
+from .kernels import MISS_KIND, BeamFrame, Scattered, accumulate, beam_keys, compact, emit_rays, scatter, take_rays
+from .prepare import PreparedScene, prepare
+from .threads import MIN_PARALLEL_RAYS, NumbaThreads, default_threads
 
 DEFAULT_WINDOW_NS = 100.0
 """Default sigma window, ns of two-way time after t0 (15 m of one-way range: a 6 x 6 m scene
@@ -80,12 +80,6 @@ CHUNKS_PER_WORKER = 4
 
 PARALLEL_MODES = ("pulses", "rays")
 """How ``trace`` uses its threads: whole chunks of pulses per thread, or every call split."""
-
-
-def _default_threads() -> int:
-    import numba
-
-    return max(1, int(numba.get_num_threads()))
 
 
 def _map_serial_workers(fn, items, workers: int):
@@ -338,7 +332,7 @@ def trace(scene: Scene | PreparedScene, beams: Beams, n_rays: int = 30000, max_o
     totals = np.zeros((n, max_order))
     first = np.zeros((n, MISS_KIND + 1), np.int64)
     t0 = np.zeros(n)
-    threads = _default_threads() if threads is None else max(1, int(threads))
+    threads = default_threads() if threads is None else max(1, int(threads))
     if parallel not in PARALLEL_MODES:
         raise ValueError(f"parallel: expected one of {', '.join(PARALLEL_MODES)}, got {parallel!r}")
     by_pulses = parallel == "pulses" and threads > 1 and n > 1

@@ -33,8 +33,19 @@ import glob
 import os
 import threading
 
+import llvmlite.binding as llvm
+import numba
 import numpy as np
 from numba import njit, prange, types
+
+try:  # the library embreex ships
+    import embreex
+except ImportError:  # pragma: no cover - embreex is a dependency
+    embreex = None
+
+from ..kernels import take_rays
+from ..threads import MIN_PARALLEL_RAYS, NumbaThreads
+from .base import RayQueries, check_triangles
 
 QUALITIES = {"low": 0, "medium": 1, "high": 2}
 """Embree BVH build qualities (RTC_BUILD_QUALITY_*)."""
@@ -47,10 +58,6 @@ one (raspberry, 227,000 triangles: ~0.38 vs ~0.10 s) but its Embree calls need ~
 
 BLOCK_RAYS = 512
 """Rays per ``prange`` task (one RTCRayHit slot each)."""
-
-MIN_PARALLEL_RAYS = 8192
-"""Calls with fewer rays run on one thread (thread start-up and barriers cost more than they
-save, and far more when other jobs occupy the cores)."""
 
 CELL_BITS = 5
 """Rays are traced in Z-order of their origins on a ``2**CELL_BITS``-per-axis grid
@@ -75,10 +82,6 @@ _ERROR: str | None = None
 
 
 def _library_path() -> str | None:
-    try:
-        import embreex
-    except ImportError:
-        embreex = None
     if embreex is not None:
         site = os.path.dirname(os.path.dirname(os.path.abspath(embreex.__file__)))
         found = sorted(glob.glob(os.path.join(site, "embreex.libs", "libembree4*.so*")))
@@ -98,8 +101,6 @@ def _load():
             _ERROR = "libembree4 not found (neither in embreex.libs nor on the library path)"
             return None
         try:
-            import llvmlite.binding as llvm
-
             lib = ctypes.CDLL(path)
             llvm.load_library_permanently(path)
         except OSError as exc:
@@ -124,8 +125,6 @@ def _load():
             fn = getattr(lib, name)
             fn.restype, fn.argtypes = res, args
         global _rtc_intersect1, _rtc_occluded1
-        import numba
-
         if numba.config.DISABLE_JIT:  # kernels run as Python: call Embree through ctypes
             proto = ctypes.CFUNCTYPE(None, ctypes.c_size_t, ctypes.c_size_t, ctypes.c_size_t)
             _rtc_intersect1 = proto(("rtcIntersect1", lib))
@@ -153,6 +152,15 @@ _rtc_intersect1 = types.ExternalFunction("rtcIntersect1", types.void(types.uintp
 _rtc_occluded1 = types.ExternalFunction("rtcOccluded1", types.void(types.uintp, types.uintp, types.uintp))
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _set_ray(f, u, org, dirs, i, tfar):
+    """Write ray ``i`` (t from 0 to ``tfar``) into an RTCRay slot (float32 view ``f``, uint32 ``u``)."""
+    f[0], f[1], f[2], f[_TNEAR] = org[i, 0], org[i, 1], org[i, 2], 0.0
+    f[4], f[5], f[6], f[_TIME] = dirs[i, 0], dirs[i, 1], dirs[i, 2], 0.0
+    f[_TFAR] = tfar
+    u[_MASK], u[_ID], u[_FLAGS] = _INVALID_ID, 0, 0
+
+
 @njit(cache=True, parallel=True, nogil=True)
 def _intersect_kernel(scene, org, dirs, tfar, prim, slot_f, slot_u):
     m = org.shape[0]
@@ -162,10 +170,7 @@ def _intersect_kernel(scene, org, dirs, tfar, prim, slot_f, slot_u):
         u = slot_u[c]
         addr = f.ctypes.data
         for i in range(c * BLOCK_RAYS, min(m, (c + 1) * BLOCK_RAYS)):
-            f[0], f[1], f[2], f[_TNEAR] = org[i, 0], org[i, 1], org[i, 2], 0.0
-            f[4], f[5], f[6], f[_TIME] = dirs[i, 0], dirs[i, 1], dirs[i, 2], 0.0
-            f[_TFAR] = np.inf
-            u[_MASK], u[_ID], u[_FLAGS] = _INVALID_ID, 0, 0
+            _set_ray(f, u, org, dirs, i, np.inf)
             u[_PRIM], u[_GEOM], u[_INST] = _INVALID_ID, _INVALID_ID, _INVALID_ID
             _rtc_intersect1(scene, addr, 0)
             if u[_GEOM] == _INVALID_ID:
@@ -185,10 +190,7 @@ def _occluded_kernel(scene, org, dirs, tmax, out, slot_f, slot_u):
         u = slot_u[c]
         addr = f.ctypes.data
         for i in range(c * BLOCK_RAYS, min(m, (c + 1) * BLOCK_RAYS)):
-            f[0], f[1], f[2], f[_TNEAR] = org[i, 0], org[i, 1], org[i, 2], 0.0
-            f[4], f[5], f[6], f[_TIME] = dirs[i, 0], dirs[i, 1], dirs[i, 2], 0.0
-            f[_TFAR] = tmax[i]
-            u[_MASK], u[_ID], u[_FLAGS] = _INVALID_ID, 0, 0
+            _set_ray(f, u, org, dirs, i, tmax[i])
             _rtc_occluded1(scene, addr, 0)
             out[i] = f[_TFAR] == -np.inf  # Embree sets tfar = -inf on an occluded ray
 
@@ -241,23 +243,6 @@ def coherent_order(org, bits):
     return order
 
 
-@njit(cache=True, parallel=True, nogil=True)
-def take_rays(org, dirs, index):
-    """Rows ``index`` of a ray batch's origins and directions, as new contiguous arrays.
-
-    The same as ``org[index], dirs[index]``, in a tenth of NumPy's time for (m, 3) float32
-    rows (2 vs 19 ms for 240,000 rays on one core).
-    """
-    m = index.size
-    o = np.empty((m, 3), org.dtype)
-    d = np.empty((m, 3), dirs.dtype)
-    for i in prange(m):
-        j = index[i]
-        o[i, 0], o[i, 1], o[i, 2] = org[j, 0], org[j, 1], org[j, 2]
-        d[i, 0], d[i, 1], d[i, 2] = dirs[j, 0], dirs[j, 1], dirs[j, 2]
-    return o, d
-
-
 def _slots(m: int) -> tuple[np.ndarray, np.ndarray]:
     """64-byte aligned RTCRayHit slots for the blocks of ``m`` rays (float32 and uint32 views)."""
     n = max(1, -(-m // BLOCK_RAYS))
@@ -267,37 +252,8 @@ def _slots(m: int) -> tuple[np.ndarray, np.ndarray]:
     return f, f.view(np.uint32)
 
 
-def _check_rays(origins, directions):
-    o = np.ascontiguousarray(origins, dtype=np.float32)
-    d = np.ascontiguousarray(directions, dtype=np.float32)
-    if o.ndim != 2 or o.shape[1] != 3 or d.shape != o.shape:
-        raise ValueError(f"origins, directions: expected two (m, 3) arrays, got {o.shape} and {d.shape}")
-    return o, d
-
-
-class NumbaThreads:
-    """Context: Numba's (thread-local) thread count set to ``threads`` (None: unchanged)."""
-
-    def __init__(self, threads: int | None) -> None:
-        self.threads = threads
-
-    def __enter__(self):
-        import numba
-
-        self.prev = numba.get_num_threads()
-        if self.threads is not None:
-            numba.set_num_threads(max(1, min(int(self.threads), numba.config.NUMBA_NUM_THREADS)))
-
-    def __exit__(self, *exc):
-        import numba
-
-        numba.set_num_threads(self.prev)
-
-
-class DirectEmbreeIntersector:
+class DirectEmbreeIntersector(RayQueries):
     """Nearest-hit and occlusion queries on an Embree 4 BVH, called from Numba kernels.
-
-    Same contract as :class:`waveforest.mcrt.embree.EmbreeIntersector`.
 
     Parameters
     ----------
@@ -315,9 +271,7 @@ class DirectEmbreeIntersector:
             raise RuntimeError(f"direct Embree calls unavailable: {_ERROR}")
         if quality not in QUALITIES:
             raise ValueError(f"quality: expected one of {', '.join(QUALITIES)}, got {quality!r}")
-        tri = np.ascontiguousarray(triangles, dtype=np.float32)
-        if tri.ndim != 3 or tri.shape[1:] != (3, 3) or len(tri) == 0:
-            raise ValueError(f"triangles: expected a non-empty (n, 3, 3) array, got {tri.shape}")
+        tri = check_triangles(triangles)
         n = len(tri)
         q = QUALITIES[quality]
         self._lib = lib
@@ -351,57 +305,16 @@ class DirectEmbreeIntersector:
         if scene:
             self._lib.rtcReleaseScene(scene)
 
-    def intersect(self, origins, directions, threads: int | None = None):
-        """Nearest hit of each ray.
+    def _intersect(self, o, d, tfar, prim, threads):
+        order = coherent_order(o, CELL_BITS)
+        ts, ps = np.empty_like(tfar), np.empty_like(prim)
+        with NumbaThreads(1 if len(o) < MIN_PARALLEL_RAYS else threads):
+            _intersect_kernel(self._scene, *take_rays(o, d, order), ts, ps, *_slots(len(o)))
+        tfar[order], prim[order] = ts, ps
 
-        Parameters
-        ----------
-        origins, directions : (m, 3) float32
-            Ray origins (internal frame, m) and directions (unit, so that t is in metres).
-        threads : int, optional
-            Numba threads of the call (default: the current Numba thread count).
-
-        Returns
-        -------
-        tfar : (m,) float32, m
-            Distance to the hit; ``inf`` for a miss.
-        prim : (m,) int32
-            Index of the triangle hit; -1 for a miss.
-        """
-        o, d = _check_rays(origins, directions)
-        m = len(o)
-        tfar = np.empty(m, np.float32)
-        prim = np.empty(m, np.int32)
-        if m:
-            order = coherent_order(o, CELL_BITS)
-            ts, ps = np.empty_like(tfar), np.empty_like(prim)
-            with NumbaThreads(1 if m < MIN_PARALLEL_RAYS else threads):
-                _intersect_kernel(self._scene, *take_rays(o, d, order), ts, ps, *_slots(m))
-            tfar[order], prim[order] = ts, ps
-        return tfar, prim
-
-    def occluded(self, origins, directions, tmax, threads: int | None = None):
-        """Whether anything lies on each ray between ``t = 0`` and ``tmax``.
-
-        Parameters
-        ----------
-        origins, directions : (m, 3) float32
-        tmax : (m,) float32, m
-            Length of each visibility ray.
-        threads : int, optional
-
-        Returns
-        -------
-        (m,) bool
-        """
-        o, d = _check_rays(origins, directions)
-        m = len(o)
-        tm = np.ascontiguousarray(np.broadcast_to(np.asarray(tmax, np.float32), (m,)))
-        out = np.empty(m, np.bool_)
-        if m:
-            order = coherent_order(o, CELL_BITS)
-            hit = np.empty_like(out)
-            with NumbaThreads(1 if m < MIN_PARALLEL_RAYS else threads):
-                _occluded_kernel(self._scene, *take_rays(o, d, order), tm[order], hit, *_slots(m))
-            out[order] = hit
-        return out
+    def _occluded(self, o, d, tmax, out, threads):
+        order = coherent_order(o, CELL_BITS)
+        hit = np.empty_like(out)
+        with NumbaThreads(1 if len(o) < MIN_PARALLEL_RAYS else threads):
+            _occluded_kernel(self._scene, *take_rays(o, d, order), tmax[order], hit, *_slots(len(o)))
+        out[order] = hit
