@@ -36,15 +36,19 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 
 import numba
 import numpy as np
 
 from waveforest.mcrt import Beams, EmbreeIntersector, prepare, trace
-from waveforest.mcrt.synthetic import random_leaves
 from waveforest.mcrt.tracer import bvh_quality
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from fixtures.scenes import random_leaves
 
 LAI, HEIGHT_M, SIZE_M, LEAF_AREA_M2 = 3.35, 1.2, 6.0, 6.7e-4
 RANGE_M, DIVERGENCE_MRAD, MAX_ZENITH_DEG = 1200.0, 0.15, 15.0

@@ -5,11 +5,11 @@ import math
 
 import numpy as np
 import pytest
+from fixtures import scenes as syn
 
 from waveforest.constants import C_M_PER_NS
 from waveforest.effects import SPECULAR_PHONG_EXPONENT as PHONG
 from waveforest.mcrt import Beams, prepare, trace
-from waveforest.mcrt import synthetic as syn
 
 PLANE_RTOL = 0.005  # issue: total sigma of a nadir plane to < 0.5 %
 TILT_RTOL = 0.02  # issue: tilted plane sigma and spread within 2 %

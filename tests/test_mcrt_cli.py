@@ -7,9 +7,9 @@ import numpy as np
 import pandas as pd
 import pyarrow.parquet as pq
 import pytest
+from fixtures import scenes as syn
 
 from waveforest.cli import main
-from waveforest.mcrt import synthetic as syn
 from waveforest.mcrt.runner import run
 from waveforest.scene import write_ply
 

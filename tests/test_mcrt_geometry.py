@@ -2,10 +2,10 @@
 
 import numpy as np
 import pytest
+from fixtures import scenes as syn
 
 from waveforest.constants import C_M_PER_NS
 from waveforest.mcrt import Beams, DirectEmbreeIntersector, EmbreeIntersector, NumpyIntersector, prepare, trace
-from waveforest.mcrt import synthetic as syn
 from waveforest.mcrt.backends import embree as rtc
 from waveforest.scene import Scene
 

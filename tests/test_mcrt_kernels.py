@@ -5,12 +5,12 @@ import math
 import numba
 import numpy as np
 import pytest
+from fixtures import scenes as syn
 from reference_mcrt import reference_trace
 from scipy import stats
 
 from waveforest.effects import SPECULAR_PHONG_EXPONENT as PHONG
 from waveforest.mcrt import Beams, prepare, trace
-from waveforest.mcrt import synthetic as syn
 from waveforest.mcrt.kernels import BeamFrame, Rays, Scattered, accumulate, beam_keys, scatter
 
 # with NUMBA_DISABLE_JIT=1 the uint64 hash runs on NumPy scalars, which warn on (intended) wrap-around

@@ -4,9 +4,9 @@ import math
 
 import numpy as np
 import pytest
+from fixtures import scenes as syn
 
 from waveforest.mcrt import Beams, prepare, trace
-from waveforest.mcrt import synthetic as syn
 
 pytestmark = pytest.mark.slow
 
