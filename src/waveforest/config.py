@@ -1,11 +1,21 @@
 """Study configuration: load a YAML file, validate it and fill in defaults.
 
 The JSON schema ``config.schema.yaml`` (also ``workflow/schemas/``) is the one source of
-every default; Snakemake's ``validate`` and the CLI use the same file.
+every default; Snakemake's ``validate`` and the CLI use the same file. The schema is closed:
+every object lists its keys (``additionalProperties: false``) or, for a genuine map such as
+``campaign.effects``, the schema of its values and the names it accepts, so a misspelled key
+at any depth is an error that names its path.
+
+Beyond the schema, :func:`validate` checks the names that live in package resources: every
+species slug (``simulate.species``, ``campaign.species``, the species keys of
+``simulate.height_range_m`` ...) must be one of Table 1's species (``resources/vegetation``)
+and every ``classify.groups`` entry one of the four functional groups.
 """
 
 from __future__ import annotations
 
+import copy
+import functools
 from pathlib import Path
 from typing import Any
 
@@ -16,41 +26,101 @@ from .errors import WaveforestError
 
 SCHEMA_PATH = Path(__file__).with_name("config.schema.yaml")
 
+SPECIES_LISTS = (("campaign", "species"), ("simulate", "species"), ("classify", "three_species"))
+"""Config keys holding lists of species slugs (null allowed where the schema allows it)."""
+
+SPECIES_MAPS = (("simulate", "height_range_m"), ("simulate", "compare_min_h_m"),
+                ("sensor_study", "heights_m"), ("sensor_study", "min_echo_h_m"))
+"""Config keys holding maps species slug -> value."""
+
 
 class ConfigError(WaveforestError):
     """An invalid configuration."""
 
 
-def _schema() -> dict:
+@functools.cache
+def _schema_cached() -> dict:
     with open(SCHEMA_PATH) as fh:
         return yaml.safe_load(fh)
 
 
-def _with_defaults(validator_class):
-    validate_props = validator_class.VALIDATORS["properties"]
-
-    def set_defaults(validator, properties, instance, schema):
-        if isinstance(instance, dict):
-            for name, sub in properties.items():
-                if "default" in sub and name not in instance:
-                    instance[name] = yaml.safe_load(yaml.safe_dump(sub["default"]))
-        yield from validate_props(validator, properties, instance, schema)
-
-    return jsonschema.validators.extend(validator_class, {"properties": set_defaults})
+def schema() -> dict:
+    """The config JSON schema (a fresh copy: callers may modify it)."""
+    return copy.deepcopy(_schema_cached())
 
 
-_Validator = _with_defaults(jsonschema.Draft202012Validator)
+def fill_defaults(sub_schema: dict, instance: Any) -> None:
+    """Fill the schema's defaults into ``instance`` in place, at every depth.
+
+    A key absent from a mapping gets a copy of its ``default``; then every present key whose
+    schema has ``properties`` is filled in turn (so a section defaulted to ``{}`` gets its own
+    keys' defaults, however deep). Values of the wrong type are left for validation to report.
+    """
+    if not isinstance(instance, dict):
+        return
+    for name, prop in sub_schema.get("properties", {}).items():
+        if name not in instance and "default" in prop:
+            instance[name] = copy.deepcopy(prop["default"])
+        if name in instance:
+            fill_defaults(prop, instance[name])
+
+
+def _message(exc: jsonschema.ValidationError) -> str:
+    """``path: what was expected`` of one schema violation."""
+    where = "/".join(str(p) for p in exc.absolute_path)
+    if exc.validator == "additionalProperties" and exc.validator_value is False and isinstance(exc.instance, dict):
+        known = list(exc.schema.get("properties", {}))
+        extra = [k for k in exc.instance if k not in known]
+        path = "/".join([where, str(extra[0])]) if where else str(extra[0])
+        return f"{path}: unknown key; expected one of {', '.join(known)}"
+    if "propertyNames" in exc.relative_schema_path and exc.validator == "enum":
+        path = "/".join([where, str(exc.instance)]) if where else str(exc.instance)
+        return f"{path}: unknown name; expected one of {', '.join(map(str, exc.validator_value))}"
+    return f"{where or '(top level)'}: {exc.message}"
+
+
+def _check_names(config: dict, source: str) -> None:
+    """Species slugs and functional groups of the config are known ones."""
+    # imported here, not at module level: pandas and the vegetation package's Numba kernels
+    # (~1.5 s) are not needed by every stage that reads a config
+    from .analysis.campaign_tables import FUNCTIONAL_GROUPS
+    from .vegetation.params import slugs
+
+    known = slugs()
+
+    def check(values, path: str, allowed, what: str) -> None:
+        for v in values:
+            if v not in allowed:
+                raise ConfigError(f"{source}: {path}: unknown {what} {v!r}; expected one of {', '.join(allowed)}")
+
+    for section, key in SPECIES_LISTS:
+        check(config[section][key] or (), f"{section}/{key}", known, "species")
+    for section, key in SPECIES_MAPS:
+        check(config[section][key], f"{section}/{key}", known, "species")
+    check([config["classify"]["normaliser"]], "classify/normaliser", known, "species")
+    check(config["classify"]["groups"], "classify/groups", FUNCTIONAL_GROUPS, "functional group")
 
 
 def validate(config: dict, source: str = "<config>") -> dict:
-    """Validate ``config`` in place, fill defaults, and return it."""
-    try:
-        # twice: defaults of nested objects created by the first pass are filled by the second
-        _Validator(_schema()).validate(config)
-        _Validator(_schema()).validate(config)
-    except jsonschema.ValidationError as exc:
-        where = "/".join(str(p) for p in exc.absolute_path) or "(top level)"
-        raise ConfigError(f"{source}: {where}: {exc.message}") from None
+    """Fill defaults into ``config`` in place, validate it, and return it.
+
+    Parameters
+    ----------
+    config : mapping of a (possibly partial) config; keys absent get the schema's defaults.
+    source : name of the config in error messages (a file name).
+
+    Raises
+    ------
+    ConfigError
+        ``source: key/path: what was expected`` for the first violation (unknown keys at any
+        depth, wrong types or ranges, unknown effect, species or group names).
+    """
+    sch = _schema_cached()
+    fill_defaults(sch, config)
+    error = jsonschema.exceptions.best_match(jsonschema.Draft202012Validator(sch).iter_errors(config))
+    if error is not None:
+        raise ConfigError(f"{source}: {_message(error)}")
+    _check_names(config, source)
     return config
 
 
