@@ -14,6 +14,7 @@ from reference_sensor import (
     write_campaign_tables,
 )
 
+from waveforest.config import validate
 from waveforest.constants import RANGE_PER_NS
 from waveforest.errors import WaveforestError
 from waveforest.io.tables import list_to_padded, read_pulses, write_pulses
@@ -94,7 +95,7 @@ def test_energy_statistic_is_unbiased_on_weak_targets(tmp_path, seed):
     assert np.median(_amplitudes(table, truth["noise_mean"])[on]) < 10 * truth["noise_sd"]
     b = {}
     for stat in ("peak", "energy"):
-        cfg = {"agc": {"statistic": stat}, "calibrate": {"noise_tail": 50}, "sensor": {"digitizer_max": 255}}
+        cfg = validate({"agc": {"statistic": stat}, "calibrate": {"noise_tail": 50}, "sensor": {"digitizer_max": 255}})
         b[stat] = agc_mod.run(src, read_targets(tpath), read_datasets(dpath), tmp_path / "n.parquet",
                               tmp_path / "f.json", cfg, progress=False).b
     assert b["energy"] == pytest.approx(0.012, rel=B_TOL)
@@ -124,8 +125,8 @@ def test_agc_stage(tmp_path):
     table, truth = target_pulses(np.random.default_rng(3), SYSTEM, per_target=100, b_true=0.01)
     src = write_pulses(table, tmp_path / "pulses.parquet")
     dpath, tpath = write_campaign_tables(tmp_path)
-    cfg = {"agc": {"b_bounds": [0.0, 0.05], "grid_points": 81, "statistic": "peak"}, "calibrate": {"noise_tail": 50},
-           "sensor": {"digitizer_max": 255}}
+    cfg = validate({"agc": {"b_bounds": [0.0, 0.05], "grid_points": 81, "statistic": "peak"}, "calibrate": {"noise_tail": 50},
+           "sensor": {"digitizer_max": 255}})
     fit = agc_mod.run(src, read_targets(tpath), read_datasets(dpath), tmp_path / "norm.parquet",
                       tmp_path / "fit.json", cfg, plot_path=tmp_path / "cv.png", progress=False)
     assert fit.b == pytest.approx(0.01, rel=B_TOL)
@@ -163,7 +164,7 @@ def test_agc_stage_without_agc_and_errors(tmp_path):
     dpath, tpath = write_campaign_tables(tmp_path)
     with pytest.warns(UserWarning, match="no AGC"):
         fit = agc_mod.run(src, read_targets(tpath), read_datasets(dpath), tmp_path / "n.parquet", tmp_path / "f.json",
-                          {}, progress=False)
+                          validate({}), progress=False)
     assert math.isnan(fit.b)
     out = read_pulses(tmp_path / "n.parquet")
     assert out.column("samples").equals(table.column("samples")) or np.allclose(
@@ -173,7 +174,7 @@ def test_agc_stage_without_agc_and_errors(tmp_path):
     other = target_pulses(np.random.default_rng(4), SYSTEM, per_target=5, dataset="2099_01_1")[0]
     src2 = write_pulses(other, tmp_path / "other.parquet")
     with pytest.raises(WaveforestError, match="2099_01_1"):
-        agc_mod.run(src2, read_targets(tpath), read_datasets(dpath), tmp_path / "x.parquet", tmp_path / "x.json", {},
+        agc_mod.run(src2, read_targets(tpath), read_datasets(dpath), tmp_path / "x.parquet", tmp_path / "x.json", validate({}),
                     progress=False)
     assert not (tmp_path / "x.parquet").exists() and not (tmp_path / "x.json").exists()
 
@@ -227,7 +228,7 @@ def test_agc_stage_nests_strips_within_targets(tmp_path):
     targets, datasets = read_targets(tpath), read_datasets(dpath)
     res = {}
     for gap in (30.0, 1e9):  # 1e9 s: every target one group, the strips pooled
-        cfg = {"agc": {"b_bounds": [0.0, 0.05], "pass_gap_s": gap}}
+        cfg = validate({"agc": {"b_bounds": [0.0, 0.05], "pass_gap_s": gap}})
         res[gap] = agc_mod.run(src, targets, datasets, tmp_path / "n.parquet", tmp_path / "f.json", cfg,
                                progress=False)
     nested, pooled = res[30.0], res[1e9]

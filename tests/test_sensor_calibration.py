@@ -9,6 +9,7 @@ from reference_sensor import target_pulses, write_campaign_tables
 from scipy.special import erf
 
 from waveforest.analysis.simulate import load_calibration as load_sim_calibration
+from waveforest.config import validate
 from waveforest.errors import WaveforestError
 from waveforest.io.tables import list_to_padded, write_pulses
 from waveforest.sensor import (
@@ -134,8 +135,8 @@ def test_calibration_stage_after_agc(tmp_path):
     src = write_pulses(table, tmp_path / "pulses.parquet")
     dpath, tpath = write_campaign_tables(tmp_path)
     targets, datasets = read_targets(tpath), read_datasets(dpath)
-    cfg = {"agc": {"b_bounds": [0.0, 0.05]}, "calibrate": {"noise_tail": 50, "window_ns": [-15.0, 45.0]},
-           "sensor": {"digitizer_max": 255, "cfd": {"fraction": 0.5, "arming_sd": 4.0}}}
+    cfg = validate({"agc": {"b_bounds": [0.0, 0.05]}, "calibrate": {"noise_tail": 50, "window_ns": [-15.0, 45.0]},
+           "sensor": {"digitizer_max": 255, "cfd": {"fraction": 0.5, "arming_sd": 4.0}}})
     agc_mod.run(src, targets, datasets, tmp_path / "norm.parquet", tmp_path / "agc.json", cfg, progress=False)
     res = cal_mod.run(tmp_path / "norm.parquet", targets, datasets, tmp_path / "S.parquet", tmp_path / "S.json", cfg,
                       plot_path=tmp_path / "S.png", progress=False)
@@ -166,7 +167,7 @@ def test_calibration_stage_errors(tmp_path):
     src = write_pulses(table, tmp_path / "few.parquet")
     dpath, tpath = write_campaign_tables(tmp_path)
     with pytest.raises(WaveforestError, match="calibrate.min_pulses"):
-        cal_mod.run(src, read_targets(tpath), read_datasets(dpath), tmp_path / "S.parquet", tmp_path / "S.json", {},
+        cal_mod.run(src, read_targets(tpath), read_datasets(dpath), tmp_path / "S.parquet", tmp_path / "S.json", validate({}),
                     progress=False)
     assert not (tmp_path / "S.parquet").exists() and not (tmp_path / "S.json").exists()
     bad = tmp_path / "targets_bad.csv"
@@ -174,7 +175,7 @@ def test_calibration_stage_errors(tmp_path):
     with pytest.raises(WaveforestError, match="needs an HDRF"):
         read_targets(bad)
     (tmp_path / "t2.csv").write_text("target_id,year\nx,2010\n")
-    with pytest.raises(WaveforestError, match="lacks column"):
+    with pytest.raises(WaveforestError, match="missing column"):
         read_targets(tmp_path / "t2.csv")
     with pytest.raises(WaveforestError, match="no such calibration"):
         load_calibration(tmp_path / "nothing.json")

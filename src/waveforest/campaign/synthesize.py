@@ -104,7 +104,7 @@ class CampaignSummary:
 def resolve_effects(cfg: dict, effects=None) -> dict[str, float]:
     """All ten effects with their values: off values, then config ``campaign.effects``, then ``effects``."""
     values = {name: e.off for name, e in CATALOGUE.items()}
-    values.update(parse_effects(cfg.get("campaign", {}).get("effects") or {}))
+    values.update(parse_effects(cfg["campaign"]["effects"]))
     values.update(parse_effects(effects))
     for name, v in values.items():
         lo, hi, text = EFFECT_LIMITS[name]
@@ -190,7 +190,7 @@ def run(cfg: dict, out_dir: str | os.PathLike, effects=None, seed: int | None = 
     layout = build_layout(species_table(), int(camp["samples_per_species"]), seed)
     fields = layout.fields[layout.fields["year"].isin(years)].reset_index(drop=True)
     targets = layout.targets[layout.targets["year"].isin(years)].reset_index(drop=True)
-    only = camp.get("species")
+    only = camp["species"]
     if only:
         unknown = sorted(set(only) - set(layout.fields["species"]))
         if unknown:
@@ -200,7 +200,7 @@ def run(cfg: dict, out_dir: str | os.PathLike, effects=None, seed: int | None = 
     # 3. pulses of every dataset near its sites
     margin = float(camp["disc_margin_m"])
     tree_r = float(cfg["select"]["tree_radius_m"])
-    cap = camp.get("max_pulses_per_site")
+    cap = camp["max_pulses_per_site"]
     plans, pulses = {}, {}
     for _, row in datasets.iterrows():
         ds, year = row["dataset"], int(row["year"])

@@ -104,7 +104,7 @@ def apply_rules(features: pd.DataFrame, cfg: dict) -> pd.DataFrame:
         df, below = df[keep].copy(), below[keep]
     species = df["species"].astype(str).to_numpy()
     h = df["H"].to_numpy(float)
-    for sp, lo in (cfg["simulate"].get("compare_min_h_m") or {}).items():
+    for sp, lo in cfg["simulate"]["compare_min_h_m"].items():
         low = (species == sp) & ~(h > float(lo)) & ~below
         for f in WAVEFORM_FEATURES:
             if f in df.columns:
@@ -274,7 +274,7 @@ class StudySimulator:
             raise WaveforestError(f"diagnose: no calibration for dataset(s) {', '.join(missing)}")
         self.calibrations = calibrations
         self.cfg = cfg
-        self.n_rays = int(n_rays or min(cfg["diagnose"].get("n_rays") or cfg["mcrt"]["n_rays"], cfg["mcrt"]["n_rays"]))
+        self.n_rays = int(n_rays or min(cfg["diagnose"]["n_rays"] or cfg["mcrt"]["n_rays"], cfg["mcrt"]["n_rays"]))
         self.base_effects = dict(base_effects or {})
         self.range_correction = bool(range_correction)
         self.threads = threads
@@ -306,8 +306,7 @@ class StudySimulator:
         c["seed"] = int(seed) % 2**63
         c["mcrt"]["n_rays"] = self.n_rays
         c["simulate"]["max_pulses"] = None
-        c["simulate"]["instances_per_sample"] = self.cfg["diagnose"].get("instances_per_sample",
-                                                                         c["simulate"]["instances_per_sample"])
+        c["simulate"]["instances_per_sample"] = self.cfg["diagnose"]["instances_per_sample"]
         return c
 
     def _features(self, sub: pa.Table, ds: str, model: dict, cfg: dict, stream: int = 0) -> pd.DataFrame | None:

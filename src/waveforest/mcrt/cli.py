@@ -44,7 +44,7 @@ def trace(scene, out, species, height, range_m, scan_zenith, azimuth, footprint,
     from .runner import run
 
     m = cfg["mcrt"]
-    veg = cfg.get("vegetation", {})
+    veg = cfg["vegetation"]
     t = time.perf_counter()
     res = run(
         scene, out, species=species, height=height, range_m=range_m, scan_zenith_deg=scan_zenith,
@@ -54,7 +54,7 @@ def trace(scene, out, species, height, range_m, scan_zenith, azimuth, footprint,
         max_order=orders if orders is not None else m["max_order"],
         bin_ns=m["bin_ns"], viewed_diameter_m=m["viewed_diameter_m"], window_ns=m["window_ns"],
         seed=cfg["seed"], effects=list(effects), plot=plot,
-        vegetation_options={k: veg[k] for k in ("ground_rho", "lai_jitter") if k in veg},
+        vegetation_options={k: veg[k] for k in ("ground_rho", "lai_jitter")},
     )
     dt = time.perf_counter() - t
     o = res.order_totals[0]

@@ -156,7 +156,8 @@ def run(scene_path: str | Path | None, out: str | Path, *, species: str | None =
                              float(azimuth_deg), footprint_m=footprint_m, divergence_mrad=divergence_mrad)
         result = trace(scene, beams, n_rays=n_rays, max_order=max_order, bin_ns=bin_ns,
                        viewed_diameter_m=viewed_diameter_m, seed=seed, window_ns=window_ns,
-                       by_order=True, specular=fx.get("specular", 0.0), hotspot=fx.get("hotspot", 1.0))
+                       by_order=True, specular=fx.get("specular", CATALOGUE["specular"].off),
+                       hotspot=fx.get("hotspot", CATALOGUE["hotspot"].off))
     except ValueError as exc:
         if isinstance(exc, WaveforestError):
             raise

@@ -365,7 +365,8 @@ def run(pulses_path, targets, datasets, out_path, fit_path, cfg: dict, *, plot_p
     pulses_path : pulse table of one dataset (Parquet).  targets, datasets : DataFrames of
     targets.csv / datasets.csv (see :mod:`waveforest.sensor.targets`).  out_path : normalised
     pulse table (Parquet, with :data:`GAIN_COLUMN` and schema metadata a, b, n0).
-    fit_path : JSON of the :class:`AGCFit`.  cfg : loaded config (sections agc, calibrate, sensor).
+    fit_path : JSON of the :class:`AGCFit`.  cfg : validated config (:func:`waveforest.config.validate`;
+    sections agc, calibrate, sensor).
     plot_path : optional PNG of CV(b).
 
     Returns
@@ -377,15 +378,13 @@ def run(pulses_path, targets, datasets, out_path, fit_path, cfg: dict, *, plot_p
     pulses_path = Path(pulses_path)
     if not pulses_path.exists():
         raise WaveforestError(f"{pulses_path}: no such file")
-    sec = cfg.get("agc", {})
-    tail = int(cfg.get("calibrate", {}).get("noise_tail", 50))
-    dmax = float(cfg.get("sensor", {}).get("digitizer_max", 255))
-    min_per_target = int(sec.get("min_pulses_per_target", 5))
-    gap_s = float(sec.get("pass_gap_s", 30.0))
-    statistic = str(sec.get("statistic", "energy"))
-    if statistic not in ("energy", "peak"):
-        raise WaveforestError(f"agc.statistic: expected 'energy' or 'peak', got {statistic!r}")
-    half_window_ns = float(sec.get("energy_half_window_ns", 10.0))
+    sec = cfg["agc"]
+    tail = int(cfg["calibrate"]["noise_tail"])
+    dmax = float(cfg["sensor"]["digitizer_max"])
+    min_per_target = int(sec["min_pulses_per_target"])
+    gap_s = float(sec["pass_gap_s"])
+    statistic = str(sec["statistic"])  # energy | peak (the schema's enum)
+    half_window_ns = float(sec["energy_half_window_ns"])
     names: set = set()
     agc_sum = agc_n = 0.0
     agc_min, agc_max = np.inf, -np.inf
@@ -454,8 +453,8 @@ def run(pulses_path, targets, datasets, out_path, fit_path, cfg: dict, *, plot_p
     pass_label = {int(g): f"{tid[k]}#{p}" for g, k, p in zip(fgrp, ftgt, fpass)}
     n_per_pass = {pass_label[int(g)]: int(c) for g, c in zip(*np.unique(fgrp, return_counts=True))}
 
-    fixed = sec.get("b")
-    bounds = tuple(sec.get("b_bounds", (0.0, 0.05)))
+    fixed = sec["b"]
+    bounds = tuple(sec["b_bounds"])
     if agc_n == 0:
         warnings.warn(f"{pulses_path}: dataset {name} has no AGC values; waveforms are not normalised (b = NaN)",
                       WaveforestWarning, stacklevel=2)
@@ -478,7 +477,7 @@ def run(pulses_path, targets, datasets, out_path, fit_path, cfg: dict, *, plot_p
                     f"dataset {name}: too few pulses on AGC targets (targets.csv rows with agc = 1 and year {year}; "
                     f"found {amps.size} usable pulses on {len(n_per_target)} target(s)); set agc.b in the config "
                     "to use a fixed b instead")
-            b, cv_after, grid, curve = fit_b(amps, fagc, fgrp, a, bounds, int(sec.get("grid_points", 101)),
+            b, cv_after, grid, curve = fit_b(amps, fagc, fgrp, a, bounds, int(sec["grid_points"]),
                                              all_agc=all_agc)
         cv_before = nested_cv(amps, fagc, fgrp, a, 0.0) if amps.size else float("nan")
 

@@ -288,19 +288,19 @@ def _target_pulses(pulses_path: Path, targets, datasets, cfg: dict, agc_fit, bat
     """
     if not pulses_path.exists():
         raise WaveforestError(f"{pulses_path}: no such file")
-    sec = cfg.get("calibrate", {})
-    tail = int(sec.get("noise_tail", 50))
-    window = tuple(sec.get("window_ns", (-20.0, 60.0)))
-    max_zen = float(sec.get("max_zenith_deg", 15.0))
-    cos_inc = bool(sec.get("cos_incidence", False))
-    min_pulses = int(sec.get("min_pulses", 20))
-    dmax = float(cfg.get("sensor", {}).get("digitizer_max", 255))
+    sec = cfg["calibrate"]
+    tail = int(sec["noise_tail"])
+    window = tuple(sec["window_ns"])
+    max_zen = float(sec["max_zenith_deg"])
+    cos_inc = bool(sec["cos_incidence"])
+    min_pulses = int(sec["min_pulses"])
+    dmax = float(cfg["sensor"]["digitizer_max"])
 
     meta = read_agc_metadata(pulses_path)
     if agc_fit:
         meta = {**meta, **{k: agc_fit[k] for k in ("a", "b", "n0") if k in agc_fit}}
     name, year, d = _gather_target_pulses(pulses_path, targets, datasets, batch_rows, progress, extra,
-                                          int(cfg.get("seed", 0)))
+                                          int(cfg["seed"]))
     if d is None:
         raise WaveforestError(f"{pulses_path}: no pulse of dataset {name} hits a target of year {year} in targets.csv")
     n0 = float(meta["n0"]) if meta.get("n0") is not None else None
@@ -355,7 +355,7 @@ def calibration_effects(effects: dict | None) -> dict:
 
 def model_sensor_effects(cfg: dict) -> dict:
     """:func:`calibration_effects` of the simulation model (``simulate.effects``)."""
-    return calibration_effects((cfg.get("simulate") or {}).get("effects"))
+    return calibration_effects(cfg["simulate"]["effects"])
 
 
 def _cfd_against_dr(d: dict, checkable, noise, system_fwhm_ns: float, cfg: dict):
@@ -363,7 +363,7 @@ def _cfd_against_dr(d: dict, checkable, noise, system_fwhm_ns: float, cfg: dict)
 
     Returns (CFDTuning, on-target mask over those pulses).
     """
-    sec = cfg.get("calibrate", {})
+    sec = cfg["calibrate"]
     idx = np.flatnonzero(checkable)
     x, lens, dt, te = d["samples"][idx], d["lengths"][idx], d["sampling_ns"][idx], d["t_echo"][idx]
     fp = FeatureParams.from_config(cfg)
@@ -371,8 +371,8 @@ def _cfd_against_dr(d: dict, checkable, noise, system_fwhm_ns: float, cfg: dict)
                                 echo_search_ns=fp.echo_search_ns)["FWHM"]
     armed_sd = noise.sd / _checks.gain_or_one(d["gain"][idx])  # the recorded noise, as the DR circuits see it
     tuning = tune_cfd(x, lens, dt, te, width, noise.mean, armed_sd, CFDParams.from_config(cfg), system_fwhm_ns,
-                      tune=bool(sec.get("tune_cfd", True)), n_bins=int(sec.get("range_correction_bins", 8)),
-                      min_per_bin=int(sec.get("range_correction_min_pulses", 20)))
+                      tune=bool(sec["tune_cfd"]), n_bins=int(sec["range_correction_bins"]),
+                      min_per_bin=int(sec["range_correction_min_pulses"]))
     return tuning, d["target"][idx] >= 0
 
 
@@ -386,16 +386,17 @@ def run(pulses_path, targets, datasets, out_path, json_path, cfg: dict, *, plot_
         without AGC normalisation is accepted, gain 1).
     targets, datasets : DataFrames of targets.csv and datasets.csv.
     out_path : S(t) Parquet (t_ns, s, s_sd).  json_path : calibration JSON.  plot_path : PNG.
-    cfg : loaded config (sections calibrate, sensor; the sensor effects of simulate.effects).
+    cfg : validated config (:func:`waveforest.config.validate`; sections calibrate, sensor, seed and the
+        sensor effects of simulate.effects).
     agc_fit : the ``agc`` JSON (a, b), optional.
 
     Returns
     -------
     dict, the calibration JSON content.
     """
-    sec = cfg.get("calibrate", {})
+    sec = cfg["calibrate"]
     pulses, d, meta, checkable = _target_pulses(Path(pulses_path), targets, datasets, cfg, agc_fit, batch_rows,
-                                                progress, extra=int(sec.get("cfd_pulses", 8000)))
+                                                progress, extra=int(sec["cfd_pulses"]))
     name, year, noise, window = pulses.dataset, pulses.year, pulses.noise, pulses.window_ns
     effects = model_sensor_effects(cfg)
     system = pulses.system_waveform(effects)  # S(t) of the model that will use it
@@ -417,12 +418,12 @@ def run(pulses_path, targets, datasets, out_path, json_path, cfg: dict, *, plot_
     result = {
         "dataset": name, "year": int(year),
         "noise_mean": noise.mean, "noise_sd": noise.sd, "noise_sd_analog": noise.sd_analog,
-        "noise_lag1": noise.lag1, "noise_tail": int(sec.get("noise_tail", 50)), "noise_quantised": noise.quantised,
+        "noise_lag1": noise.lag1, "noise_tail": int(sec["noise_tail"]), "noise_quantised": noise.quantised,
         "fwhm_ns": fwhm, "energy": system.energy, "peak": system.peak, "t_peak_ns": system.t_peak_ns,
         "n_pulses": int(pulses.target.size), "n_per_target": per_target, "model_effects": effects,
         "a": meta.get("a"), "b": meta.get("b"), "n0": meta.get("n0"),
         "sampling_ns": float(np.median(pulses.sampling_ns)),
-        "window_ns": list(window), "cos_incidence": bool(sec.get("cos_incidence", False)),
+        "window_ns": list(window), "cos_incidence": bool(sec["cos_incidence"]),
         "cfd": ranges.cfd.to_dict(),
         "cfd_tuning": {"tuned": tuning.tuned, "reason": tuning.reason, "n_pulses": int(on_target.size),
                        "n_off_targets": int((~on_target).sum()),

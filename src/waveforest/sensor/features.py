@@ -281,7 +281,7 @@ def run(pulse_paths, calibration_paths, out_path, cfg: dict, *, batch_rows: int 
     ----------
     pulse_paths : pulse tables (real, AGC-normalised, or simulated chunks) -- read in batches.
     calibration_paths : calibration JSONs (``calibrate`` output) giving each dataset's noise.
-    out_path : feature table (Parquet).  cfg : loaded config (sections sensor.features, sensor.cfd).
+    out_path : feature table (Parquet).  cfg : validated config (sections sensor.features, sensor.cfd).
 
     Returns
     -------
@@ -295,7 +295,7 @@ def run(pulse_paths, calibration_paths, out_path, cfg: dict, *, batch_rows: int 
     from .calibration import cfd_of, load_calibration, range_correction_of
 
     noise, corrections, cfd = {}, {}, {}
-    use_rc = bool(cfg.get("sensor", {}).get("cfd", {}).get("range_correction", True))
+    use_rc = bool(cfg["sensor"]["cfd"]["range_correction"])
     for p in calibration_paths:
         c = load_calibration(p)
         noise[c["dataset"]] = c

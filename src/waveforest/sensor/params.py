@@ -141,14 +141,10 @@ class CFDParams:
 
     @classmethod
     def from_config(cls, cfg: dict) -> CFDParams:
-        """From the ``sensor.cfd`` section of a loaded config (or the whole config)."""
-        sec = cfg.get("sensor", {}).get("cfd", {}) if "sensor" in cfg else cfg
-        return cls(
-            fraction=float(sec.get("fraction", 0.5)),
-            delay_ns=sec.get("delay_ns"),
-            arming_sd=float(sec.get("arming_sd", 4.0)),
-            dead_time_ns=sec.get("dead_time_ns"),
-        )
+        """From ``sensor.cfd`` of a validated config (:func:`waveforest.config.validate`)."""
+        sec = cfg["sensor"]["cfd"]
+        return cls(fraction=float(sec["fraction"]), delay_ns=sec["delay_ns"], arming_sd=float(sec["arming_sd"]),
+                   dead_time_ns=sec["dead_time_ns"])
 
 
 @dataclass(frozen=True)
@@ -177,10 +173,7 @@ class FeatureParams:
 
     @classmethod
     def from_config(cls, cfg: dict) -> FeatureParams:
-        """From the ``sensor.features`` section of a loaded config (or the whole config)."""
-        sec = cfg.get("sensor", {}).get("features", {}) if "sensor" in cfg else cfg
-        return cls(
-            segment_sd=float(sec.get("segment_sd", 3.0)),
-            peak_rise_sd=float(sec.get("peak_rise_sd", 2.0)),
-            echo_search_ns=float(sec.get("echo_search_ns", ECHO_SEARCH_NS)),
-        )
+        """From ``sensor.features`` of a validated config (:func:`waveforest.config.validate`)."""
+        sec = cfg["sensor"]["features"]
+        return cls(segment_sd=float(sec["segment_sd"]), peak_rise_sd=float(sec["peak_rise_sd"]),
+                   echo_search_ns=float(sec["echo_search_ns"]))
