@@ -264,8 +264,9 @@ def test_cli_end_to_end_with_the_vegetation_models(tmp_path):
         pytest.skip("waveforest.vegetation.build_scene not available yet")
     sel = _selected().drop_columns(["sample_x", "sample_y", "height_m"])  # supplied by --fields
     write_pulses(sel, tmp_path / "sel.parquet")
-    rows = [dict(sample_id=k, year=2010, species=v[0], functional_group="x", x=v[1], y=v[2], ground_z=v[3],
-                 height_m=v[4], radius_m=0.5, is_tree=int(v[0] in ("birch", "scots_pine"))) for k, v in SAMPLES.items()]
+    group = {"birch": "broadleaf", "scots_pine": "conifer"}  # the others of SAMPLES are low_green
+    rows = [dict(sample_id=k, year=2010, species=v[0], functional_group=group.get(v[0], "low_green"), x=v[1], y=v[2],
+                 ground_z=v[3], height_m=v[4], radius_m=0.5, is_tree=int(v[0] in ("birch", "scots_pine"))) for k, v in SAMPLES.items()]
     pd.DataFrame(rows).to_csv(tmp_path / "fields.csv", index=False)
     pd.DataFrame([_info().to_dict()]).to_csv(tmp_path / "datasets.csv", index=False)
     gaussian_system_waveform(7.2, S_PEAK).save(tmp_path / "s.parquet")

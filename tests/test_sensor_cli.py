@@ -73,7 +73,8 @@ def test_agc_calibrate_features_chain(campaign):
 def test_errors_are_one_clear_message(campaign, capsys):
     tmp, src, dpath, tpath, truth, n = campaign
     bad = tmp / "datasets_other.csv"
-    bad.write_text("dataset,year\n2012_10_1,2012\n")
+    bad.write_text("dataset,year,mean_range_m,pulse_width_fwhm_ns,footprint_diameter_m,sampling_ns\n"
+                   "2012_10_1,2012,1200,7.2,0.18,1.0\n")
     with pytest.raises(SystemExit) as exc:
         main(["agc", str(src), "--targets", str(tpath), "--datasets", str(bad), "--out", str(tmp / "o.parquet"),
               "--fit", str(tmp / "o.json")])

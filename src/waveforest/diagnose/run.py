@@ -80,7 +80,7 @@ class DiagnoseOutputs:
 
 def diagnosed_datasets(cfg: dict) -> list[str]:
     """``diagnose.datasets``, default the comparison datasets that are processed."""
-    chosen = cfg["diagnose"].get("datasets")
+    chosen = cfg["diagnose"]["datasets"]
     if chosen is None:
         chosen = [d for d in cfg["simulate"]["datasets"] if d in cfg["datasets"]]
     return [str(d) for d in chosen]
@@ -404,8 +404,8 @@ def write_outputs(out_dir, result: SearchResult, gap: pd.DataFrame, cand: pd.Dat
 def _calibration_pulses(agc_paths, targets_path, datasets_path, selected: dict, settings: SearchSettings,
                         cfg: dict) -> dict:
     """Dataset -> calibration-target pulses, read only when a calibration-shaping candidate is tried."""
+    from ..analysis.campaign_tables import read_datasets, read_targets
     from ..sensor.calibration import CALIBRATION_EFFECTS, read_calibration_pulses
-    from ..sensor.targets import read_datasets, read_targets
 
     if not agc_paths or not set(CALIBRATION_EFFECTS) & set(settings.candidates):
         return {}
@@ -540,7 +540,7 @@ def run(selected_paths, real_paths, calibration_paths, out_dir, cfg: dict, *, da
         below = below_crown_features(keys, selected, {ds: meta for ds, (_, meta) in calibrations.items()}, cfg)
         real = pd.concat([real, below], ignore_index=True)
     if simulator is None:
-        use_rc = bool(cfg["sensor"].get("cfd", {}).get("range_correction", True))
+        use_rc = bool(cfg["sensor"]["cfd"]["range_correction"])
         simulator = StudySimulator(selected, read_datasets(datasets_path), calibrations, cfg, base_effects=base,
                                    range_correction=use_rc,
                                    calibration_pulses=_calibration_pulses(agc_paths, targets_path, datasets_path,

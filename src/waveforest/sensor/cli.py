@@ -29,8 +29,8 @@ def agc(pulses, targets_csv, datasets_csv, out, fit, plot, cfg):
 
     PULSES is the pulse table of one dataset (`waveforest ingest` output).
     """
+    from ..analysis.campaign_tables import read_datasets, read_targets
     from .agc import run
-    from .targets import read_datasets, read_targets
 
     res = run(pulses, read_targets(targets_csv), read_datasets(datasets_csv), out, fit, cfg, plot_path=plot)
     click.echo(f"agc: {res.dataset}: a = {res.a:.3f}, b = {res.b:.6f}, nested CV {100 * res.cv_before:.2f} % -> "
@@ -53,8 +53,8 @@ def calibrate(pulses, targets_csv, datasets_csv, out, json_out, plot, agc_fit, c
 
     PULSES is the AGC-normalised pulse table of one dataset (`waveforest agc` output).
     """
+    from ..analysis.campaign_tables import read_datasets, read_targets
     from .calibration import run
-    from .targets import read_datasets, read_targets
 
     fit = json.loads(open(agc_fit).read()) if agc_fit else None
     res = run(pulses, read_targets(targets_csv), read_datasets(datasets_csv), out, json_out, cfg,

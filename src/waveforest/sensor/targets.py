@@ -4,115 +4,31 @@
 target_id, year, material, hdrf (nadir HDRF at 1064 nm; empty for AGC-only targets),
 calibration (0/1: used for S(t), Eq. 8), agc (0/1: used to fit b of Eq. 1), x, y, z, radius_m.
 
-``datasets.csv``: dataset, year, ... (only these two columns are needed here; sampling_ns
-and the others are read when present).
+``datasets.csv``: dataset, year, ... (the sensor stages use the dataset's year).
 
 A pulse belongs to a target if its first DR echo (echo_x[0], echo_y[0]) lies within
 radius_m of the target centre (x, y) and the target's year is the dataset's year; if several
 targets qualify, the nearest centre wins.
 
-The readers here are deliberately small: the sensor stages need only these columns, and the
-analysis package (below this one in the module order) keeps the full campaign-table checks.
+The tables have one reader, :mod:`waveforest.analysis.campaign_tables` (re-exported here:
+:func:`read_targets`, :func:`read_datasets`, :func:`dataset_year`), whose checks every stage
+shares.
 """
 
 from __future__ import annotations
-
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pyarrow as pa
 
-from ..errors import WaveforestError
+from ..analysis.campaign_tables import CampaignTableError, dataset_year, read_datasets, read_targets
 from ..io.tables import list_to_padded
 
-TARGET_COLUMNS = ("target_id", "year", "material", "hdrf", "calibration", "agc", "x", "y", "z", "radius_m")
-DATASET_COLUMNS = ("dataset", "year")
+__all__ = ["CampaignTableError", "TargetTableError", "dataset_year", "read_datasets", "read_targets",
+           "target_membership", "first_echo_xy", "pulse_targets"]
 
-
-class TargetTableError(WaveforestError):
-    """A targets.csv or datasets.csv that does not follow its schema."""
-
-
-def _read_csv(path: str | Path, required: tuple[str, ...]) -> pd.DataFrame:
-    path = Path(path)
-    if not path.exists():
-        raise TargetTableError(f"{path}: no such file")
-    try:
-        df = pd.read_csv(path, dtype=str, keep_default_na=False)
-    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
-        raise TargetTableError(f"{path}: not a readable CSV table ({exc})") from None
-    df.columns = [c.strip() for c in df.columns]
-    missing = [c for c in required if c not in df.columns]
-    if missing:
-        raise TargetTableError(f"{path}: lacks column(s) {', '.join(missing)}")
-    return df
-
-
-def _numeric(df: pd.DataFrame, name: str, path, *, allow_empty: bool = False) -> np.ndarray:
-    raw = df[name].astype(str).str.strip()
-    empty = raw == ""
-    if empty.any() and not allow_empty:
-        raise TargetTableError(f"{path}: column {name}, row {int(np.flatnonzero(empty)[0]) + 2}: empty value")
-    vals = pd.to_numeric(raw.where(~empty, None), errors="coerce")
-    bad = vals.isna() & ~empty
-    if bad.any():
-        row = int(np.flatnonzero(bad.to_numpy())[0])
-        raise TargetTableError(f"{path}: column {name}, row {row + 2}: {raw.iloc[row]!r} is not a number")
-    return vals.to_numpy(dtype=np.float64)
-
-
-def read_targets(path: str | Path) -> pd.DataFrame:
-    """Read and check ``targets.csv``; numeric columns as float, flags as bool, year as int."""
-    df = _read_csv(path, TARGET_COLUMNS)
-    out = pd.DataFrame({"target_id": df["target_id"].astype(str).str.strip(),
-                        "material": df["material"].astype(str).str.strip()})
-    year = _numeric(df, "year", path)
-    if np.any(year != np.round(year)):
-        raise TargetTableError(f"{path}: column year must hold integers")
-    out["year"] = year.astype(np.int64)
-    out["hdrf"] = _numeric(df, "hdrf", path, allow_empty=True)
-    for flag in ("calibration", "agc"):
-        v = _numeric(df, flag, path)
-        if not np.isin(v, (0.0, 1.0)).all():
-            raise TargetTableError(f"{path}: column {flag} must be 0 or 1")
-        out[flag] = v.astype(bool)
-    for c in ("x", "y", "z", "radius_m"):
-        out[c] = _numeric(df, c, path)
-    if (out["radius_m"] <= 0).any():
-        raise TargetTableError(f"{path}: column radius_m must be > 0")
-    cal_no_hdrf = out["calibration"] & ~(out["hdrf"] > 0)
-    if cal_no_hdrf.any():
-        tid = out["target_id"][cal_no_hdrf].iloc[0]
-        raise TargetTableError(f"{path}: calibration target {tid!r} needs an HDRF > 0")
-    if out["target_id"].duplicated().any():
-        raise TargetTableError(f"{path}: target_id values must be unique")
-    return out
-
-
-def read_datasets(path: str | Path) -> pd.DataFrame:
-    """Read ``datasets.csv`` (dataset and year required; numeric extras converted when present)."""
-    df = _read_csv(path, DATASET_COLUMNS)
-    out = pd.DataFrame({"dataset": df["dataset"].astype(str).str.strip()})
-    year = _numeric(df, "year", path)
-    if np.any(year != np.round(year)):
-        raise TargetTableError(f"{path}: column year must hold integers")
-    out["year"] = year.astype(np.int64)
-    for c in ("mean_range_m", "pulse_width_fwhm_ns", "footprint_diameter_m", "divergence_mrad", "sampling_ns",
-              "max_scan_zenith_deg"):
-        if c in df.columns:
-            out[c] = _numeric(df, c, path, allow_empty=True)
-    if out["dataset"].duplicated().any():
-        raise TargetTableError(f"{path}: dataset names must be unique")
-    return out
-
-
-def dataset_year(datasets: pd.DataFrame, dataset: str, source: str = "datasets.csv") -> int:
-    """The year of ``dataset`` in a datasets table."""
-    row = datasets.loc[datasets["dataset"] == dataset]
-    if row.empty:
-        raise TargetTableError(f"{source}: dataset {dataset!r} is not listed")
-    return int(row["year"].iloc[0])
+TargetTableError = CampaignTableError
+"""The error of a bad targets.csv or datasets.csv (the campaign tables' one error type)."""
 
 
 def target_membership(x, y, year: int, targets: pd.DataFrame) -> np.ndarray:
