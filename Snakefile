@@ -9,6 +9,7 @@ configfile: "config/config.yaml"
 
 
 include: "workflow/rules/common.smk"
+include: "workflow/rules/config.smk"
 include: "workflow/rules/campaign.smk"
 include: "workflow/rules/ingest.smk"
 include: "workflow/rules/calibrate.smk"

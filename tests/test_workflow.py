@@ -127,3 +127,66 @@ def test_changing_one_datasets_input_reruns_only_what_depends_on_it(workdir):
     rules = {r for r, _ in jobs}
     assert {"ingest", "agc", "calibrate", "select", "simulate", "features_real", "classify"} <= rules
     assert "synthesize" not in rules and "sensitivity" not in rules  # they never read 2012_10_1.las
+
+
+def _files(root: Path) -> set[str]:
+    return {str(p.relative_to(root)) for p in root.rglob("*") if p.is_file() and ".snakemake" not in p.parts}
+
+
+@pytest.mark.parametrize("args", [["-n", "--cores", "2"], ["--lint"]])
+def test_planning_writes_nothing(workdir, args):
+    before = _files(workdir)
+    res = _snakemake(*args, cwd=workdir)
+    assert res.returncode == 0, res.stdout + res.stderr
+    assert _files(workdir) == before, sorted(_files(workdir) - before)
+    assert not (workdir / "results").exists()
+
+
+def test_readme_override_of_a_nested_value(workdir):
+    """README: --config 'campaign={"effects": {"understory": 1.5}}' (Snakemake hands the 1.5 over as
+    a string); the stage config then holds the number, beside the config file's other keys."""
+    override = 'campaign={"effects": {"understory": 1.5}, "samples_per_species": 3}'
+    res = _snakemake("-n", "--cores", "2", "--config", override, cwd=workdir)
+    assert res.returncode == 0, res.stdout + res.stderr
+    res = _snakemake("--cores", "1", "results/config/synthesize.yaml", "--config", override, cwd=workdir)
+    assert res.returncode == 0, res.stdout + res.stderr
+    import yaml
+
+    from waveforest import config
+
+    written = config.load(workdir / "results/config/synthesize.yaml")
+    assert written["campaign"]["effects"] == {"understory": 1.5}
+    assert written["campaign"]["samples_per_species"] == 3 and written["seed"] == 2014
+    assert yaml.safe_load((workdir / "results/config/synthesize.yaml").read_text()) == written  # complete
+    bad = _snakemake("-n", "--cores", "2", "--config", 'campaign={"effects": {"understory": 1.5', cwd=workdir)
+    assert bad.returncode != 0 and "--config campaign=" in bad.stdout + bad.stderr
+    typo = _snakemake("-n", "--cores", "2", "--config", 'mcrt={"n_rayz": 5}', cwd=workdir)
+    assert typo.returncode != 0 and "n_rayz" in typo.stdout + typo.stderr
+
+
+def test_config_change_reruns_exactly_the_stages_that_use_it(workdir):
+    """Each stage's config file is rewritten only when a key it declares changes."""
+    stages = ["agc", "calibrate", "select", "simulate", "features_real", "sensitivity", "report"]
+    targets = [f"results/config/{s}.yaml" for s in stages]
+    res = _snakemake("--cores", "1", *targets, cwd=workdir)
+    assert res.returncode == 0, res.stdout + res.stderr
+    assert not _planned_jobs(_snakemake("-n", "--cores", "1", *targets, cwd=workdir).stdout)
+    res = _snakemake("-n", "--cores", "1", *targets, "--config", "agc={b: 0.01}", cwd=workdir)
+    planned = {w for r, w in _planned_jobs(res.stdout + res.stderr) if r == "config"}
+    assert planned == {"stage=agc", "stage=report"}, res.stdout + res.stderr
+    res = _snakemake("-n", "--cores", "1", *targets, "--config", 'sensor={"cfd": {"fraction": 0.4}}', cwd=workdir)
+    planned = {w for r, w in _planned_jobs(res.stdout + res.stderr) if r == "config"}
+    assert planned == {f"stage={s}" for s in ["agc", "calibrate", "simulate", "features_real", "sensitivity",
+                                                "report"]}, res.stdout + res.stderr
+
+
+def test_reference_dataset_comes_from_the_config(workdir):
+    unquoted = _snakemake("-n", "--cores", "2", "--config", "reference_dataset=2012_10_1", cwd=workdir)
+    assert unquoted.returncode != 0 and "set this key in a --configfile" in unquoted.stdout + unquoted.stderr
+    (workdir / "ref.yaml").write_text("reference_dataset: '2012_10_1'\n")
+    res = _snakemake("-n", "--cores", "2", "--configfile", "ref.yaml", cwd=workdir)
+    out = res.stdout + res.stderr
+    assert res.returncode == 0, out
+    jobs = _jobs_files(out)
+    studies = [inputs for inputs, outputs in jobs if "results/sensitivity/sensitivity.csv" in outputs]
+    assert studies and "results/calibration/2012_10_1.parquet" in studies[0], studies

@@ -4,6 +4,7 @@
 
 rule compare:
     input:
+        config=stage_config("compare", "simulate", "seed"),
         real=expand(result("features", "{dataset}_real.parquet"), dataset=COMPARE_DATASETS),
         sim=expand(result("features", "{dataset}_sim.parquet"), dataset=COMPARE_DATASETS),
         selected=expand(result("select", "{dataset}.parquet"), dataset=COMPARE_DATASETS),
@@ -17,10 +18,7 @@ rule compare:
         fig6=expand(result("compare", "fig6_{dataset}.png"), dataset=COMPARE_DATASETS),
         fig7=expand(result("compare", "fig7_{dataset}.png"), dataset=COMPARE_DATASETS),
     params:
-        simulate=config["simulate"],
-        seed=config["seed"],
         out=output_dir,
-        config=CONFIG_FILE,
     log:
         result("logs", "compare.log"),
     benchmark:
@@ -31,11 +29,12 @@ rule compare:
     shell:
         "waveforest compare --real {input.real} --sim {input.sim} "
         "--pulses-real {input.selected} --pulses-sim {input.simulated} "
-        "--out {params.out} --config {params.config} > {log} 2>&1"
+        "--out {params.out} --config {input.config} > {log} 2>&1"
 
 
 rule sensitivity:
     input:
+        config=stage_config("sensitivity", "sensitivity", "mcrt", "vegetation", "sensor", "seed"),
         system=reference_system,
     output:
         table=result("sensitivity", "sensitivity.csv"),
@@ -43,14 +42,8 @@ rule sensitivity:
         baseline=result("sensitivity", "sensitivity_baseline.csv"),
         pulses=result("sensitivity", "sensitivity_pulses.parquet"),
     params:
-        sensitivity=config["sensitivity"],
-        mcrt=config["mcrt"],
-        vegetation=config["vegetation"],
-        sensor=config["sensor"],
-        seed=config["seed"],
         system=system_option,
         out=output_dir,
-        config=CONFIG_FILE,
     log:
         result("logs", "sensitivity.log"),
     benchmark:
@@ -60,25 +53,20 @@ rule sensitivity:
     threads: 2
     shell:
         "waveforest sensitivity {params.system} --out {params.out} "
-        "--threads {threads} --config {params.config} > {log} 2>&1"
+        "--threads {threads} --config {input.config} > {log} 2>&1"
 
 
 rule sensor_study:
     input:
+        config=stage_config("sensor_study", "sensor_study", "sensitivity/reference_system", "mcrt", "vegetation", "sensor", "seed"),
         system=reference_system,
     output:
         table=result("sensor_study", "sensor_study.csv"),
         figure=result("sensor_study", "fig9.png"),
         features=result("sensor_study", "sensor_study_features.csv"),
     params:
-        sensor_study=config["sensor_study"],
-        mcrt=config["mcrt"],
-        vegetation=config["vegetation"],
-        sensor=config["sensor"],
-        seed=config["seed"],
         system=system_option,
         out=output_dir,
-        config=CONFIG_FILE,
     log:
         result("logs", "sensor_study.log"),
     benchmark:
@@ -88,19 +76,15 @@ rule sensor_study:
     threads: 2
     shell:
         "waveforest sensor-study {params.system} --out {params.out} "
-        "--threads {threads} --config {params.config} > {log} 2>&1"
+        "--threads {threads} --config {input.config} > {log} 2>&1"
 
 
 rule classify:
     input:
+        config=stage_config("classify", "classify", "select", "seed"),
         features=result("features", "{dataset}_real.parquet"),
     output:
         result("classify", "{dataset}.json"),
-    params:
-        classify=config["classify"],
-        select=config["select"],
-        seed=config["seed"],
-        config=CONFIG_FILE,
     log:
         result("logs", "classify", "{dataset}.log"),
     benchmark:
@@ -109,4 +93,4 @@ rule classify:
         ENV
     threads: 1
     shell:
-        "waveforest classify {input.features} --out {output} --config {params.config} > {log} 2>&1"
+        "waveforest classify {input.features} --out {output} --config {input.config} > {log} 2>&1"

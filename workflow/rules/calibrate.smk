@@ -3,16 +3,13 @@
 
 rule agc:
     input:
+        config=stage_config("agc", "agc", "calibrate", "sensor"),
         pulses=result("pulses", "{dataset}.parquet"),
         targets=campaign_file("targets.csv"),
         datasets=campaign_file("datasets.csv"),
     output:
         pulses=result("agc", "{dataset}.parquet"),
         fit=result("agc", "{dataset}.json"),
-    params:
-        agc=config["agc"],
-        calibrate=config["calibrate"],
-        config=CONFIG_FILE,
     log:
         result("logs", "agc", "{dataset}.log"),
     benchmark:
@@ -22,11 +19,12 @@ rule agc:
     threads: 1
     shell:
         "waveforest agc {input.pulses} --targets {input.targets} --datasets {input.datasets} "
-        "--out {output.pulses} --fit {output.fit} --config {params.config} > {log} 2>&1"
+        "--out {output.pulses} --fit {output.fit} --config {input.config} > {log} 2>&1"
 
 
 rule calibrate:
     input:
+        config=stage_config("calibrate", "calibrate", "sensor", "seed", "simulate/effects"),
         pulses=result("agc", "{dataset}.parquet"),
         targets=campaign_file("targets.csv"),
         datasets=campaign_file("datasets.csv"),
@@ -34,11 +32,6 @@ rule calibrate:
         system=result("calibration", "{dataset}.parquet"),
         json=result("calibration", "{dataset}.json"),
         plot=result("calibration", "{dataset}.png"),
-    params:
-        calibrate=config["calibrate"],
-        sensor=config["sensor"],
-        effects=config["simulate"]["effects"],  # S(t) of the model: its sensor effects are inverted
-        config=CONFIG_FILE,
     log:
         result("logs", "calibrate", "{dataset}.log"),
     benchmark:
@@ -49,4 +42,4 @@ rule calibrate:
     shell:
         "waveforest calibrate {input.pulses} --targets {input.targets} --datasets {input.datasets} "
         "--out {output.system} --json {output.json} --plot {output.plot} "
-        "--config {params.config} > {log} 2>&1"
+        "--config {input.config} > {log} 2>&1"

@@ -3,6 +3,8 @@
 if not config["data"]:
 
     rule synthesize:
+        input:
+            config=stage_config("synthesize", "campaign", "datasets", "seed", "select", "vegetation"),
         output:
             datasets=result("campaign", "datasets.csv"),
             fields=result("campaign", "fields.csv"),
@@ -11,10 +13,6 @@ if not config["data"]:
             las=expand(result("campaign", "{dataset}.las"), dataset=DATASETS),
             trajectories=expand(result("campaign", "{dataset}_trajectory.csv"), dataset=DATASETS),
         params:
-            campaign=config["campaign"],
-            datasets=DATASETS,
-            seed=config["seed"],
-            config=CONFIG_FILE,
             out=output_dir,
         log:
             result("logs", "synthesize.log"),
@@ -24,5 +22,5 @@ if not config["data"]:
             ENV
         threads: 2
         shell:
-            "waveforest synthesize --config {params.config} --out {params.out} "
+            "waveforest synthesize --config {input.config} --out {params.out} "
             "--threads {threads} > {log} 2>&1"

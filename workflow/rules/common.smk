@@ -6,23 +6,94 @@ import yaml
 from snakemake.utils import validate
 
 
-validate(config, schema="../schemas/config.schema.yaml")
+SCHEMA = "../schemas/config.schema.yaml"
+
+
+def _schema_types(schema):
+    """The JSON types a (sub)schema allows; empty when it names none."""
+    t = schema.get("type", [])
+    return {t} if isinstance(t, str) else set(t)
+
+
+def _typed_overrides(values, overrides, schema, path=()):
+    """Give the ``--config`` values their schema types, in place.
+
+    Snakemake reads ``--config KEY=VALUE`` values with YAML's BaseLoader, so every scalar of a
+    nested value arrives as a string ('campaign={"effects": {"understory": 1.5}}' gives
+    ``"1.5"``), and a value it cannot parse arrives as the whole string. Each string whose schema
+    does not allow a string is parsed as YAML (JSON is YAML); one that does not parse is an error
+    naming the key. Only keys given on the command line are touched.
+    """
+    for key, value in overrides.items():
+        here = path + (key,)
+        props = schema.get("properties", {})
+        sub = props[key] if key in props else schema.get("additionalProperties")
+        if not isinstance(sub, dict):
+            continue  # an unknown key: validation reports it
+        types = _schema_types(sub)
+        if types == {"string"} and isinstance(value, (int, float)) and not isinstance(value, bool):
+            raise ValueError(
+                f"--config {'.'.join(here)}={value!r}: expected text, and Snakemake read a number "
+                "(it reads 2010_12_1 as 2010121, quoted or not); set this key in a --configfile"
+            )
+        if isinstance(value, str) and types and "string" not in types:
+            try:
+                values[key] = yaml.safe_load(value)
+            except yaml.YAMLError as exc:
+                raise ValueError(
+                    f"--config {'.'.join(here)}={value!r}: not valid YAML/JSON for a value of type "
+                    f"{' or '.join(sorted(types))} ({exc})"
+                ) from None
+        elif isinstance(value, dict) and isinstance(values.get(key), dict):
+            _typed_overrides(values[key], value, sub, here)
+        elif isinstance(value, list) and isinstance(sub.get("items"), dict):
+            item_types = _schema_types(sub["items"])
+            if item_types and "string" not in item_types:
+                values[key] = [yaml.safe_load(v) if isinstance(v, str) else v for v in value]
+
+
+with open(os.path.join(workflow.current_basedir, SCHEMA)) as _fh:
+    _typed_overrides(config, dict(workflow.config_settings.config), yaml.safe_load(_fh))
+validate(config, schema=SCHEMA)
 
 RESULTS = "results"
 CAMPAIGN = config["data"] if config["data"] else os.path.join(RESULTS, "campaign")
 DATASETS = config["datasets"]
 COMPARE_DATASETS = [d for d in config["simulate"]["datasets"] if d in DATASETS]
 CHUNKS = list(range(config["simulate"]["chunks"]))
+REFERENCE_DATASET = config["reference_dataset"]
 
-# The CLI reads the same (validated, defaults filled) config the workflow sees. It is
-# rewritten only when it changes; rules list the sections they use as params, so a change
-# reruns exactly the steps that depend on it.
-CONFIG_FILE = os.path.join(RESULTS, "config.yaml")
-_text = yaml.safe_dump(config, sort_keys=True)
-if not os.path.exists(CONFIG_FILE) or open(CONFIG_FILE).read() != _text:
-    os.makedirs(RESULTS, exist_ok=True)
-    with open(CONFIG_FILE, "w") as _fh:
-        _fh.write(_text)
+# The CLI of every stage reads the validated config (defaults filled) from a file that rule
+# `config` writes when the workflow runs, one per stage: results/config/<stage>.yaml. A stage
+# declares the config keys it uses (stage_config); its file is rewritten, and the stage rerun,
+# only when those keys change (they are the `config` job's params), so a config change reruns
+# exactly the steps that depend on it, and planning (-n, --lint) writes nothing.
+STAGE_KEYS = {}
+
+
+def stage_config(stage, *keys):
+    """The config file of ``stage``, which depends on config ``keys`` ("section" or "section/key")."""
+    STAGE_KEYS[stage] = keys
+    return result("config", "{}.yaml".format(stage))
+
+
+def config_values(wildcards):
+    """The config values that the stage of a `config` job depends on, by key."""
+    out = {}
+    for key in STAGE_KEYS[wildcards.stage]:
+        node = config
+        for part in key.split("/"):
+            node = node[part]
+        out[key] = node
+    return out
+
+
+def write_config(path):
+    """Write the whole validated config to ``path`` as YAML (sorted keys), atomically."""
+    tmp = "{}.part".format(path)
+    with open(tmp, "w") as fh:
+        fh.write(yaml.safe_dump(config, sort_keys=True))
+    os.replace(tmp, path)
 
 
 def _user_datasets():
@@ -83,12 +154,9 @@ def campaign_dir(wildcards, input):
 ENV = "../envs/waveforest.yaml"
 
 
-REFERENCE_DATASET = "2010_12_1"
-"""The dataset whose S(t) the sensitivity and sensor studies use (METHOD.md i2, i3)."""
-
 
 def reference_system(wildcards):
-    """S(t) of the reference dataset if it is processed, else nothing (a Gaussian is used)."""
+    """S(t) of config reference_dataset if it is processed, else nothing (a Gaussian is used)."""
     if REFERENCE_DATASET in DATASETS:
         return result("calibration", "{}.parquet".format(REFERENCE_DATASET))
     return []
@@ -97,3 +165,4 @@ def reference_system(wildcards):
 def system_option(wildcards, input):
     """The --system option of the studies, empty when the reference S(t) is not available."""
     return "--system {}".format(input.system) if input.system else ""
+

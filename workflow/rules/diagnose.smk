@@ -3,6 +3,7 @@
 
 rule diagnose:
     input:
+        config=stage_config("diagnose", "diagnose", "datasets", "simulate", "select", "mcrt", "vegetation", "sensor", "seed"),
         selected=expand(result("select", "{dataset}.parquet"), dataset=COMPARE_DATASETS),
         real=expand(result("features", "{dataset}_real.parquet"), dataset=COMPARE_DATASETS),
         calibration=expand(result("calibration", "{dataset}.json"), dataset=COMPARE_DATASETS),
@@ -20,15 +21,8 @@ rule diagnose:
         signatures=result("diagnose", "signatures.csv"),
         summary=result("diagnose", "diagnose.md"),
     params:
-        diagnose=config["diagnose"],
-        simulate=config["simulate"],
-        mcrt=config["mcrt"],
-        vegetation=config["vegetation"],
-        sensor=config["sensor"],
-        seed=config["seed"],
         out=output_dir,
         campaign=campaign_dir,
-        config=CONFIG_FILE,
     log:
         result("logs", "diagnose.log"),
     benchmark:
@@ -39,4 +33,4 @@ rule diagnose:
     shell:
         "waveforest diagnose --selected {input.selected} --features-real {input.real} "
         "--calibration {input.calibration} --system {input.system} --agc {input.agc} --campaign {params.campaign} "
-        "--out {params.out} --threads {threads} --config {params.config} > {log} 2>&1"
+        "--out {params.out} --threads {threads} --config {input.config} > {log} 2>&1"

@@ -3,13 +3,11 @@
 
 rule features_real:
     input:
+        config=stage_config("features_real", "sensor/features", "sensor/cfd"),
         pulses=result("select", "{dataset}.parquet"),
         calibration=result("calibration", "{dataset}.json"),
     output:
         result("features", "{dataset}_real.parquet"),
-    params:
-        features=config["sensor"]["features"],
-        config=CONFIG_FILE,
     log:
         result("logs", "features", "{dataset}_real.log"),
     benchmark:
@@ -19,18 +17,16 @@ rule features_real:
     threads: 1
     shell:
         "waveforest features {input.pulses} --calibration {input.calibration} "
-        "--out {output} --config {params.config} > {log} 2>&1"
+        "--out {output} --config {input.config} > {log} 2>&1"
 
 
 rule features_sim:
     input:
+        config=stage_config("features_sim", "sensor/features", "sensor/cfd"),
         pulses=expand(result("simulate", "{{dataset}}", "{chunk}.parquet"), chunk=CHUNKS),
         calibration=result("calibration", "{dataset}.json"),
     output:
         result("features", "{dataset}_sim.parquet"),
-    params:
-        features=config["sensor"]["features"],
-        config=CONFIG_FILE,
     log:
         result("logs", "features", "{dataset}_sim.log"),
     benchmark:
@@ -40,4 +36,4 @@ rule features_sim:
     threads: 1
     shell:
         "waveforest features {input.pulses} --calibration {input.calibration} "
-        "--out {output} --config {params.config} > {log} 2>&1"
+        "--out {output} --config {input.config} > {log} 2>&1"

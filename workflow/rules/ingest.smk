@@ -3,13 +3,11 @@
 
 rule ingest:
     input:
+        config=stage_config("ingest", "ingest", "agc"),
         las=las_file,
         trajectory=trajectory_file,
     output:
         result("pulses", "{dataset}.parquet"),
-    params:
-        agc=config["agc"],
-        config=CONFIG_FILE,
     log:
         result("logs", "ingest", "{dataset}.log"),
     benchmark:
@@ -19,4 +17,4 @@ rule ingest:
     threads: 1
     shell:
         "waveforest ingest {input.las} --out {output} --dataset {wildcards.dataset} "
-        "--trajectory {input.trajectory} --config {params.config} > {log} 2>&1"
+        "--trajectory {input.trajectory} --config {input.config} > {log} 2>&1"

@@ -3,6 +3,7 @@
 
 rule report:
     input:
+        config=stage_config("report", *sorted(config)),
         table3=result("compare", "table3.csv"),
         sensitivity=result("sensitivity", "sensitivity.csv"),
         sensor_study=result("sensor_study", "sensor_study.csv"),
@@ -16,7 +17,6 @@ rule report:
         table4_md=result("report", "table4.md"),
     params:
         results=results_dir,
-        config=CONFIG_FILE,
     log:
         result("logs", "report.log"),
     benchmark:
@@ -25,5 +25,5 @@ rule report:
         ENV
     threads: 1
     shell:
-        "waveforest report --results {params.results} --config {params.config} "
+        "waveforest report --results {params.results} --config {input.config} "
         "--out {output.html} > {log} 2>&1"

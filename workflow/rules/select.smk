@@ -3,14 +3,12 @@
 
 rule select:
     input:
+        config=stage_config("select", "select", "simulate"),
         pulses=result("agc", "{dataset}.parquet"),
         fields=campaign_file("fields.csv"),
         datasets=campaign_file("datasets.csv"),
     output:
         result("select", "{dataset}.parquet"),
-    params:
-        select=config["select"],
-        config=CONFIG_FILE,
     log:
         result("logs", "select", "{dataset}.log"),
     benchmark:
@@ -20,4 +18,4 @@ rule select:
     threads: 1
     shell:
         "waveforest select {input.pulses} --fields {input.fields} --datasets {input.datasets} "
-        "--out {output} --config {params.config} > {log} 2>&1"
+        "--out {output} --config {input.config} > {log} 2>&1"

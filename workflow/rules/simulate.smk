@@ -3,6 +3,7 @@
 
 rule simulate:
     input:
+        config=stage_config("simulate", "simulate", "mcrt", "vegetation", "sensor", "seed"),
         selected=result("select", "{dataset}.parquet"),
         fields=campaign_file("fields.csv"),
         datasets=campaign_file("datasets.csv"),
@@ -11,13 +12,7 @@ rule simulate:
     output:
         result("simulate", "{dataset}", "{chunk}.parquet"),
     params:
-        simulate=config["simulate"],
-        mcrt=config["mcrt"],
-        vegetation=config["vegetation"],
-        sensor=config["sensor"],
-        seed=config["seed"],
         chunks=config["simulate"]["chunks"],
-        config=CONFIG_FILE,
     log:
         result("logs", "simulate", "{dataset}_{chunk}.log"),
     benchmark:
@@ -29,4 +24,4 @@ rule simulate:
         "waveforest simulate {input.selected} --fields {input.fields} --datasets {input.datasets} "
         "--system {input.system} --calibration {input.calibration} "
         "--chunk {wildcards.chunk} --chunks {params.chunks} --out {output} "
-        "--threads {threads} --config {params.config} > {log} 2>&1"
+        "--threads {threads} --config {input.config} > {log} 2>&1"
