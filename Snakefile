@@ -8,6 +8,7 @@ min_version("8.0")
 configfile: "config/config.yaml"
 
 
+include: "workflow/rules/executor.smk"
 include: "workflow/rules/common.smk"
 include: "workflow/rules/config.smk"
 include: "workflow/rules/campaign.smk"
