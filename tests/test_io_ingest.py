@@ -7,7 +7,7 @@ from test_io_las_roundtrip import assert_round_trip, assert_tables_equal
 
 from waveforest.errors import WaveforestError
 from waveforest.io.ingest import run
-from waveforest.io.las import read_waveform_las, summarise, write_waveform_las
+from waveforest.io.las import LasWaveformWarning, read_waveform_las, summarise, write_waveform_las
 from waveforest.io.synthetic import synthetic_pulses
 from waveforest.io.tables import PULSE_SCHEMA, read_pulses
 
@@ -44,7 +44,8 @@ def test_run_on_a_large_file_uses_bounded_buckets(tmp_path):
 
 def test_empty_file(tmp_path):
     las = write_waveform_las(tmp_path / "empty.las", synthetic_pulses(0))
-    res = run(las, tmp_path / "e.parquet")
+    with pytest.warns(LasWaveformWarning, match="announces 0 points"):
+        res = run(las, tmp_path / "e.parquet")
     assert res.n_pulses == 0 and read_pulses(tmp_path / "e.parquet").num_rows == 0
 
 

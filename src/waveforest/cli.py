@@ -6,9 +6,13 @@ lazily, so ``waveforest --help`` stays fast and a stage appears once it exists.
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import importlib.util
+import signal
 import sys
+import threading
+from collections.abc import Iterator
 
 import click
 
@@ -74,13 +78,50 @@ def cli() -> None:
     """
 
 
-def main(argv: list[str] | None = None) -> None:
-    """Entry point: bad input ends with one message on stderr and exit code 1."""
+class Terminated(SystemExit):
+    """Raised in the main thread on SIGTERM (or SIGHUP): unwinds the stack so that every
+    ``finally:`` runs (atomic writers remove their ``.part`` files, spills are deleted), then
+    exits with status 128 + the signal number, as a shell reports a death by that signal."""
+
+    def __init__(self, signum: int):
+        super().__init__(128 + signum)
+        self.signum = signum
+
+
+def _terminate(signum, frame) -> None:
+    signal.signal(signum, signal.SIG_IGN)  # a second signal must not interrupt the clean-up
+    raise Terminated(signum)
+
+
+@contextlib.contextmanager
+def _terminate_cleanly() -> Iterator[None]:
+    """Turn SIGTERM and SIGHUP into :class:`Terminated` while the block runs (main thread only)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = {sig: signal.signal(sig, _terminate) for sig in (signal.SIGTERM, signal.SIGHUP)}
     try:
-        cli.main(args=argv, prog_name="waveforest", standalone_mode=False)
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Entry point: bad input ends with one message on stderr and exit code 1.
+
+    Ctrl-C exits with 130, SIGTERM with 143 and SIGHUP with 129, each after the partial
+    outputs are removed.
+    """
+    try:
+        with _terminate_cleanly():
+            cli.main(args=argv, prog_name="waveforest", standalone_mode=False)
     except WaveforestError as exc:
         click.echo(f"waveforest: error: {exc}", err=True)
         sys.exit(1)
+    except Terminated as exc:
+        click.echo(f"waveforest: terminated by signal {signal.Signals(exc.signum).name}; partial outputs removed", err=True)
+        sys.exit(exc.code)
     except click.exceptions.Abort:
         click.echo("Aborted.", err=True)
         sys.exit(130)

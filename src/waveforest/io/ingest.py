@@ -16,6 +16,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from ..atomic import output_folder
 from ..errors import WaveforestError
 from .las_read import (
     DEFAULT_BATCH_PULSES,
@@ -42,6 +43,10 @@ class IngestResult:
         LAS points read.
     n_without_waveform : int
         Pulses skipped because none of their returns has a waveform packet.
+    n_bad_gps : int
+        Points dropped for a non-finite GPS time.
+    n_bad_geometry : int
+        Points kept without their waveform packet (unusable beam geometry).
     n_split_pulses : int
         Pulses whose returns sit in more than one packet.
     agc_attribute : str or None
@@ -57,6 +62,8 @@ class IngestResult:
     n_points: int
     n_without_waveform: int
     n_split_pulses: int
+    n_bad_gps: int
+    n_bad_geometry: int
     agc_attribute: str | None
     sensor: str
     las: LasWaveformFile
@@ -64,7 +71,15 @@ class IngestResult:
     def summary(self) -> str:
         """One line for the CLI."""
         agc = f"AGC from {self.agc_attribute}" if self.agc_attribute else "no AGC"
-        extra = f", {self.n_without_waveform} without waveform skipped" if self.n_without_waveform else ""
+        extra = "".join(
+            f", {n:,} {what}"
+            for n, what in (
+                (self.n_bad_gps, "points with a non-finite GPS time dropped"),
+                (self.n_bad_geometry, "points with an unusable beam geometry kept without their packet"),
+                (self.n_without_waveform, "pulses without waveform skipped"),
+            )
+            if n
+        )
         return (
             f"wrote {self.out}: {self.n_pulses:,} pulses from {self.n_points:,} points of {self.las.path.name} "
             f"(LAS {self.las.version}, format {self.las.point_format}, {self.las.waveform.storage} waveforms; "
@@ -118,7 +133,7 @@ def run(
     if out.resolve() == las_path.resolve():
         raise WaveforestError(f"{out}: the output would overwrite the input")
 
-    out.parent.mkdir(parents=True, exist_ok=True)
+    output_folder(out)  # refuse a device, FIFO or directory before reading anything
     reader = WaveformPulseReader(
         las_path,
         dataset=dataset,
@@ -150,6 +165,8 @@ def run(
         n_points=st.n_points,
         n_without_waveform=st.n_without_waveform,
         n_split_pulses=st.n_split_pulses,
+        n_bad_gps=st.n_bad_gps,
+        n_bad_geometry=st.n_bad_geometry,
         agc_attribute=st.agc_dimension,
         sensor=sensor,
         las=reader.las,

@@ -2,8 +2,22 @@
 
 :class:`PointScanner` streams the points of a :class:`.las_file.LasWaveformFile` with laspy
 in chunks and keeps :data:`COMPACT_DTYPE` records (76 bytes a point), checking every
-waveform reference on the way (descriptor defined, not empty, uncompressed, packet inside
-the waveform data). :func:`sort_points` groups records into pulses without copying them.
+waveform reference on the way (descriptor defined, not empty, uncompressed, finite gain
+and offset, consistent with the packet size, packet inside the waveform data).
+:func:`sort_points` groups records into pulses without copying them.
+
+Corrupt single records are dropped, counted and reported (a warning when the scan ends,
+and the counts in :class:`PointScanner`), rather than stopping a whole flight line:
+
+- a point with a non-finite GPS time is dropped: it cannot be grouped into a pulse nor
+  placed on a trajectory, and NaN GPS times would each make a pulse of their own;
+- a point whose beam geometry is unusable (x(t), y(t), z(t) all 0 or not finite, or a
+  non-finite return point waveform location) keeps its XYZ as an echo, but loses its
+  waveform packet: the packet cannot be placed in space. A pulse left with no packet is
+  then skipped and counted as one "without waveform".
+
+File-wide defects (a descriptor that contradicts the packet sizes, a packet outside the
+waveform data) are errors: every pulse would be wrong, and the file needs repair.
 """
 
 from __future__ import annotations
@@ -11,10 +25,9 @@ from __future__ import annotations
 from collections.abc import Iterator
 from dataclasses import dataclass
 
-import laspy
 import numpy as np
 
-from .las_file import LasWaveformFile, fail
+from .las_file import LasWaveformFile, fail, open_point_reader
 from .las_format import SCAN_ANGLE_UNIT_DEG, SUPPORTED_COMPRESSION, LasWaveformError, warn
 
 COMPACT_DTYPE = np.dtype(
@@ -54,14 +67,26 @@ class PointScanner:
         self.defined, self.empty, self.comp, self.bits = defined, empty, comp, bits
         self.packet_bytes = self.lut["n_samples"] * self.lut["sample_bytes"]
         self._warned_size = False
+        self.n_read = 0
+        """Point records read by the last full scan (``chunks("all")``)."""
+        self.n_bad_gps = 0
+        """Points dropped by the last full scan for a non-finite GPS time."""
+        self.n_bad_geometry = 0
+        """Points of the last full scan whose waveform packet was dropped (unusable beam geometry)."""
 
     def chunks(self, fields: str = "all") -> Iterator[np.ndarray]:
-        """Yield compact records (``fields="all"``) or (gps, agc) pairs (``fields="keys"``)."""
+        """Yield compact records (``fields="all"``) or (gps, agc) pairs (``fields="keys"``).
+
+        Points with a non-finite GPS time are left out of both; a full scan counts them
+        (and the points that lose their packet) and warns once at its end.
+        """
         las = self.las
         try:
-            reader = laspy.open(las.path, read_evlrs=False)
+            reader = open_point_reader(las)
         except Exception as exc:
-            raise fail(las.path, f"cannot open the point records ({exc})") from exc
+            raise fail(las.path, f"cannot open the point records ({type(exc).__name__}: {exc})") from exc
+        if fields == "all":
+            self.n_read = self.n_bad_gps = self.n_bad_geometry = 0
         with reader:
             reader.header.point_count = las.n_points  # legacy/64-bit count resolved in open_waveform_las
             start = 0
@@ -70,16 +95,32 @@ class PointScanner:
                 for pts in iterator:
                     n = len(pts)
                     if fields == "keys":
-                        yield np.asarray(pts.array["gps_time"], dtype=np.float64), self._agc(pts, n)
+                        gps = np.asarray(pts.array["gps_time"], dtype=np.float64)
+                        ok = np.isfinite(gps)
+                        agc = self._agc(pts, n)
+                        yield (gps, agc) if ok.all() else (gps[ok], agc[ok])
                     else:
                         yield self._compact(pts, start)
                     start += n
             except LasWaveformError:
                 raise
             except Exception as exc:
-                raise fail(las.path, f"cannot read point records near point {start} ({exc})") from exc
+                raise fail(las.path, f"cannot read point records near point {start} ({type(exc).__name__}: {exc})") from exc
             if start != las.n_points:
                 raise fail(las.path, f"truncated file: read {start} of the {las.n_points} points the header announces")
+        if fields == "all":
+            self.n_read = start
+            self._report_drops()
+
+    def _report_drops(self) -> None:
+        path = self.las.path
+        if self.n_bad_gps:
+            warn(f"{path}: {self.n_bad_gps} point(s) with a non-finite GPS time dropped (they cannot be grouped into pulses)")
+        if self.n_bad_geometry:
+            warn(
+                f"{path}: {self.n_bad_geometry} point(s) with an unusable beam geometry (x(t), y(t), z(t) all 0 or not "
+                "finite, or a non-finite return point waveform location) kept without their waveform packet"
+            )
 
     def _agc(self, pts, n: int) -> np.ndarray:
         if self.agc_dimension is None:
@@ -93,17 +134,22 @@ class PointScanner:
         wpi = arr["wavepacket_index"].astype(np.int64)
         off = arr["wavepacket_offset"].astype(np.uint64)
         size = arr["wavepacket_size"].astype(np.int64)
+        loc = arr["return_point_wave_location"]
+        d = np.stack([arr["x_t"], arr["y_t"], arr["z_t"]], axis=1)
+        gps_ok = np.isfinite(arr["gps_time"])
+        bad_geometry = gps_ok & (wpi > 0) & ~(np.isfinite(loc) & np.all(np.isfinite(d), axis=1) & np.any(d != 0, axis=1))
+        wpi[bad_geometry] = 0
+        self.n_bad_gps += int(n - np.count_nonzero(gps_ok))
+        self.n_bad_geometry += int(np.count_nonzero(bad_geometry))
         used = wpi > 0
-        self._check_packets(start, wpi, off, size, used)
+        self._check_packets(start, wpi, off, size, used & gps_ok)
         rec = np.empty(n, COMPACT_DTYPE)
         rec["gps"] = arr["gps_time"]
         rec["ret"] = np.asarray(pts.return_number, dtype=np.uint8)
         rec["wpi"] = wpi
         rec["off"] = off
-        rec["loc"] = arr["return_point_wave_location"]
-        rec["d"][:, 0] = arr["x_t"]
-        rec["d"][:, 1] = arr["y_t"]
-        rec["d"][:, 2] = arr["z_t"]
+        rec["loc"] = loc
+        rec["d"] = d
         for k, name in enumerate("XYZ"):
             rec["xyz"][:, k] = arr[name] * las.scales[k] + las.offsets[k]
         rec["intensity"] = arr["intensity"]
@@ -112,7 +158,7 @@ class PointScanner:
         else:
             rec["scan"] = arr["scan_angle"] * SCAN_ANGLE_UNIT_DEG
         rec["agc"] = self._agc(pts, n)
-        return rec
+        return rec if gps_ok.all() else rec[gps_ok]
 
     def _check_packets(self, start: int, wpi, off, size, used) -> None:
         las, path = self.las, self.las.path
@@ -152,7 +198,26 @@ class PointScanner:
         if np.any(bad):
             k = first(bad)
             raise fail(path, f"wave packet descriptor {wpi[k]} has {self.bits[wpi[k]]} bits per sample; 1-16 or 25-32 supported")
+        bad = used & ~(np.isfinite(self.lut["gain"][wpi]) & np.isfinite(self.lut["offset"][wpi]))
+        if np.any(bad):
+            k = first(bad)
+            d = las.descriptors[int(wpi[k])]
+            raise fail(path, f"wave packet descriptor {wpi[k]} has digitizer gain {d.gain} and offset {d.offset}; finite numbers expected")
         need = self.packet_bytes[wpi]
+        # a packet size that is a whole number of samples of another width: the descriptor's
+        # bits per sample contradict the packets (e.g. 8-bit descriptor, 16-bit packets);
+        # decoding them with the descriptor would give garbage samples
+        ns = np.maximum(self.lut["n_samples"][wpi], 1)
+        width = size // ns
+        bad = used & (size != need) & (size % ns == 0) & np.isin(width, (1, 2, 4))
+        if np.any(bad):
+            k = first(bad)
+            raise fail(
+                path,
+                f"point {start + k}: wave packet descriptor {wpi[k]} says {self.bits[wpi[k]]} bits per sample "
+                f"({ns[k]} samples = {need[k]} bytes), but the point's packet size is {size[k]} bytes, i.e. "
+                f"{width[k] * 8}-bit samples; the descriptor does not match the packets",
+            )
         bad = used & (size < need)
         if np.any(bad):
             k = first(bad)

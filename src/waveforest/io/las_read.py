@@ -56,6 +56,7 @@ import numpy as np
 import pyarrow as pa
 
 from ..constants import RANGE_PER_NS
+from ..errors import WaveforestError
 from .gather import gather_samples
 from .las_file import LasWaveformFile, open_waveform_las, resolve_attribute
 from .las_format import warn
@@ -84,6 +85,8 @@ class ReadStats:
     n_pulses: int = 0
     n_written: int = 0
     n_without_waveform: int = 0
+    n_bad_gps: int = 0
+    n_bad_geometry: int = 0
     n_split_pulses: int = 0
     agc_dimension: str | None = None
     n_buckets: int = 0
@@ -187,11 +190,13 @@ class WaveformPulseReader:
                 rec.view(_RECORD_BYTES)[filled : filled + len(part)] = part.view(_RECORD_BYTES)
                 filled += len(part)
                 self.on_points(len(part))
-            if dim is not None and n and not np.any(rec["agc"] != 0):
+            if filled < n:  # points with a non-finite GPS time were dropped
+                box[0] = rec = rec[:filled]
+            if dim is not None and filled and not np.any(rec["agc"] != 0):
                 self._no_agc_values(dim)
                 rec["agc"] = np.nan
                 self.stats.agc_dimension = None
-            self.stats.n_points = filled
+            self._scanned(scanner)
             self.stats.n_buckets = 1
             del rec, part
             yield box.pop()
@@ -225,7 +230,10 @@ class WaveformPulseReader:
 
         # pass 2: spill each bucket's records to its own file
         self.stats.spilled = True
-        tmp = Path(tempfile.mkdtemp(prefix=".waveforest-ingest-", dir=self.tmp_dir))
+        try:
+            tmp = Path(tempfile.mkdtemp(prefix=".waveforest-ingest-", dir=self.tmp_dir))
+        except OSError as exc:
+            raise WaveforestError(f"cannot create a folder for spilled points in {self.tmp_dir} ({exc.strerror or exc})") from exc
         try:
             files = [tmp / f"bucket{i:05d}.bin" for i in range(n_buckets)]
             for part in scanner.chunks():
@@ -236,8 +244,8 @@ class WaveformPulseReader:
                 for i in np.flatnonzero(np.diff(edges)):
                     with open(files[i], "ab") as fh:
                         fh.write(part[edges[i] : edges[i + 1]].tobytes())
-                self.stats.n_points += len(part)
                 self.on_points(len(part))
+            self._scanned(scanner)
             del part, b, order
             for f in files:
                 if f.exists():
@@ -255,7 +263,6 @@ class WaveformPulseReader:
         cap = self.bucket_points + self.chunk_points
         box, held = [np.empty(cap, COMPACT_DTYPE)], 0
         for part in scanner.chunks():
-            self.stats.n_points += len(part)
             self.on_points(len(part))
             if held + len(part) > len(box[0]):  # one GPS time in the whole buffer: grow it
                 grown = np.empty(held + cap, COMPACT_DTYPE)
@@ -276,10 +283,17 @@ class WaveformPulseReader:
             box, held = [box[0][:cut], nxt], held - cut
             self.stats.n_buckets += 1
             yield box.pop(0)  # handed out: no reference stays here
+        self._scanned(scanner)
         if held:
             self.stats.n_buckets += 1
             box[0] = box[0][:held]
             yield box.pop()
+
+    def _scanned(self, scanner: PointScanner) -> None:
+        """Copy the counts of a finished full scan into :attr:`stats`."""
+        self.stats.n_points = scanner.n_read
+        self.stats.n_bad_gps = scanner.n_bad_gps
+        self.stats.n_bad_geometry = scanner.n_bad_geometry
 
     # pulses ---------------------------------------------------------------------------
 
@@ -357,7 +371,7 @@ class WaveformPulseReader:
         wpi = r["wpi"].astype(np.int64)
         n_samples = lut["n_samples"][wpi]
         if int(n_samples.sum()) >= 2**31:  # list<float32> offsets are int32
-            raise ValueError(f"{self.las.path}: batch_pulses={self.batch_pulses} gives more than 2**31 samples per batch; use fewer")
+            raise WaveforestError(f"{self.las.path}: batch_pulses={self.batch_pulses} gives more than 2**31 samples per batch; use fewer")
         samples, s_off = gather_samples(buf, r["off"].astype(np.int64), n_samples, lut["sample_bytes"][wpi])
 
         sensor, range_m = self.locate(r["gps"], first_pt["xyz"], direction)

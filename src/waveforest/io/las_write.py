@@ -42,15 +42,17 @@ leaves nothing behind).
 
 from __future__ import annotations
 
+import errno
 import os
 import shutil
-import tempfile
 from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
 
+from ..atomic import make_temp, output_folder, publish
 from ..constants import RANGE_PER_NS
+from ..errors import WaveforestError
 from .las_format import (
     EVLR_HEADER,
     EXTRA_BYTES_DESCRIPTOR,
@@ -96,13 +98,6 @@ MAX_DESCRIPTORS = 255
 COPY_BUFFER_BYTES = 16 << 20
 DEFAULT_CREATION = (1, 2014)
 """Creation day of year and year written when none is given (no clock is read)."""
-
-
-def _default_mode() -> int:
-    """Permission bits of a newly created file (0o666 less the umask; mkstemp gives 0o600)."""
-    umask = os.umask(0)
-    os.umask(umask)
-    return 0o666 & ~umask
 
 
 def _list_column(table: pa.Table, name: str) -> tuple[np.ndarray, np.ndarray]:
@@ -233,20 +228,20 @@ class WaveformLasWriter:
         self._imin = np.full(3, np.iinfo(np.int64).max, dtype=np.int64)
         self._imax = np.full(3, np.iinfo(np.int64).min, dtype=np.int64)
         self._closed = False
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._points_tmp = self._mktemp(self.path, ".points.part")
+        output_folder(self.path)
+        if storage == "external":
+            output_folder(self.wdp_path)
+        self._points_tmp = make_temp(self.path, ".points.part")
         target = self.wdp_path if storage == "external" else self.path
-        self._wave_tmp = self._mktemp(target, ".wave.part")
+        try:
+            self._wave_tmp = make_temp(target, ".wave.part")
+        except BaseException:
+            self._points_tmp.unlink()
+            raise
         self._points_fh = open(self._points_tmp, "wb")
         self._wave_fh = open(self._wave_tmp, "wb")
         if storage == "external":  # the .wdp keeps its 60-byte header at the start
             self._wave_fh.write(b"\0" * WAVEFORM_HEADER_SIZE)
-
-    @staticmethod
-    def _mktemp(beside: Path, suffix: str) -> Path:
-        fd, name = tempfile.mkstemp(prefix=f".{beside.name}.", suffix=suffix, dir=beside.parent)
-        os.close(fd)
-        return Path(name)
 
     # -- context manager ---------------------------------------------------------------
 
@@ -256,8 +251,10 @@ class WaveformLasWriter:
     def __exit__(self, exc_type, exc, tb) -> None:
         if exc_type is None:
             self.close()
-        else:
-            self.abort()
+            return
+        self.abort()
+        if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS):
+            raise WaveforestError(f"{self.path}: cannot write the output ({exc.strerror or exc})") from exc
 
     def abort(self) -> None:
         """Discard everything written so far (no output file is created)."""
@@ -537,7 +534,7 @@ class WaveformLasWriter:
             self._wave_fh.close()
             vlr_bytes, n_vlrs = self._vlrs()
             header = self._header(len(vlr_bytes), n_vlrs)
-            las_tmp = self._mktemp(self.path, ".part")
+            las_tmp = make_temp(self.path, ".part")
             try:
                 with open(las_tmp, "wb") as out:
                     out.write(header)
@@ -548,14 +545,13 @@ class WaveformLasWriter:
                         out.write(_waveform_record_header(self._wave_bytes))
                         with open(self._wave_tmp, "rb") as src:
                             shutil.copyfileobj(src, out, COPY_BUFFER_BYTES)
-                mode = _default_mode()
                 if self.storage == "external":
                     with open(self._wave_tmp, "r+b") as fh:
                         fh.write(_waveform_record_header(self._wave_bytes))
-                    os.chmod(self._wave_tmp, mode)
-                    os.replace(self._wave_tmp, self.wdp_path)
-                os.chmod(las_tmp, mode)
-                os.replace(las_tmp, self.path)
+                    publish(self._wave_tmp, self.wdp_path)
+                publish(las_tmp, self.path)
+            except OSError as exc:
+                raise WaveforestError(f"{self.path}: cannot write the output ({exc.strerror or exc})") from exc
             finally:
                 if las_tmp.exists():
                     las_tmp.unlink()
