@@ -184,3 +184,41 @@ def reference_trace(scene, origin, direction, footprint_m, range_m, n_rays, max_
                 d = new
                 power *= weight
     return {"sigma": sigma, "order_totals": totals, "dropped": dropped, "first_hit_counts": first, "t0_ns": t0s}
+
+
+# --------------------------------------------------------------------------- Sobol' sampler
+
+
+def reverse32(x: int) -> int:
+    return int(f"{x & 0xFFFFFFFF:032b}"[::-1], 2)
+
+
+def owen32(x: int, seed: int) -> int:
+    """Hash-based nested uniform scramble (Burley 2020, Vegdahl 2021 hash) + digital shift."""
+    m = 0xFFFFFFFF
+    x = reverse32(x)
+    s = seed & m
+    x = (x ^ (x * 0x3D20ADEA)) & m
+    x = (x + s) & m
+    x = (x * ((s >> 16) | 1)) & m
+    x = (x ^ (x * 0x05526C56)) & m
+    x = (x ^ (x * 0x53A22864)) & m
+    return reverse32(x) ^ (seed >> 32)
+
+
+def sobol_uniform(beam_key: int, ray: int, dim: int) -> float:
+    """Coordinate ``dim`` of point ``ray`` of a beam's scrambled Sobol' set: the unscrambled
+    point from scipy (Gray-code order, so point ``ray`` in natural order is scipy's point
+    ``inverse_gray(ray)``), then the scramble seeded by the beam key and the dimension."""
+    from scipy.stats import qmc
+
+    g, inv = ray, 0
+    while g:  # inverse Gray code
+        inv ^= g
+        g >>= 1
+    eng = qmc.Sobol(dim + 1, scramble=False, bits=32)
+    if inv:
+        eng.fast_forward(inv)
+    x = int(round(eng.random(1)[0, dim] * 2.0**32))
+    seed = mix(beam_key ^ (((dim + 1) * 0x94D049BB133111EB) & MASK))
+    return (owen32(x, seed) + 0.5) * 2.0**-32

@@ -10,6 +10,16 @@ beam ``b`` at scattering order ``n`` is a SplitMix64 hash of (beam key, i, n, k)
 beam key hashes the seed and the beam's index in the ``trace`` call. Results are therefore
 identical whatever the number of threads, the chunking of beams or the order in which rays
 are processed.
+
+Samplers (``sampler``): ``0`` the pseudo-random stream above; ``1`` randomized quasi-Monte
+Carlo, an Owen-scrambled Sobol' sequence (:data:`SOBOL_DIMS` dimensions, Joe & Kuo 2008
+direction numbers; ray ``i`` of a beam is point ``i``). Dimensions: 0-1 the beam position,
+then per scattering order n = 1, 2, ... three (branch, direction 1, direction 2) from
+``2 + 3 (n - 1)``; dimensions beyond the table fall back to the pseudo-random stream. Each
+dimension of each beam is scrambled independently (a hash-based nested uniform scramble,
+Burley 2020 with Vegdahl's 2021 hash, then a random digital shift), seeded from the beam key:
+every point is uniform on [0, 1) (the estimator stays unbiased) and the points of a beam keep
+the Sobol' net's stratification.
 """
 
 from __future__ import annotations
@@ -39,6 +49,59 @@ SLOT_BRANCH, SLOT_LOBE, SLOT_DIR1, SLOT_DIR2 = 0, 1, 2, 3
 MISS_KIND = 4
 """Code of a miss in ``first_hit_counts`` (after the element kinds 0..3)."""
 
+SAMPLERS = {"random": 0, "sobol": 1}
+"""Sampler names and their codes in the kernels (module docstring)."""
+
+SOBOL_POLY = (1, 3, 7, 11, 13, 19, 25, 37, 41, 47, 55, 59, 61, 67, 91, 97, 103, 109, 115, 131, 137,
+              143, 145, 157, 167, 171, 185, 191, 193, 203, 211, 213)
+"""Primitive polynomials of the Sobol' dimensions (Joe & Kuo 2008, new-joe-kuo-6.21201; the
+bits of each are its coefficients, leading and constant term included)."""
+
+SOBOL_M = ((1,), (1,), (1, 3), (1, 3, 1), (1, 1, 1), (1, 1, 3, 3), (1, 3, 5, 13), (1, 1, 5, 5, 17),
+           (1, 1, 5, 5, 5), (1, 1, 7, 11, 19), (1, 1, 5, 1, 1), (1, 1, 1, 3, 11), (1, 3, 5, 5, 31),
+           (1, 3, 3, 9, 7, 49), (1, 1, 1, 15, 21, 21), (1, 3, 1, 13, 27, 49), (1, 1, 1, 15, 7, 5),
+           (1, 3, 1, 15, 13, 25), (1, 1, 5, 5, 19, 61), (1, 3, 7, 11, 23, 15, 103),
+           (1, 3, 7, 13, 13, 15, 69), (1, 1, 3, 13, 7, 35, 63), (1, 3, 5, 9, 1, 25, 53),
+           (1, 3, 1, 13, 9, 35, 107), (1, 3, 1, 5, 27, 61, 31), (1, 1, 5, 11, 19, 41, 61),
+           (1, 3, 5, 3, 3, 13, 69), (1, 1, 7, 13, 1, 19, 1), (1, 3, 7, 5, 13, 19, 59),
+           (1, 1, 3, 9, 25, 29, 41), (1, 3, 5, 13, 23, 1, 55), (1, 3, 7, 3, 13, 59, 17))
+"""Initial direction numbers m_1 ... m_s of each dimension (Joe & Kuo 2008)."""
+
+SOBOL_DIMS = len(SOBOL_POLY)
+"""Dimensions of the Sobol' sampler (position + 10 orders need 2 + 3 x 9 = 29)."""
+
+
+def sobol_matrix(dims: int = SOBOL_DIMS, bits: int = 32) -> np.ndarray:
+    """Direction numbers of the Sobol' sequence: ``v[d, j]`` is the 32-bit fraction XORed in
+    when bit ``j`` of the point index is set (point ``i`` in natural, not Gray-code, order).
+
+    Returns
+    -------
+    (dims, bits) uint32
+        Dimension 0 is the van der Corput sequence (``v[0, j] = 2**(31 - j)``).
+    """
+    if not 1 <= dims <= SOBOL_DIMS or not 1 <= bits <= 32:
+        raise ValueError(f"dims: expected 1..{SOBOL_DIMS}, bits 1..32")
+    v = np.zeros((dims, bits), np.uint64)
+    for d in range(dims):
+        poly, m = SOBOL_POLY[d], list(SOBOL_M[d])
+        s = poly.bit_length() - 1
+        if s == 0:  # van der Corput
+            m = [1] * bits
+        for k in range(len(m), bits):  # Bratley & Fox recurrence
+            new = m[k - s] ^ (m[k - s] << s)
+            for j in range(1, s):
+                if (poly >> (s - j)) & 1:
+                    new ^= m[k - j] << j
+            m.append(new)
+        for j in range(bits):
+            v[d, j] = m[j] << (31 - j)
+    return v.astype(np.uint32)
+
+
+SOBOL_V = sobol_matrix()
+"""(SOBOL_DIMS, 32) uint32 direction numbers the kernels read."""
+
 
 # --------------------------------------------------------------------------- random numbers
 
@@ -62,6 +125,86 @@ def _uniform(stream, order, slot):
     """Uniform in [0, 1) number ``slot`` of scattering order ``order`` of a ray's stream."""
     c = np.uint64(order * DRAWS_PER_ORDER + slot + 1)
     return np.float64(_mix(stream + c * GOLDEN) >> _S11) * _TWO_M53
+
+
+_U32 = np.uint64(0xFFFFFFFF)
+_TWO_M32 = 1.0 / 4294967296.0
+
+
+@njit(cache=True, inline="always")
+def _reverse32(x):
+    """Bits 0..31 of a uint64 reversed (the result < 2**32)."""
+    x = ((x >> np.uint64(1)) & np.uint64(0x55555555)) | ((x & np.uint64(0x55555555)) << np.uint64(1))
+    x = ((x >> np.uint64(2)) & np.uint64(0x33333333)) | ((x & np.uint64(0x33333333)) << np.uint64(2))
+    x = ((x >> np.uint64(4)) & np.uint64(0x0F0F0F0F)) | ((x & np.uint64(0x0F0F0F0F)) << np.uint64(4))
+    x = ((x >> np.uint64(8)) & np.uint64(0x00FF00FF)) | ((x & np.uint64(0x00FF00FF)) << np.uint64(8))
+    return ((x >> np.uint64(16)) | (x << np.uint64(16))) & _U32
+
+
+@njit(cache=True, inline="always")
+def _owen32(x, seed):
+    """Nested uniform scramble of the 32-bit fraction ``x``: bit k is flipped by a hash of
+    ``seed`` and the bits above it (Burley 2020; hash of Vegdahl 2021), then a digital shift by
+    the seed's high 32 bits (every scrambled value uniform over the seeds)."""
+    x = _reverse32(x)
+    s = seed & _U32
+    x = (x ^ (x * np.uint64(0x3D20ADEA))) & _U32
+    x = (x + s) & _U32
+    x = (x * ((s >> np.uint64(16)) | np.uint64(1))) & _U32
+    x = (x ^ (x * np.uint64(0x05526C56))) & _U32
+    x = (x ^ (x * np.uint64(0x53A22864))) & _U32
+    return _reverse32(x) ^ (seed >> np.uint64(32))
+
+
+@njit(cache=True, inline="always")
+def _sobol_uniform(v, beam_key, ray, dim):
+    """Uniform in (0, 1): coordinate ``dim`` of point ``ray`` of the beam's scrambled Sobol' set."""
+    x = np.uint64(0)
+    i = np.uint64(ray)
+    j = 0
+    while i:
+        if i & np.uint64(1):
+            x ^= np.uint64(v[dim, j])
+        i >>= np.uint64(1)
+        j += 1
+    seed = _mix(beam_key ^ (np.uint64(dim + 1) * _M2))
+    return (np.float64(_owen32(x, seed)) + 0.5) * _TWO_M32
+
+
+@njit(cache=True, inline="always")
+def _draw(sampler, v, beam_key, stream, ray, order, slot, dim):
+    """Uniform of sampler ``sampler``: Sobol' dimension ``dim`` (while the table has it), else
+    the pseudo-random ``slot`` of ``order``."""
+    if sampler == 1 and dim < v.shape[0]:
+        return _sobol_uniform(v, beam_key, ray, dim)
+    return _uniform(stream, order, slot)
+
+
+@njit(cache=True)
+def _sobol_points_kernel(v, beam_key, n, dims, out):
+    for i in range(n):
+        for d in range(dims):
+            out[i, d] = _sobol_uniform(v, beam_key, i, d)
+
+
+def sobol_points(beam_key, n: int, dims: int = SOBOL_DIMS) -> np.ndarray:
+    """The first ``n`` points of one beam's scrambled Sobol' set (the sampler ``sobol``).
+
+    Parameters
+    ----------
+    beam_key : uint64
+        The beam's stream key (:func:`beam_keys`).
+    n, dims : int
+
+    Returns
+    -------
+    (n, dims) float64 in (0, 1)
+    """
+    if not 1 <= dims <= SOBOL_DIMS or n < 0:
+        raise ValueError(f"dims: expected 1..{SOBOL_DIMS}; n >= 0")
+    out = np.empty((n, dims))
+    _sobol_points_kernel(SOBOL_V, np.uint64(beam_key), int(n), int(dims), out)
+    return out
 
 
 @njit(cache=True)
@@ -189,14 +332,18 @@ class BeamFrame:
 
 @njit(cache=True, parallel=True, nogil=True)
 def _emit_kernel(sensor, axis, e1, e2, sd, range_m, plane_m, key, n_rays,
-                 origin, direction, path, beam, ray):
+                 origin, direction, path, beam, ray, sampler, v):
     nb = sensor.shape[0]
     for j in prange(nb * n_rays):
         b = j // n_rays
         i = j - b * n_rays
         s = _stream(key[b], i)
-        u1 = _uniform(s, 0, 0)
-        u2 = _uniform(s, 0, 1)
+        if sampler == 1:
+            u1 = _sobol_uniform(v, key[b], i, 0)
+            u2 = _sobol_uniform(v, key[b], i, 1)
+        else:
+            u1 = _uniform(s, 0, 0)
+            u2 = _uniform(s, 0, 1)
         rad = math.sqrt(-2.0 * math.log(1.0 - u1)) * sd[b]  # Box-Muller, 1 - u1 in (0, 1]
         gx = rad * math.cos(2.0 * math.pi * u2)
         gy = rad * math.sin(2.0 * math.pi * u2)
@@ -226,7 +373,7 @@ def _emit_kernel(sensor, axis, e1, e2, sd, range_m, plane_m, key, n_rays,
         ray[j] = i
 
 
-def emit_rays(frame: BeamFrame, footprint_m, range_m, plane_m, n_rays: int) -> Rays:
+def emit_rays(frame: BeamFrame, footprint_m, range_m, plane_m, n_rays: int, sampler: str = "random") -> Rays:
     """The rays of a chunk of beams, started on a plane just before the scene (METHOD.md d).
 
     Ray offsets across the axis are Gaussian with per-axis SD ``footprint / (2 sqrt 2)``
@@ -245,6 +392,9 @@ def emit_rays(frame: BeamFrame, footprint_m, range_m, plane_m, n_rays: int) -> R
         Distance of the start plane from the sensor along the axis, >= 0.
     n_rays : int
         Rays per beam; each carries power 1 / n_rays.
+    sampler : {"random", "sobol"}
+        Source of the two uniforms of each offset (Box-Muller): pseudo-random, or Sobol'
+        dimensions 0 and 1 (module docstring).
 
     Returns
     -------
@@ -254,6 +404,8 @@ def emit_rays(frame: BeamFrame, footprint_m, range_m, plane_m, n_rays: int) -> R
     nb = len(frame)
     if n_rays < 1:
         raise ValueError(f"n_rays: expected >= 1, got {n_rays}")
+    if sampler not in SAMPLERS:
+        raise ValueError(f"sampler: expected one of {', '.join(SAMPLERS)}, got {sampler!r}")
     sensor = np.ascontiguousarray(frame.sensor, np.float64)
     axis = np.ascontiguousarray(frame.axis, np.float64)
     if sensor.shape != (nb, 3) or axis.shape != (nb, 3):
@@ -276,10 +428,11 @@ def emit_rays(frame: BeamFrame, footprint_m, range_m, plane_m, n_rays: int) -> R
     path = np.empty(m, np.float64)
     beam = np.empty(m, np.int32)
     ray = np.empty(m, np.int32)
-    _emit_kernel(sensor, axis, np.ascontiguousarray(e1), np.ascontiguousarray(e2),
-                 fp / (2.0 * math.sqrt(2.0)), np.ascontiguousarray(rng), plane,
-                 np.ascontiguousarray(frame.key, np.uint64), int(n_rays),
-                 origin, direction, path, beam, ray)
+    with NumbaThreads(1 if m < MIN_PARALLEL_RAYS else None):
+        _emit_kernel(sensor, axis, np.ascontiguousarray(e1), np.ascontiguousarray(e2),
+                     fp / (2.0 * math.sqrt(2.0)), np.ascontiguousarray(rng), plane,
+                     np.ascontiguousarray(frame.key, np.uint64), int(n_rays),
+                     origin, direction, path, beam, ray, SAMPLERS[sampler], SOBOL_V)
     power = np.full(m, 1.0 / n_rays)
     return Rays(origin, direction, power, path, beam, ray)
 
@@ -292,8 +445,9 @@ def _scatter_kernel(order, last, org, dirs, power, path, beam, ray, tfar, prim, 
                     sensor, axis, t0_ns, key,
                     n_bins, bin_ns, radius2, specular, phong_n, hotspot, eps,
                     c_val, c_bin, sh_org, sh_dir, sh_t,
-                    n_org, n_dir, n_power, n_path, alive):
+                    n_org, n_dir, n_power, n_path, alive, sampler, v, survive, floor_power):
     m = org.shape[0]
+    d0 = 2 + 3 * (order - 1)  # Sobol' dimensions of this order: branch, direction 1, direction 2
     inv_pi = 1.0 / math.pi
     lobe_norm = (phong_n + 2.0) / (2.0 * math.pi)
     lobe_weight = (phong_n + 2.0) / (phong_n + 1.0)
@@ -375,26 +529,35 @@ def _scatter_kernel(order, last, org, dirs, power, path, beam, ray, tfar, prim, 
             continue
         s = _stream(key[b], ray[i])
         weight = r + tr
-        if _uniform(s, order, SLOT_BRANCH) * (r + tr) < r:
+        ub = _draw(sampler, v, key[b], s, ray[i], order, SLOT_BRANCH, d0)
+        q = survive[order]
+        if floor_power > 0.0 and power[i] * weight < floor_power:  # weight window
+            q *= power[i] * weight / floor_power
+        if q < 1.0:  # Russian roulette: continue with probability q, weight 1 / q
+            if ub >= q:
+                continue
+            ub = ub / q  # uniform on [0, 1) again, for the branch
+            weight = weight / q
+        u = _draw(sampler, v, key[b], s, ray[i], order, SLOT_DIR1, d0 + 1)
+        phi = 2.0 * math.pi * _draw(sampler, v, key[b], s, ray[i], order, SLOT_DIR2, d0 + 2)
+        if ub * (r + tr) < r:
             ox, oy, oz = sx, sy, sz
-            if spec > 0.0 and _uniform(s, order, SLOT_LOBE) < spec:
+            lobe_u = 1.0
+            if spec > 0.0:  # random: its own uniform; sobol: the branch uniform rescaled
+                lobe_u = _uniform(s, order, SLOT_LOBE) if sampler == 0 else ub * (r + tr) / r
+            if lobe_u < spec:
                 # Phong lobe about the mirror direction, pdf (n+1)/(2 pi) cos^n(alpha)
-                ca = _uniform(s, order, SLOT_DIR1) ** (1.0 / (phong_n + 1.0))
+                ca = u ** (1.0 / (phong_n + 1.0))
                 sa = math.sqrt(max(0.0, 1.0 - ca * ca))
-                phi = 2.0 * math.pi * _uniform(s, order, SLOT_DIR2)
                 ex, ey, ez = _around(mx, my, mz, ca, sa, phi)
                 cos_o = ex * sx + ey * sy + ez * sz
                 if cos_o <= 0.0:
                     continue  # below the surface: the lobe's energy loss at oblique incidence
                 weight *= lobe_weight * cos_o
             else:
-                u = _uniform(s, order, SLOT_DIR1)
-                phi = 2.0 * math.pi * _uniform(s, order, SLOT_DIR2)
                 ex, ey, ez = _around(ox, oy, oz, math.sqrt(1.0 - u), math.sqrt(u), phi)
         else:
             ox, oy, oz = -sx, -sy, -sz
-            u = _uniform(s, order, SLOT_DIR1)
-            phi = 2.0 * math.pi * _uniform(s, order, SLOT_DIR2)
             ex, ey, ez = _around(ox, oy, oz, math.sqrt(1.0 - u), math.sqrt(u), phi)
         n_org[i, 0] = x + eps * ox
         n_org[i, 1] = y + eps * oy
@@ -455,7 +618,8 @@ class Scattered:
 def scatter(order: int, last: bool, rays: Rays, tfar: np.ndarray, prim: np.ndarray, prepared,
             frame: BeamFrame, n_bins: int, bin_ns: float, viewed_diameter_m: float,
             specular: float = 0.0, phong_n: float = 40.0, hotspot: float = 1.0,
-            eps: float = RAY_EPS_M, out: Scattered | None = None) -> Scattered:
+            eps: float = RAY_EPS_M, out: Scattered | None = None, sampler: str = "random",
+            survive: np.ndarray | None = None, floor_power: float = 0.0) -> Scattered:
     """One scattering order of a wavefront: contributions, binning and new rays (METHOD.md d).
 
     For each ray that hit triangle ``prim`` at distance ``tfar``:
@@ -473,7 +637,11 @@ def scatter(order: int, last: bool, rays: Rays, tfar: np.ndarray, prim: np.ndarr
       side; for specular leaves the Phong lobe with probability s, weight
       (n + 2) / (n + 1) cos(theta_out)), else transmit (cosine-weighted on the far side);
       power times (rho + tau); origin offset by ``eps`` along the normal on the outgoing
-      side. No new rays when ``last``.
+      side. No new rays when ``last``. With ``survive[order] = q < 1`` (Russian roulette) a
+      ray continues with probability q and its power is divided by q: the branch uniform u
+      decides (u < q continues; u / q then chooses the branch). With ``floor_power`` > 0
+      a ray whose next power would fall below it continues with the further probability
+      power / floor_power (so its power after the roulette is ``floor_power``).
 
     Parameters
     ----------
@@ -491,6 +659,13 @@ def scatter(order: int, last: bool, rays: Rays, tfar: np.ndarray, prim: np.ndarr
     bin_ns, viewed_diameter_m, specular, phong_n, hotspot, eps : float
     out : Scattered, optional
         Buffers of at least ``m`` rays to write into (avoids allocation per order).
+    sampler : {"random", "sobol"}
+        Source of the branch and direction uniforms (module docstring).
+    survive : (> order,) float64, optional
+        Probability in (0, 1] that a ray scattered at order n continues, at index n
+        (default: 1, no roulette).
+    floor_power : float
+        Power floor of the roulette, fraction of the pulse's power (0 = off).
 
     Returns
     -------
@@ -519,23 +694,34 @@ def scatter(order: int, last: bool, rays: Rays, tfar: np.ndarray, prim: np.ndarr
         out = Scattered.empty(m)
     elif len(out) < m:
         raise ValueError(f"out: buffers for {len(out)} rays, need {m}")
+    if sampler not in SAMPLERS:
+        raise ValueError(f"sampler: expected one of {', '.join(SAMPLERS)}, got {sampler!r}")
+    if not (np.isfinite(floor_power) and floor_power >= 0):
+        raise ValueError(f"floor_power: expected >= 0, got {floor_power!r}")
+    survive = np.ones(order + 1) if survive is None else np.ascontiguousarray(survive, np.float64)
+    if survive.ndim != 1 or survive.size <= order or np.any(~(survive > 0)) or np.any(survive > 1):
+        raise ValueError(f"survive: expected probabilities in (0, 1] for orders 0..{order} at least")
     o = out.head(m)
     with NumbaThreads(1 if m < MIN_PARALLEL_RAYS else None):
         _scatter(order, last, rays, tfar, prim, tri, frame, n_bins, bin_ns, viewed_diameter_m, specular,
-                 phong_n, hotspot, eps, o)
+                 phong_n, hotspot, eps, o, SAMPLERS[sampler], survive, float(floor_power))
     return o
 
 
 def _scatter(order, last, rays, tfar, prim, tri, frame, n_bins, bin_ns, viewed_diameter_m, specular,
-             phong_n, hotspot, eps, o):
-    """Call :func:`_scatter_kernel` on validated inputs (``o``: the output views)."""
+             phong_n, hotspot, eps, o, sampler=0, survive=None, floor_power=0.0):
+    """Call :func:`_scatter_kernel` on validated inputs (``o``: the output views; ``sampler``
+    a code of :data:`SAMPLERS`)."""
+    if survive is None:
+        survive = np.ones(order + 1)
     _scatter_kernel(int(order), bool(last), rays.origin, rays.direction, rays.power, rays.path_m,
                     rays.beam, rays.ray, tfar, prim, tri,
                     frame.sensor, frame.axis, frame.t0_ns, frame.key,
                     int(n_bins), float(bin_ns), (0.5 * viewed_diameter_m) ** 2,
                     float(specular), float(phong_n), float(hotspot), float(eps),
                     o.value, o.bin, o.shadow_origin, o.shadow_direction, o.shadow_tmax,
-                    o.origin, o.direction, o.power, o.path_m, o.alive)
+                    o.origin, o.direction, o.power, o.path_m, o.alive, sampler, SOBOL_V, survive,
+                    float(floor_power))
 
 
 @njit(cache=True, nogil=True)

@@ -18,7 +18,9 @@ is ``window_ns`` long, and contributions after it are not binned but summed in
 
 Randomness: a counter-based generator keyed by (seed, pulse index in the call, ray, order,
 draw) (:mod:`.kernels`), so the same seed gives the identical result whatever the threads,
-the chunking and the parallel mode.
+the chunking and the parallel mode. ``sampler="sobol"`` draws the same uniforms from a per-pulse
+Owen-scrambled Sobol' sequence instead (randomized QMC); ``roulette`` ends low-power paths by
+an unbiased Russian roulette (a weight window). Both are off by default (METHOD.md d as written).
 
 Embree: the default intersector calls ``rtcIntersect1`` / ``rtcOccluded1`` from Numba kernels
 (:mod:`.backends.embree`) on a BVH of HIGH build quality; profiled on the vegetation scenes (30,000 rays,
@@ -46,7 +48,8 @@ from ..constants import BIN_NS, C_M_PER_NS, RANGE_PER_NS, RAY_EPS_M
 from ..effects import CATALOGUE, SPECULAR_PHONG_EXPONENT
 from ..scene import Scene
 from .beams import Beams
-from .kernels import MISS_KIND, BeamFrame, Scattered, accumulate, beam_keys, compact, emit_rays, scatter, take_rays
+from .kernels import (MISS_KIND, SAMPLERS, BeamFrame, Scattered, accumulate, beam_keys, compact, emit_rays,
+                      scatter, take_rays)
 from .prepare import PreparedScene, prepare
 from .threads import MIN_PARALLEL_RAYS, NumbaThreads, default_threads
 
@@ -203,6 +206,20 @@ def start_plane(bounds: np.ndarray, sensor: np.ndarray, axis: np.ndarray) -> np.
     return np.maximum(depth.min(axis=1) - START_MARGIN_M, 0.0)
 
 
+def survival_by_order(survival, max_order: int) -> np.ndarray:
+    """(max_order + 1,) float64: the continuation probability after scattering at each order
+    (index = order; index 0 unused), from a scalar or a per-order sequence whose last value
+    repeats; every value in (0, 1]."""
+    q = np.atleast_1d(np.asarray(survival, dtype=np.float64))
+    if q.ndim != 1 or q.size == 0 or not np.all((q > 0) & (q <= 1)):
+        raise ValueError(f"survival: expected probabilities in (0, 1], got {survival!r}")
+    out = np.ones(max_order + 1)
+    k = min(q.size, max_order)
+    out[1:1 + k] = q[:k]
+    out[1 + k:] = q[-1]
+    return out
+
+
 def _check(n_rays, max_order, bin_ns, viewed_diameter_m, window_ns, specular, hotspot):
     if not isinstance(n_rays, (int, np.integer)) or n_rays < 1:
         raise ValueError(f"n_rays: expected a positive int, got {n_rays!r}")
@@ -220,7 +237,8 @@ def _check(n_rays, max_order, bin_ns, viewed_diameter_m, window_ns, specular, ho
 
 def _trace_chunk(prepared: PreparedScene, beams: Beams, index: np.ndarray, key, n_rays: int,
                  max_order: int, bin_ns: float, n_bins: int, viewed_diameter_m: float,
-                 specular: float, hotspot: float, by_order: bool, threads: int | None):
+                 specular: float, hotspot: float, by_order: bool, threads: int | None,
+                 sampler: str = "random", survive: np.ndarray | None = None, roulette: float = 0.0):
     """Trace one chunk of beams (``index`` = their positions in the trace call).
 
     Returns (sigma (nb, layers, n_bins), dropped (nb,), order_totals (nb, max_order),
@@ -236,7 +254,7 @@ def _trace_chunk(prepared: PreparedScene, beams: Beams, index: np.ndarray, key, 
     dropped = np.zeros(nb)
     totals = np.zeros((nb, max_order))
 
-    rays = emit_rays(frame, beams.footprint_m, beams.range_m, plane, n_rays)
+    rays = emit_rays(frame, beams.footprint_m, beams.range_m, plane, n_rays, sampler)
     buffers = rays  # the live rays are packed into the emission arrays after each order
     work = Scattered.empty(len(rays))
     isect = prepared.intersector
@@ -252,7 +270,7 @@ def _trace_chunk(prepared: PreparedScene, beams: Beams, index: np.ndarray, key, 
                                 minlength=nb * (MISS_KIND + 1)).reshape(nb, MISS_KIND + 1)
         out = scatter(order, order == max_order, rays, tfar, prim, prepared, frame, n_bins, bin_ns,
                       viewed_diameter_m, specular, SPECULAR_PHONG_EXPONENT, hotspot, RAY_EPS_M,
-                      out=work)
+                      out=work, sampler=sampler, survive=survive, floor_power=roulette / n_rays)
         counted = np.flatnonzero(out.value > 0.0)
         if order > 1 and counted.size:
             with NumbaThreads(1 if counted.size < MIN_PARALLEL_RAYS else threads):
@@ -269,7 +287,8 @@ def trace(scene: Scene | PreparedScene, beams: Beams, n_rays: int = 30000, max_o
           bin_ns: float = BIN_NS, viewed_diameter_m: float = 5.0, seed=0, *,
           specular: float = 0.0, hotspot: float = 1.0, window_ns: float = DEFAULT_WINDOW_NS,
           by_order: bool = False, chunk_rays: int = CHUNK_RAYS, threads: int | None = None,
-          parallel: str = "pulses", progress: bool = False) -> TraceResult:
+          parallel: str = "pulses", progress: bool = False, sampler: str = "random",
+          survival=1.0, roulette: float = 0.0) -> TraceResult:
     """Forward Monte Carlo ray tracing of LiDAR pulses through a scene (METHOD.md d, Eq. 2).
 
     Parameters
@@ -311,6 +330,18 @@ def trace(scene: Scene | PreparedScene, beams: Beams, n_rays: int = 30000, max_o
         Numba kernel of one wavefront over the threads. Results are identical.
     progress : bool
         Show a progress bar over chunks (stderr).
+    sampler : {"random", "sobol"}
+        Uniforms of the beam positions, branches and directions: pseudo-random, or a
+        per-pulse Owen-scrambled Sobol' sequence (randomized quasi-Monte Carlo, unbiased;
+        :mod:`.kernels`); ``sobol`` works best with ``n_rays`` a power of two.
+    survival : float or sequence of float
+        Russian roulette: probability in (0, 1] that a ray scattered at order n continues to
+        order n + 1 (power divided by it); a sequence gives orders 1, 2, ... and its last
+        value holds for the higher orders. 1 = every ray continues (METHOD.md d).
+    roulette : float
+        Weight-window Russian roulette: a ray whose power would fall below ``roulette`` times
+        its emitted power (1 / n_rays) continues with probability power / that floor, and then
+        carries the floor (e.g. after a ground hit, rho 0.3 < 0.5). 0 = off.
 
     Returns
     -------
@@ -323,6 +354,11 @@ def trace(scene: Scene | PreparedScene, beams: Beams, n_rays: int = 30000, max_o
         prepared = scene
     else:  # a HIGH-quality BVH pays for its longer build only over enough rays
         prepared = prepare(scene, quality=bvh_quality(len(beams), n_rays))
+    if sampler not in SAMPLERS:
+        raise ValueError(f"sampler: expected one of {', '.join(SAMPLERS)}, got {sampler!r}")
+    survive = survival_by_order(survival, max_order)
+    if not (np.isfinite(roulette) and 0 <= roulette <= 1):
+        raise ValueError(f"roulette: expected a power fraction in [0, 1], got {roulette!r}")
     key = master_key(seed)
     n = len(beams)
     n_bins = int(math.ceil(window_ns / bin_ns - 1e-9))
@@ -344,7 +380,7 @@ def trace(scene: Scene | PreparedScene, beams: Beams, n_rays: int = 30000, max_o
         a, b = ab
         return _trace_chunk(prepared, beams[a:b], np.arange(a, b), key, int(n_rays), int(max_order),
                             float(bin_ns), n_bins, float(viewed_diameter_m), float(specular),
-                            float(hotspot), by_order, embree_threads)
+                            float(hotspot), by_order, embree_threads, sampler, survive, float(roulette))
 
     if by_pulses:
         results = _map_serial_workers(run_chunk, chunks, threads)
