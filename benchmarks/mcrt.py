@@ -28,8 +28,40 @@ Figures (``name: value unit``), canopy first, then ``<species>_...`` for each sp
   ``trace_over_floor_cpu``: the same on one thread, as CPU time of that thread, which other
   jobs on a shared machine disturb far less than wall time.
 
+Monte Carlo error (``--sections error``; :func:`bench_error`), per scene at a fixed instance and
+``--error-pulses`` fixed pulses, for the default tracer (``random_30k``: 30,000 pseudo-random
+rays) and each estimator of :data:`METHODS`, over ``--seeds`` seeds, each against a reference
+of :data:`REF_RAYS` rays of the same instance and pulses (the ``sobol`` sampler, the most
+accurate per ray; its own error is << that of the estimators):
+
+* ``<method>_rel_rms_1ns``: relative RMS error of sigma(t) summed to 1-ns bins,
+  sqrt(mean over seeds of sum_bins (s - s_ref)^2 / sum_bins s_ref^2), averaged over pulses;
+* ``<method>_rel_err_total``, ``<method>_rel_err_order1``: relative RMS error of the total
+  and of the first-order sigma;
+* ``<method>_rel_err_apeak``, ``<method>_rel_err_e``, ``<method>_err_fwhm``: the errors of the
+  first-echo features (:func:`waveforest.sensor.features.first_echo_features`) of the
+  noise-free waveform rendered (Eq. 7, :func:`waveforest.sensor.signal.analog_waveforms`) with
+  a Gaussian S(t) of 7.2 ns FWHM (2010_12_1) and sampled at 1 ns; FWHM in ns;
+* ``<method>_cpu_ms_per_pulse``: CPU time per pulse of the method's traces on one thread
+  (median over the seeds: threads that wait for a core of a loaded machine burn CPU time and
+  disturb the comparison), on the BVH quality of the method (:data:`METHODS`);
+  ``<method>_embree_rays_per_pulse``;
+* ``<method>_efficiency_vs_random_30k``: (e_old^2 t_old) / (e_new^2 t_new) with e the
+  ``rel_rms_1ns`` error and t the CPU time: the time the default estimator needs for the
+  new one's error (its variance falls as 1 / rays) over the new one's time;
+* ``<method>_ms_per_pulse_amortised_1``: a new instance per pulse: build of the BVH the
+  method is meant for (:data:`METHODS`) plus its trace, CPU ms; ``..._efficiency_amortised_1``
+  the same ratio with the build included on both sides (the default on a MEDIUM BVH);
+* the headline ``efficiency_vs_random_30k`` of :data:`RECOMMENDED`, with its
+  ``recommended_cpu_ms_per_pulse_amortised_1`` and ``recommended_n_rays``.
+
+The speed section traces with the settings of ``--method`` (default ``random_30k``, today's
+default; its ``ms_per_pulse_amortised_1`` then uses the method's one-pulse BVH quality) and
+prints its ``n_rays``.
+
 Wall times are the minimum of ``--repeat`` runs (the machine is shared). Run:
-``python benchmarks/mcrt.py [--pulses 16] [--repeat 3] [--species birch raspberry fireweed]``.
+``python benchmarks/mcrt.py [--pulses 16] [--repeat 3] [--species birch raspberry fireweed]
+[--sections speed error] [--quick]``.
 """
 
 from __future__ import annotations
@@ -92,6 +124,30 @@ def best(fn, repeat: int, clock=time.perf_counter) -> float:
     return min(times)
 
 
+REF_RAYS = 2**20
+"""Rays of the reference sigma(t) of the error section (1,048,576, sampler ``sobol``)."""
+
+METHODS = {
+    "random_30k": dict(n_rays=30000, quality="medium"),
+    "random_rr_30k": dict(n_rays=30000, roulette=0.5, quality="medium"),
+    "sobol_16k": dict(n_rays=16384, sampler="sobol", quality="medium"),
+    "sobol_rr_8k": dict(n_rays=8192, sampler="sobol", roulette=0.5, quality="medium"),
+    "sobol_rr_12k": dict(n_rays=12288, sampler="sobol", roulette=0.5, quality="medium"),
+    "sobol_rr_16k": dict(n_rays=16384, sampler="sobol", roulette=0.5, quality="medium"),
+    "sobol_rr_16k_low": dict(n_rays=16384, sampler="sobol", roulette=0.5, quality="low"),
+}
+"""Estimators of the error section: ``trace`` keywords, and the BVH quality a one-pulse
+instance gets (``quality``). ``random_30k`` is today's default."""
+
+QUICK_METHODS = ("random_30k", "sobol_16k", "sobol_rr_12k", "sobol_rr_16k")
+
+RECOMMENDED = "sobol_rr_16k"
+"""The method of the headline figures."""
+
+SYSTEM_FWHM_NS, SYSTEM_PEAK = 7.2, 1.5e9
+"""Gaussian S(t) of the feature errors: 2010_12_1's pulse width; peak in DN m^2 per unit
+sigma (a rho = 0.3 plane at 1200 m gives ~100 DN)."""
+
 SPECIES = {"birch": 3.0, "raspberry": 1.3, "fireweed": 1.5}
 """The paper's species and the heights they are benchmarked at, m (as benchmarks/vegetation.py)."""
 
@@ -111,7 +167,14 @@ def bench_scene(prefix: str, scene, beams, args, full: bool) -> None:
     build_medium = best(lambda: prepare(scene, quality="medium"), args.repeat)
     out("scene_build_ms_medium", build_medium * 1e3, "ms")
     medium = prepare(scene, quality="medium")
-    kw = dict(n_rays=N_RAYS, max_order=MAX_ORDER, seed=args.seed)
+    method = dict(METHODS[args.method])
+    q1 = method.pop("quality")  # the BVH of a one-pulse instance
+    kw = dict(max_order=MAX_ORDER, seed=args.seed, **method)
+    out("n_rays", kw["n_rays"], "rays", "d")
+    if q1 not in ("medium", "high"):
+        build_one = best(lambda: prepare(scene, quality=q1), args.repeat)
+        out(f"scene_build_ms_{q1}", build_one * 1e3, "ms")
+        one = prepare(scene, quality=q1)
     trace(prepared, beams[:2], n_rays=500, max_order=3)  # compile / load the kernels
 
     modes = [("pulses", threads), ("rays", threads)] if threads > 1 else [("rays", 1)]
@@ -148,6 +211,8 @@ def bench_scene(prefix: str, scene, beams, args, full: bool) -> None:
     fns = {(mode, thr): (lambda mode=mode, thr=thr: trace(prepared, beams, threads=thr, parallel=mode, **kw))
            for mode, thr in modes}
     fns["medium"] = lambda: trace(medium, beams, threads=threads, parallel=modes[0][0], **kw)
+    if q1 not in ("medium", "high"):
+        fns[q1] = lambda: trace(one, beams, threads=threads, parallel=modes[0][0], **kw)
     fns["floor"] = replay(prepared.intersector, threads)
     fns["embreex"] = replay(embreex, threads)
     times = interleaved(fns, args.repeat)
@@ -164,9 +229,13 @@ def bench_scene(prefix: str, scene, beams, args, full: bool) -> None:
     out("rays_per_pulse_intersect", n_isect / n, "rays", ".0f")
     out("rays_per_pulse_occluded", n_occl / n, "rays", ".0f")
     out("trace_ms_per_pulse_medium", times["medium"] / n * 1e3, "ms")
+    if q1 not in ("medium", "high"):
+        out(f"trace_ms_per_pulse_{q1}", times[q1] / n * 1e3, "ms")
     for k in (1, 10, 30):  # the BVH quality that trace() picks for k pulses of one scene
         high = bvh_quality(k, kw["n_rays"]) == "high"
         amortised = (default + build / k) if high else (times["medium"] / n + build_medium / k)
+        if k == 1 and q1 not in ("medium", "high"):  # the method's one-pulse BVH
+            amortised = times[q1] / n + build_one
         out(f"ms_per_pulse_amortised_{k}", amortised * 1e3, "ms")
 
     if full:  # one thread, CPU time of this thread (robust to other jobs on the machine)
@@ -185,13 +254,137 @@ def bench_scene(prefix: str, scene, beams, args, full: bool) -> None:
     out("mean_order1_fraction", (res.order_totals[:, 0] / res.total).mean(), "fraction", ".3f")
 
 
+def _one_ns(res) -> np.ndarray:
+    """(n, layers, n_ns) sigma summed to 1-ns bins (bins of 0.05 ns, 20 per ns)."""
+    s = res.sigma_by_order
+    k = int(round(1.0 / res.bin_ns))
+    n_ns = s.shape[2] // k
+    return s[:, :, :n_ns * k].reshape(s.shape[0], s.shape[1], n_ns, k).sum(axis=3)
+
+
+def waveform_features(res) -> np.ndarray:
+    """(n, 3) Apeak (DN), E (DN), FWHM (ns) of the noise-free waveforms of ``res`` (Eq. 7 with
+    the Gaussian S(t) of :data:`SYSTEM_FWHM_NS`, R = :data:`RANGE_M`, sampled at 1 ns)."""
+    from waveforest.sensor.features import first_echo_features
+    from waveforest.sensor.signal import analog_waveforms
+    from waveforest.sensor.system_waveform import gaussian_system_waveform
+
+    system = gaussian_system_waveform(SYSTEM_FWHM_NS, SYSTEM_PEAK)
+    v, _ = analog_waveforms(res.sigma, res.t0_ns, RANGE_M, system, bin_ns=res.bin_ns)
+    k = int(round(1.0 / res.bin_ns))
+    w = v[:, ::k]
+    sd = 1e-3 * w.max(axis=1)  # noise-free: the segment is the run above 0.3 % of the peak
+    f = first_echo_features(w, None, 1.0, np.argmax(w, axis=1).astype(float), 0.0, sd)
+    return np.column_stack([f["Apeak"], f["E"], f["FWHM"]])
+
+
+def bench_error(prefix: str, scene, beams, args, methods) -> dict:
+    """Print the Monte Carlo errors of ``methods`` on one scene (see the module docstring).
+
+    Returns {method: (rel_rms_1ns, cpu_s_per_pulse, build_cpu_s)}.
+    """
+    def out(name: str, value: float, unit: str, fmt: str = ".4f") -> None:
+        print(f"{prefix}{name}: {value:{fmt}} {unit}", flush=True)
+
+    n = len(beams)
+    prepared = prepare(scene, quality="high")
+    trace(prepared, beams[:1], n_rays=256, max_order=3, sampler="sobol", roulette=0.5)  # compile
+    ref_res = trace(prepared, beams, n_rays=REF_RAYS, sampler="sobol", seed=10**6, by_order=True,
+                    max_order=MAX_ORDER)
+    ref = _one_ns(ref_res)
+    ref_all, ref_1 = ref.sum(axis=1), ref[:, 0]
+    ref_feat = waveform_features(ref_res)
+    builds = {}
+    for q in {m["quality"] for m in methods.values()}:
+        builds[q] = best(lambda: prepare(scene, quality=q), max(3, args.repeat), time.process_time)
+        out(f"scene_build_cpu_ms_{q}", builds[q] * 1e3, "ms", ".1f")
+
+    class Counter:
+        def __init__(self, inner):
+            self.inner, self.backend, self.rays = inner, inner.backend, 0
+
+        def intersect(self, o, d, threads=None):
+            self.rays += len(o)
+            return self.inner.intersect(o, d, threads=threads)
+
+        def occluded(self, o, d, t, threads=None):
+            self.rays += len(o)
+            return self.inner.occluded(o, d, t, threads=threads)
+
+    counted = {}  # the BVH each method is meant for, its Embree calls counted
+    for q in builds:
+        pq = prepared if q == "high" else prepare(scene, quality=q)
+        counted[q] = type(pq)(pq.scene, Counter(pq.intersector), pq.shift, pq.tri_data, pq.bounds)
+    found = {}
+    # seeds outermost, methods inner: every method sees the same load of the shared machine
+    sig = {m: [] for m in methods}
+    feat = {m: [] for m in methods}
+    cpu = {m: [] for m in methods}
+    rays = dict.fromkeys(methods, 0)
+    for seed in range(args.seeds):
+        for m, kw in methods.items():
+            tkw = {k: v for k, v in kw.items() if k != "quality"}
+            target = counted[kw["quality"]]
+            target.intersector.rays = 0
+            c = time.process_time()
+            res = trace(target, beams, seed=seed, by_order=True, max_order=MAX_ORDER, threads=1, **tkw)
+            cpu[m].append(time.process_time() - c)
+            rays[m] += target.intersector.rays
+            sig[m].append(_one_ns(res))
+            feat[m].append(waveform_features(res))
+    for m, kw in methods.items():
+        s = np.array(sig[m])  # (seeds, n, orders, n_ns)
+        d_all = s.sum(axis=2) - ref_all[None]
+        rel_rms = float(np.mean(np.sqrt((d_all**2).sum(axis=2).mean(axis=0) / (ref_all**2).sum(axis=1))))
+        rel_tot = float(np.mean(np.sqrt((d_all.sum(axis=2)**2).mean(axis=0)) / ref_all.sum(axis=1)))
+        d_1 = s[:, :, 0].sum(axis=2) - ref_1.sum(axis=1)[None]
+        rel_1 = float(np.mean(np.sqrt((d_1**2).mean(axis=0)) / ref_1.sum(axis=1)))
+        f = np.array(feat[m])  # (seeds, n, 3)
+        df = f - ref_feat[None]
+        rel_ap = float(np.mean(np.sqrt((df[..., 0]**2).mean(axis=0)) / ref_feat[:, 0]))
+        rel_e = float(np.mean(np.sqrt((df[..., 1]**2).mean(axis=0)) / ref_feat[:, 1]))
+        err_fwhm = float(np.mean(np.sqrt((df[..., 2]**2).mean(axis=0))))
+        t = float(np.median(cpu[m])) / n
+        found[m] = (rel_rms, t, builds[kw["quality"]])
+        out(f"{m}_n_rays", kw["n_rays"], "rays", "d")
+        out(f"{m}_rel_rms_1ns", rel_rms, "fraction")
+        out(f"{m}_rel_err_total", rel_tot, "fraction")
+        out(f"{m}_rel_err_order1", rel_1, "fraction")
+        out(f"{m}_rel_err_apeak", rel_ap, "fraction")
+        out(f"{m}_rel_err_e", rel_e, "fraction")
+        out(f"{m}_err_fwhm", err_fwhm, "ns")
+        out(f"{m}_cpu_ms_per_pulse", t * 1e3, "ms", ".1f")
+        out(f"{m}_embree_rays_per_pulse", rays[m] / (args.seeds * n), "rays", ".0f")
+    e0, t0, b0 = found["random_30k"]
+    for m, (e, t, b) in found.items():
+        out(f"{m}_efficiency_vs_random_30k", (e0**2 * t0) / (e**2 * t), "x", ".2f")
+        out(f"{m}_ms_per_pulse_amortised_1", (t + b) * 1e3, "ms", ".1f")
+        out(f"{m}_efficiency_amortised_1", (e0**2 / e**2 * t0 + b0) / (t + b), "x", ".2f")
+    if RECOMMENDED in found:
+        e, t, b = found[RECOMMENDED]
+        print(f"{prefix}recommended_method: {RECOMMENDED}")
+        out("efficiency_vs_random_30k", (e0**2 * t0) / (e**2 * t), "x", ".2f")
+        out("recommended_cpu_ms_per_pulse_amortised_1", (t + b) * 1e3, "ms", ".1f")
+        out("recommended_n_rays", methods[RECOMMENDED]["n_rays"], "rays", "d")
+    return found
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--pulses", type=int, default=16)
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--species", nargs="*", default=list(SPECIES), help="species to benchmark (none: canopy only)")
+    ap.add_argument("--sections", nargs="+", default=["speed", "error"], choices=["speed", "error"])
+    ap.add_argument("--method", default="random_30k", choices=list(METHODS),
+                    help="tracer settings of the speed section (default: today's default)")
+    ap.add_argument("--seeds", type=int, default=16, help="seeds per method in the error section")
+    ap.add_argument("--error-pulses", type=int, default=4, help="fixed pulses per scene in the error section")
+    ap.add_argument("--quick", action="store_true",
+                    help="error section only, canopy only, the methods of QUICK_METHODS")
     args = ap.parse_args()
+    if args.quick:
+        args.sections, args.species = ["error"], []
     print(f"cpu_count: {os.cpu_count()} cores")
     print(f"numba_threads: {numba.get_num_threads()} threads")
     print(f"load_average_1min: {os.getloadavg()[0]:.2f} processes")
@@ -202,12 +395,21 @@ def main() -> None:
     beams = Beams.toward(targets, RANGE_M, rng.uniform(0, MAX_ZENITH_DEG, n), rng.uniform(0, 360, n),
                          divergence_mrad=DIVERGENCE_MRAD)
     canopy = random_leaves(LAI, (0.0, HEIGHT_M), SIZE_M, LEAF_AREA_M2, seed=args.seed)
-    bench_scene("", canopy, beams, args, full=True)
+    scenes = {"": canopy}
     if args.species:
         from waveforest.vegetation import build_scene
 
-        for sp in args.species:
-            bench_scene(f"{sp}_", build_scene(sp, SPECIES[sp], args.seed), beams, args, full=True)
+        scenes.update({f"{sp}_": build_scene(sp, SPECIES[sp], args.seed) for sp in args.species})
+    methods = {m: METHODS[m] for m in (QUICK_METHODS if args.quick else METHODS)}
+    for prefix, scene in scenes.items():
+        if "speed" in args.sections:
+            bench_scene(prefix, scene, beams, args, full=True)
+        if "error" in args.sections:
+            eb = beams[:args.error_pulses]
+            if prefix == "birch_":  # pulses through the crown (as tests/test_vegetation_mcrt.py)
+                eb = Beams.toward(0.3 * targets[:args.error_pulses], RANGE_M, 0.0, 0.0,
+                                  divergence_mrad=DIVERGENCE_MRAD)
+            bench_error(prefix, scene, eb, args, methods)
     print(f"load_average_1min_end: {os.getloadavg()[0]:.2f} processes")
 
 

@@ -99,8 +99,26 @@ def sobol_matrix(dims: int = SOBOL_DIMS, bits: int = 32) -> np.ndarray:
     return v.astype(np.uint32)
 
 
-SOBOL_V = sobol_matrix()
-"""(SOBOL_DIMS, 32) uint32 direction numbers the kernels read."""
+def sobol_tables(v: np.ndarray) -> np.ndarray:
+    """Byte tables of direction numbers ``v`` (dims, 32): ``t[d, k, b]`` is the XOR of
+    ``v[d, 8 k + j]`` over the set bits j of the byte b, so that the unscrambled coordinate of
+    point i is ``t[d, 0, i & 255] ^ t[d, 1, (i >> 8) & 255] ^ t[d, 2, ...] ^ t[d, 3, i >> 24]``.
+
+    Returns
+    -------
+    (dims, 4, 256) uint32
+    """
+    dims = v.shape[0]
+    t = np.zeros((dims, 4, 256), np.uint32)
+    b = np.arange(256)
+    for k in range(4):
+        for j in range(8):
+            t[:, k, :] ^= np.where(((b >> j) & 1)[None, :] == 1, v[:, 8 * k + j][:, None], 0).astype(np.uint32)
+    return t
+
+
+SOBOL_V = sobol_tables(sobol_matrix())
+"""(SOBOL_DIMS, 4, 256) uint32 byte tables of the direction numbers, as the kernels read them."""
 
 
 # --------------------------------------------------------------------------- random numbers
@@ -159,14 +177,9 @@ def _owen32(x, seed):
 @njit(cache=True, inline="always")
 def _sobol_uniform(v, beam_key, ray, dim):
     """Uniform in (0, 1): coordinate ``dim`` of point ``ray`` of the beam's scrambled Sobol' set."""
-    x = np.uint64(0)
-    i = np.uint64(ray)
-    j = 0
-    while i:
-        if i & np.uint64(1):
-            x ^= np.uint64(v[dim, j])
-        i >>= np.uint64(1)
-        j += 1
+    i = np.int64(ray)
+    x = np.uint64(v[dim, 0, i & 255] ^ v[dim, 1, (i >> 8) & 255] ^ v[dim, 2, (i >> 16) & 255]
+                  ^ v[dim, 3, (i >> 24) & 255])
     seed = _mix(beam_key ^ (np.uint64(dim + 1) * _M2))
     return (np.float64(_owen32(x, seed)) + 0.5) * _TWO_M32
 
