@@ -135,6 +135,8 @@ METHODS = {
     "sobol_rr_12k": dict(n_rays=12288, sampler="sobol", roulette=0.5, quality="medium"),
     "sobol_rr_16k": dict(n_rays=16384, sampler="sobol", roulette=0.5, quality="medium"),
     "sobol_rr_16k_low": dict(n_rays=16384, sampler="sobol", roulette=0.5, quality="low"),
+    "sobol_rr_24k": dict(n_rays=24576, sampler="sobol", roulette=0.5, quality="medium"),
+    "sobol_rr_32k": dict(n_rays=32768, sampler="sobol", roulette=0.5, quality="medium"),
 }
 """Estimators of the error section: ``trace`` keywords, and the BVH quality a one-pulse
 instance gets (``quality``). ``random_30k`` is today's default."""
