@@ -176,3 +176,16 @@ def test_canopy_mean_over_seeds_matches_the_high_ray_reference(canopy_reference,
     big = se_b > 0.02 * se_b.max()
     chi2 = np.sum(((ns.mean(axis=0) - ref_ns)[big] / se_b[big]) ** 2)
     assert chi2 < stats.chi2.ppf(0.999, big.sum()) * 1.3  # (the reference's own variance: +<~10 %)
+
+
+def test_sobol_with_specular_leaves_matches_the_pseudo_random_estimator(canopy_reference):
+    """The specular lobe choice shares the branch uniform under ``sobol``: same means."""
+    sc, beams, kw, _ = canopy_reference
+    n, seeds = 4096, 12
+    a = np.array([trace(sc, beams, n_rays=n, seed=s, specular=0.3, sampler="sobol", roulette=0.5, **kw)
+                  .order_totals for s in range(seeds)])
+    b = np.array([trace(sc, beams, n_rays=n, seed=50 + s, specular=0.3, **kw).order_totals
+                  for s in range(seeds)])
+    se = np.sqrt(a.var(axis=0, ddof=1) / seeds + b.var(axis=0, ddof=1) / seeds)
+    z = np.abs(a.mean(axis=0) - b.mean(axis=0))[:, :4] / se[:, :4]
+    assert np.sort(z.ravel())[-2] < N_SE and z.max() < 3.5, z
