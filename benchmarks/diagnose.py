@@ -22,8 +22,10 @@ import time
 from pathlib import Path
 
 from waveforest.diagnose.search import SearchSettings, search
-from waveforest.diagnose.synthetic import SyntheticStudy
 from waveforest.effects import CATALOGUE
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # the test fixtures live in tests/fixtures
+from fixtures.study import SyntheticStudy
 
 
 def toy() -> None:
@@ -37,12 +39,12 @@ def toy() -> None:
 
 def real_chain(results: Path, config_path: Path) -> None:
     from waveforest import config
-    from waveforest.analysis.campaign_tables import read_datasets
-    from waveforest.analysis.simulate import load_calibration
-    from waveforest.diagnose.run import diagnosed_datasets, pulse_keys
     from waveforest.diagnose.simulator import StudySimulator
-    from waveforest.io.tables import read_pulses
+    from waveforest.io.pulses import read_pulses
+    from waveforest.io.tables import read_datasets
     from waveforest.sensor import load_calibration as load_json
+    from waveforest.stages.diagnose import diagnosed_datasets, pulse_keys
+    from waveforest.stages.simulate import load_calibration
 
     cfg = config.load(config_path)
     ds = [d for d in diagnosed_datasets(cfg) if (results / "select" / f"{d}.parquet").exists()]

@@ -1,4 +1,4 @@
-"""Throughput of the waveform-processing kernels (METHOD.md f, h; issue 5 target >= 100,000/s/core).
+"""Throughput of the waveform-processing kernels (docs/method.md §(f), h; issue 5 target >= 100,000/s/core).
 
 Prints one figure per line as ``name: value unit``:
 

@@ -26,6 +26,8 @@ import tempfile
 import time
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # the test fixtures live in tests/fixtures
+
 CHUNK_PULSES = 50_000
 
 CHILD = r"""
@@ -37,10 +39,10 @@ pa.set_io_thread_count(1)
 mode, las, out = sys.argv[1], sys.argv[2], sys.argv[3]
 t0, c0 = time.perf_counter(), time.process_time()
 if mode == "ingest":
-    from waveforest.io.ingest import run
+    from waveforest.stages.ingest import run
     n = run(las, out).n_pulses
 else:
-    from waveforest.io.las_read import WaveformPulseReader
+    from waveforest.io.las.read import WaveformPulseReader
     n = sum(t.num_rows for t in WaveformPulseReader(las))
 wall, cpu = time.perf_counter() - t0, time.process_time() - c0
 # VmHWM: peak resident set of this process image (ru_maxrss would also count the parent's,
@@ -52,8 +54,9 @@ print(json.dumps(dict(n=n, wall=wall, cpu=cpu, maxrss_mb=hwm / 1024)))
 
 def generate(path: Path, size_bytes: int, storage: str) -> tuple[int, float]:
     """Write synthetic pulses until the LAS (+ .wdp) reaches ``size_bytes``; return pulses, seconds."""
-    from waveforest.io.las_write import WaveformLasWriter
-    from waveforest.io.synthetic import synthetic_pulses
+    from fixtures.pulses import synthetic_pulses
+
+    from waveforest.io.las.write import WaveformLasWriter
 
     t0 = time.perf_counter()
     n = 0

@@ -5,7 +5,7 @@ Scenes: the issue's canopy (LAI 3.35 of small leaves, spherical LAD, 6.7 cm^2 ea
 triangles, between 0 and 1.2 m over a ground) and the paper's three species built by
 :func:`waveforest.vegetation.build_scene` (birch 3 m, raspberry 1.3 m, fireweed 1.5 m); pulses:
 R = 1200 m, 0.15 mrad divergence (0.18 m footprint), scan zenith 0-15 deg, 30,000 rays,
-10 orders (METHOD.md d).
+10 orders (docs/method.md §(d)).
 
 Figures (``name: value unit``), canopy first, then ``<species>_...`` for each species:
 
@@ -298,7 +298,7 @@ def bench_error(prefix: str, scene, beams, args, methods) -> dict:
     ref_feat = waveform_features(ref_res)
     builds = {}
     for q in {m["quality"] for m in methods.values()}:
-        builds[q] = best(lambda: prepare(scene, quality=q), max(3, args.repeat), time.process_time)
+        builds[q] = best(lambda q=q: prepare(scene, quality=q), max(3, args.repeat), time.process_time)
         out(f"scene_build_cpu_ms_{q}", builds[q] * 1e3, "ms", ".1f")
 
     class Counter:

@@ -2,10 +2,10 @@
 
 For each dataset of Table 3 (its footprint, pulse width, sampling and mean range, Table 2) and
 each of birch, raspberry and fireweed: ``--pulses`` pulses over ``--instances`` plants of the
-sensor study's field heights (:func:`waveforest.analysis.sensor_study.species_pulses`, scan
+sensor study's field heights (:func:`waveforest.stages.sensor_study.species_pulses`, scan
 zenith 0-15 deg, aimed within 0.5 m of the plant), MCRT with ``--rays`` rays and 10 orders,
 the virtual campaign's true S(t) and noise of that dataset (:class:`TruthSensor`), CFD echoes
-and the features of :func:`waveforest.analysis.sensor_study.features_of`, first echoes from
+and the features of :func:`waveforest.stages.sensor_study.features_of`, first echoes from
 ``simulate.compare_min_h_m`` up only (birch: 1.5 m) as in ``compare``. Issue 7 asks that these
 means agree with the paper's simulated column.
 
@@ -21,11 +21,11 @@ import argparse
 import numpy as np
 
 from waveforest import config
-from waveforest.analysis.paper import table3
-from waveforest.analysis.pulse_sim import MCRTSetup, SensorSetup
-from waveforest.analysis.sensor_study import features_of, species_pulses, trace_species
 from waveforest.campaign.params import load_datasets
 from waveforest.campaign.truth_sensor import TruthSensor
+from waveforest.io.paper import table3
+from waveforest.model.forward import MCRTSetup, SensorSetup
+from waveforest.stages.sensor_study import features_of, species_pulses, trace_species
 from waveforest.vegetation.params import PAPER_MODELS
 
 DATASETS = ("2010_12_1", "2012_05_1", "2012_10_1", "2012_20_1", "2012_27_1")

@@ -1,4 +1,4 @@
-"""Accuracy of the AGC fit (Eq. 1), the calibration (Eq. 8) and the CFD tuning (METHOD.md f) of a
+"""Accuracy of the AGC fit (Eq. 1), the calibration (Eq. 8) and the CFD tuning (docs/method.md §(f)) of a
 study run on the virtual campaign, against the campaign's ``truth.json``: per dataset, the
 relative error of b and the relative L2 error of S(t) (as in tests/test_campaign_recovery.py;
 issue 6 asks for 5 % and 3 %), and the relative error of the tuned CFD's width term ln(f)/delay

@@ -118,7 +118,7 @@ def reference_pulses(path: Path, agc_attribute: str | None = "user_data") -> lis
 
     Each pulse: gps, samples (list of int), sampling_ns, gain, offset, anchor (3,),
     dir (3,), echoes (list of (x, y, z, time_ns, intensity)), scan_deg, agc, n_echoes.
-    The conventions are those of the module docstring of ``waveforest.io.las_read``.
+    The conventions are those of the module docstring of ``waveforest.io.las.read``.
     """
     path = Path(path)
     desc = reference_descriptors(path)
@@ -171,7 +171,7 @@ def reference_pulses(path: Path, agc_attribute: str | None = "user_data") -> lis
 
 
 def reference_gather(buf: np.ndarray, byte_offset, n_samples, sample_bytes) -> tuple[np.ndarray, np.ndarray]:
-    """Reference of ``waveforest.io.gather.gather_samples``: int.from_bytes per sample."""
+    """Reference of ``waveforest.io.las.gather.gather_samples``: int.from_bytes per sample."""
     data = bytes(np.asarray(buf, dtype=np.uint8))
     values, offsets = [], [0]
     for o, n, b in zip(byte_offset, n_samples, sample_bytes):

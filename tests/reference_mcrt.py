@@ -1,4 +1,4 @@
-"""Slow, obviously correct reference of the MCRT tracer (METHOD.md d), one ray at a time.
+"""Slow, obviously correct reference of the MCRT tracer (docs/method.md §(d)), one ray at a time.
 
 Pure Python/NumPy in float64 scene coordinates (no internal frame, no float32, no
 wavefront batching, no Numba): each ray is followed order by order with a brute-force

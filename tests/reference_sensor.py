@@ -1,6 +1,6 @@
 """Slow, obviously correct NumPy references of the sensor kernels (tests only).
 
-Each follows METHOD.md literally: the CFD really upsamples to the 0.05-ns grid, the
+Each follows docs/method.md literally: the CFD really upsamples to the 0.05-ns grid, the
 convolution is ``np.convolve``, the features walk the samples one by one.
 """
 
@@ -206,7 +206,7 @@ def make_pulse_table(samples, *, dataset="2010_12_1", source="real", sampling_ns
     """
     import pyarrow as pa
 
-    from waveforest.io.tables import PULSE_SCHEMA
+    from waveforest.io.pulses import PULSE_SCHEMA
 
     rows = [np.asarray(r, dtype=np.float32) for r in samples]
     n = len(rows)

@@ -1,4 +1,4 @@
-"""classify and lda: known answers on synthetic separable / non-separable data (METHOD.md i4)."""
+"""classify and lda: known answers on synthetic separable / non-separable data (docs/method.md §(i4))."""
 
 from __future__ import annotations
 
@@ -11,10 +11,10 @@ from sklearn.metrics import cohen_kappa_score
 from sklearn.metrics import confusion_matrix as sk_confusion
 
 from waveforest import config
-from waveforest.analysis import lda
-from waveforest.analysis.classify import classification_rows, classify_dataset, table4
-from waveforest.analysis.paper import table4 as paper_table4
 from waveforest.cli import main
+from waveforest.io.paper import table4 as paper_table4
+from waveforest.stages.classify import classification_rows, classify_dataset, table4
+from waveforest.stats import lda
 
 GROUPS = ["conifer", "broadleaf", "low_green", "low_barren_abiotic"]
 SPECIES = {"conifer": "scots_pine", "broadleaf": "birch", "low_green": "raspberry",
@@ -138,7 +138,7 @@ def test_run_cli_and_table4(tmp_path):
 
 
 def test_json_has_no_nan(tmp_path):
-    from waveforest.analysis.classify import write_json
+    from waveforest.atomic import write_json
 
     write_json({"a": float("nan"), "b": [np.float64(1.5), np.inf], "c": np.int64(3)}, tmp_path / "x.json")
     assert json.loads((tmp_path / "x.json").read_text()) == {"a": None, "b": [1.5, None], "c": 3}

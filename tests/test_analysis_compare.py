@@ -5,13 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 import pytest
+from fixtures.tables import pulse_table
 
 from waveforest import config
-from waveforest.analysis.compare import order_check, run, table3, with_paper
-from waveforest.analysis.synthetic import pulse_table
-from waveforest.analysis.waveforms import align_on_echo
 from waveforest.cli import main
-from waveforest.io.tables import write_pulses
+from waveforest.io.pulses import write_pulses
+from waveforest.sensor.waveforms import align_on_echo
+from waveforest.stages.compare import order_check, run, table3, with_paper
 
 
 def _feat(dataset, species, source, h, apeak, e, fwhm, npeaks, start=0):
@@ -112,7 +112,7 @@ def test_multi_value_options():
     import click
     from click.testing import CliRunner
 
-    from waveforest.analysis.cli import MultiValueCommand, MultiValueOption
+    from waveforest.cliutil import MultiValueCommand, MultiValueOption
 
     @click.command(cls=MultiValueCommand)
     @click.argument("first")

@@ -1,17 +1,17 @@
-"""select: exact membership on synthetic pulses of known geometry (METHOD.md i1, i4)."""
+"""select: exact membership on synthetic pulses of known geometry (docs/method.md §(i1), i4)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pandas as pd
 import pytest
+from fixtures.tables import pulse_table
 
 from waveforest import config
-from waveforest.analysis.campaign_tables import CampaignTableError, read_datasets, read_fields
-from waveforest.analysis.select import SelectRules, match_samples, run, select_pulses
-from waveforest.analysis.synthetic import pulse_table
 from waveforest.cli import main
-from waveforest.io.tables import read_pulses
+from waveforest.io.pulses import read_pulses
+from waveforest.io.tables import CampaignTableError, read_datasets, read_fields
+from waveforest.stages.select import SelectRules, match_samples, run, select_pulses
 
 FIELDS = pd.DataFrame(
     [
@@ -108,7 +108,7 @@ def _config_file(tmp_path, text):
 
 def test_run_and_cli(tmp_path):
     pulses = tmp_path / "p.parquet"
-    from waveforest.io.tables import write_pulses
+    from waveforest.io.pulses import write_pulses
 
     write_pulses(pulse_table("2010_12_1", ECHOES), pulses)
     FIELDS.assign(is_tree=FIELDS["is_tree"].astype(int)).to_csv(tmp_path / "fields.csv", index=False)
@@ -135,7 +135,7 @@ def test_bad_tables(tmp_path, capsys):
     with pytest.raises(CampaignTableError, match="mean_range_m, row 2"):
         read_datasets(tmp_path / "datasets.csv")
     pulses = tmp_path / "p.parquet"
-    from waveforest.io.tables import write_pulses
+    from waveforest.io.pulses import write_pulses
 
     write_pulses(pulse_table("2010_12_1", ECHOES), pulses)
     with pytest.raises(SystemExit) as e:

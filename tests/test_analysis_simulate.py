@@ -8,13 +8,13 @@ import numpy as np
 import pandas as pd
 import pyarrow as pa
 import pytest
+from fixtures.tables import plate_scene, pulse_table
 
 from waveforest import config
-from waveforest.analysis.pulse_sim import SensorSetup, render_sigma, split_effects
-from waveforest.analysis.simulate import Calibration, load_calibration, plan, simulate_pulses
-from waveforest.analysis.synthetic import plate_scene, pulse_table
 from waveforest.constants import RANGE_PER_NS
+from waveforest.model.forward import SensorSetup, render_sigma, split_effects
 from waveforest.sensor import feature_table, gaussian_system_waveform
+from waveforest.stages.simulate import Calibration, load_calibration, plan, simulate_pulses
 
 SAMPLES = {  # sample_id: species, x, y, ground_z, height
     "R1": ("raspberry", 100.0, 200.0, 50.0, 1.2),
@@ -257,7 +257,7 @@ def test_load_calibration(tmp_path):
 def test_cli_end_to_end_with_the_vegetation_models(tmp_path):
     """Files in, files out, with the real vegetation models (few rays, one pulse per species)."""
     from waveforest.cli import main
-    from waveforest.io.tables import read_pulses, write_pulses
+    from waveforest.io.pulses import read_pulses, write_pulses
 
     veg = pytest.importorskip("waveforest.vegetation")
     if not hasattr(veg, "build_scene"):

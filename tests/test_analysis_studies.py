@@ -5,13 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 import pytest
+from fixtures.tables import plate_scene
 
 from waveforest import config
-from waveforest.analysis import sensitivity, sensor_study
-from waveforest.analysis.reference import reference_sensor
-from waveforest.analysis.synthetic import plate_scene
 from waveforest.cli import main
 from waveforest.sensor import gaussian_system_waveform
+from waveforest.sensor.reference import reference_sensor
+from waveforest.stages import sensitivity, sensor_study
 
 RHO = {"birch": 0.20, "raspberry": 0.30, "fireweed": 0.25}
 """Plate reflectances: low enough that the narrowest pulse is not clipped at 255 DN, high enough

@@ -69,14 +69,14 @@ def _cfg(**campaign) -> dict:
 
 def _real_features(tmp, cfg, effects=None, simulate=False):
     """Synthesize a campaign and run the real-data stages; optionally simulate its selection."""
-    from waveforest.analysis import select
-    from waveforest.analysis import simulate as sim_stage
-    from waveforest.analysis.classify import attach_selection
     from waveforest.campaign import run as synthesize
-    from waveforest.io.ingest import run as ingest
-    from waveforest.sensor import agc as agc_stage
-    from waveforest.sensor import calibration, features
-    from waveforest.sensor.targets import read_datasets, read_targets
+    from waveforest.io.tables import read_datasets, read_targets
+    from waveforest.stages import agc as agc_stage
+    from waveforest.stages import calibrate as calibration
+    from waveforest.stages import features, select
+    from waveforest.stages import simulate as sim_stage
+    from waveforest.stages.classify import attach_selection
+    from waveforest.stages.ingest import run as ingest
 
     camp = tmp / "campaign"
     synthesize(cfg, camp, effects=effects, progress=False)
@@ -118,7 +118,7 @@ def _table(a: pd.DataFrame, b: pd.DataFrame, cfg, cluster_a: bool = False) -> pd
     ``cluster_a``: the SE of ``a``'s mean is cluster-robust over field samples. A campaign's
     pulses on one sample all see the same plant, while ``simulate`` gives every pulse a plant
     of its own, so the campaign mean also carries the spread between plants."""
-    from waveforest.analysis.compare import _h_filter, table3
+    from waveforest.stages.compare import _h_filter, table3
 
     min_h = {k: float(v) for k, v in cfg["simulate"]["compare_min_h_m"].items()}
     t = table3(a, b, min_h, FEATURES)
@@ -138,7 +138,7 @@ def _table(a: pd.DataFrame, b: pd.DataFrame, cfg, cluster_a: bool = False) -> pd
 @pytest.fixture(scope="module")
 def baseline(tmp_path_factory):
     pytest.importorskip("waveforest.vegetation")
-    pytest.importorskip("waveforest.analysis.simulate")
+    pytest.importorskip("waveforest.stages.simulate")
     cfg = _cfg()
     real, sim = _real_features(tmp_path_factory.mktemp("baseline"), cfg, simulate=True)
     return cfg, real, sim

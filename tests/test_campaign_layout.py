@@ -45,7 +45,7 @@ def test_parameter_files_hold_table2_and_the_paper_targets():
         assert np.allclose(ds[col], table2[col]), col
     assert list(ds["dataset"]) == list(table2["dataset"])
     assert np.all(ds["max_scan_zenith_deg"] == 15)
-    # footprint (1/e) = range x divergence (METHOD.md a), to Table 2's two decimals
+    # footprint (1/e) = range x divergence (docs/method.md §(a)), to Table 2's two decimals
     assert np.allclose(ds["mean_range_m"] * ds["divergence_mrad"] * 1e-3, ds["footprint_diameter_m"], atol=0.006)
     t = load_targets()
     tarps = t[t["material"] == "tarp"]

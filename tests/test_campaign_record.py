@@ -13,7 +13,7 @@ from waveforest.campaign.synthesize import _record_dataset, resolve_effects
 from waveforest.campaign.truth_sensor import TruthSensor
 from waveforest.constants import BIN_NS, C_M_PER_NS, RANGE_PER_NS
 
-pytest.importorskip("waveforest.io.las_write")
+pytest.importorskip("waveforest.io.las.write")
 
 
 def _planar_dataset(tmp_path, xy_error=0.0):

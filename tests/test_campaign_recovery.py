@@ -1,5 +1,5 @@
 """The analysis recovers the campaign's hidden sensor truth: AGC b (Eq. 1), S(t) (Eq. 8) and the
-DR discriminator that the CFD is tuned to (METHOD.md f).
+DR discriminator that the CFD is tuned to (docs/method.md §(f)).
 
 Full pulse density on the reference targets of two datasets, through the real pipeline
 stages (``ingest``, ``agc``, ``calibrate``); about 10 s, and 20 s for the CFD on a campaign
@@ -7,7 +7,7 @@ with vegetation.
 
 A target flown by two strips is seen at two ranges and incidence angles (a few % of
 amplitude) and, independently, at two AGC levels (the loop follows each strip's own
-terrain). The pooled within-target CV of METHOD.md (b) reads that amplitude difference as
+terrain). The pooled within-target CV of docs/method.md §(b) reads that amplitude difference as
 AGC gain and biases b (about -11 % in 2010_12_1 at seed 3). The ``agc`` stage nests the
 strips within the targets (groups = target passes, told apart by gaps in GPS time,
 ``agc.pass_gap_s``), which removes the bias (:func:`test_agc_stage_recovers_the_true_b`);
@@ -39,10 +39,10 @@ def _campaign_through_calibrate(tmp, campaign: dict):
     (truth, {dataset: (agc fit, calibration JSON, S(t) path, pulse table, targets.csv)})."""
     pytest.importorskip("waveforest.vegetation")
     from waveforest.campaign import run
-    from waveforest.io.ingest import run as ingest
-    from waveforest.sensor import agc as agc_stage
-    from waveforest.sensor import calibration
-    from waveforest.sensor.targets import read_datasets, read_targets
+    from waveforest.io.tables import read_datasets, read_targets
+    from waveforest.stages import agc as agc_stage
+    from waveforest.stages import calibrate as calibration
+    from waveforest.stages.ingest import run as ingest
 
     cfg = config.validate(yaml.safe_load(yaml.safe_dump({"seed": 3, "datasets": DATASETS, "campaign": campaign})))
     camp = tmp / "campaign"
@@ -83,9 +83,9 @@ STRIP_GAP_S = 60.0
 
 @pytest.mark.parametrize("ds", DATASETS)
 def test_nested_cv_with_strips_recovers_the_true_b(recovered, ds):
-    from waveforest.io.tables import list_to_padded, read_pulses
+    from waveforest.io.pulses import list_to_padded, read_pulses
+    from waveforest.io.tables import read_targets
     from waveforest.sensor import fit_b, peak_amplitudes, pulse_targets
-    from waveforest.sensor.targets import read_targets
 
     truth, out = recovered
     d = truth["datasets"][ds]
@@ -134,7 +134,7 @@ def vegetated(tmp_path_factory):
 
 @pytest.mark.parametrize("ds", DATASETS)
 def test_cfd_tuning_recovers_the_dr_discriminator(vegetated, ds):
-    """METHOD.md f: the CFD tuned on the dataset's own waveforms against its DR ranges lies on the
+    """docs/method.md §(f): the CFD tuned on the dataset's own waveforms against its DR ranges lies on the
     ridge of the sensor's discriminator and leaves no echo-width class biased."""
     import math
 

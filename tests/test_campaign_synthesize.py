@@ -21,7 +21,7 @@ veg = pytest.importorskip("waveforest.vegetation")
 if not hasattr(veg, "build_scene"):
     pytest.skip("waveforest.vegetation.build_scene is not available yet", allow_module_level=True)
 pytest.importorskip("waveforest.mcrt")
-las_write = pytest.importorskip("waveforest.io.las_write")
+las_write = pytest.importorskip("waveforest.io.las.write")
 
 from waveforest.campaign import run  # noqa: E402
 
@@ -57,8 +57,8 @@ def truth(base):
 
 @pytest.fixture(scope="module")
 def ingested(base, tmp_path_factory):
-    from waveforest.io.ingest import run as ingest
-    from waveforest.io.tables import read_pulses
+    from waveforest.io.pulses import read_pulses
+    from waveforest.stages.ingest import run as ingest
 
     out = tmp_path_factory.mktemp("pulses")
     tables = {}
@@ -90,7 +90,7 @@ def test_folder_has_every_file_with_its_schema(base):
                                "radius_m"]
     assert len(t) == 15  # 2010: 3 tarps, asphalt, sand + 4 AGC targets; 2012: asphalt, sand + 4
     assert summary.pulses and all(v > 0 for v in summary.pulses.values())
-    tables = pytest.importorskip("waveforest.analysis.campaign_tables")
+    tables = pytest.importorskip("waveforest.io.tables")
     tables.read_datasets(out / "datasets.csv")
     tables.read_fields(out / "fields.csv")
     tables.read_targets(out / "targets.csv")
@@ -151,8 +151,8 @@ def test_xy_error_moves_recorded_positions_only(base, ingested, tmp_path):
     from click.testing import CliRunner
 
     from waveforest.cli import cli
-    from waveforest.io.ingest import run as ingest
-    from waveforest.io.tables import list_to_padded, read_pulses
+    from waveforest.io.pulses import list_to_padded, read_pulses
+    from waveforest.stages.ingest import run as ingest
 
     cfg_path = tmp_path / "config.yaml"
     cfg_path.write_text(yaml.safe_dump(SMALL))
@@ -181,8 +181,8 @@ def test_xy_error_moves_recorded_positions_only(base, ingested, tmp_path):
 
 
 def test_noise_autocorr_shows_in_the_ingested_noise(base, ingested, tmp_path):
-    from waveforest.io.ingest import run as ingest
-    from waveforest.io.tables import list_to_padded, read_pulses
+    from waveforest.io.pulses import list_to_padded, read_pulses
+    from waveforest.stages.ingest import run as ingest
 
     out = tmp_path / "ar"
     run(small_cfg(), out, effects=[f"noise_autocorr={AR_TEST}"], progress=False)

@@ -12,14 +12,14 @@ import pandas as pd
 import pytest
 import yaml
 from click.testing import CliRunner
+from fixtures.study import SyntheticStudy
 
 from waveforest.constants import RANGE_PER_NS
 from waveforest.diagnose.model import model_dict, read_model, write_model
-from waveforest.diagnose.run import OUTPUT_NAMES, diagnose, write_outputs
 from waveforest.diagnose.search import NamedEffect, SearchSettings
-from waveforest.diagnose.synthetic import SyntheticStudy
 from waveforest.effects import CATALOGUE
 from waveforest.errors import WaveforestError
+from waveforest.stages.diagnose import OUTPUT_NAMES, find_missing_effects, write_outputs
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -27,7 +27,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def _synthetic_outputs(tmp_path, effects):
     study = SyntheticStudy(samples_per_species=12, pulses_per_sample=8, seed=1)
     settings = SearchSettings(rounds=2, n_boot=100)
-    result, gap, cand, sigs = diagnose(study.keys, study.real(effects), study.simulate, settings, seed=5)
+    result, gap, cand, sigs = find_missing_effects(study.keys, study.real(effects), study.simulate, settings, seed=5)
     paths = write_outputs(tmp_path, result, gap, cand, sigs, settings=settings, base_effects={},
                           datasets=sorted(study.datasets), keys=study.keys, seconds=1.0)
     return result, paths
@@ -44,8 +44,8 @@ def test_pulses_under_the_crowns_are_a_stratum_with_the_mirror_rule():
     "below crown", capped on their own; a twin stays in its pulse's stratum only when its first echo meets the same height
     rule, and compare's height rule blanks the waveform features of low crown pulses only."""
     from waveforest import config
-    from waveforest.diagnose.run import pulse_keys
     from waveforest.diagnose.simulator import BELOW_CROWN, apply_rules
+    from waveforest.stages.diagnose import pulse_keys
 
     base = dict(dataset="2010_12_1", species="birch", is_tree=True)
     rows = [dict(base, pulse_id=i, sample_id=f"s{i % 3}", comparison_set=i < 20, below_crown_set=i >= 20)
@@ -72,13 +72,13 @@ def test_real_below_crown_echoes_are_found_as_a_twins_are():
     for a twin: a weak early return under the arming level at gain 1 is the first echo at
     gain 4; a pulse without a CFD echo is left out, as a twin without one is."""
     import pyarrow as pa
+    from fixtures.tables import pulse_table
 
     from waveforest import config
-    from waveforest.analysis.simulate import Calibration
-    from waveforest.analysis.synthetic import pulse_table
     from waveforest.diagnose.simulator import own_cfd_echoes
-    from waveforest.io.tables import padded_to_list
+    from waveforest.io.pulses import padded_to_list
     from waveforest.sensor import gaussian_system_waveform
+    from waveforest.stages.simulate import Calibration
 
     mean, sd, t = 10.0, 1.0, np.arange(120.0)
 
@@ -107,12 +107,13 @@ def test_pulses_under_the_crowns_are_chosen_by_their_own_cfd_echo():
     under the crown, and so does one whose DR fired on a crown return its waveform does not
     show; one the DR put there leaves when its waveform shows the crown first; a crown pulse by
     both stays. The rows carry their CFD echo positions."""
+    from fixtures.tables import pulse_table
+
     from waveforest import config
-    from waveforest.analysis.select import SelectRules, select_pulses
-    from waveforest.analysis.simulate import Calibration
-    from waveforest.analysis.synthetic import pulse_table
-    from waveforest.diagnose.run import with_pulses_under_crowns
     from waveforest.sensor import gaussian_system_waveform
+    from waveforest.stages.diagnose import with_pulses_under_crowns
+    from waveforest.stages.select import SelectRules, select_pulses
+    from waveforest.stages.simulate import Calibration
 
     fields = pd.DataFrame([dict(sample_id="T1", year=2010, species="birch", functional_group="broadleaf", x=0.0,
                                 y=0.0, ground_z=100.0, height_m=3.0, radius_m=0.5, is_tree=True)])
@@ -138,7 +139,8 @@ def test_pulses_under_the_crowns_are_chosen_by_their_own_cfd_echo():
 def test_a_beam_turned_about_its_stem_keeps_heights_and_distances():
     """turned_about_stems turns sensor, anchor and direction about the sample's vertical axis:
     every point of the beam keeps its height and its distance from the stem (stem_distance)."""
-    from waveforest.analysis.synthetic import pulse_table
+    from fixtures.tables import pulse_table
+
     from waveforest.diagnose.simulator import stem_distance, turned_about_stems
 
     t = pulse_table("d", [[(1.0, 0.5, 100.0)], [(2.0, -1.0, 100.0)]])
@@ -246,11 +248,11 @@ def test_study_simulator_recalibrates_under_a_calibration_shaping_candidate():
     from test_sensor_calibration import true_system
 
     from waveforest import config
-    from waveforest.analysis.simulate import Calibration
     from waveforest.diagnose.simulator import StudySimulator
-    from waveforest.io.tables import list_to_padded
+    from waveforest.io.pulses import list_to_padded
     from waveforest.sensor import noise_stats
-    from waveforest.sensor.calibration import CalibrationPulses
+    from waveforest.stages.calibrate import CalibrationPulses
+    from waveforest.stages.simulate import Calibration
 
     table, tr = target_pulses(np.random.default_rng(3), true_system(), per_target=20, b_true=0.0, n_other=0,
                               sensor_effects={"trigger_loss": 0.2})

@@ -7,11 +7,11 @@ import math
 import numpy as np
 import pandas as pd
 import pytest
+from fixtures.study import SyntheticStudy
 from scipy.stats import norm
 
 from waveforest.diagnose import catalogue as cat
 from waveforest.diagnose.search import SearchSettings, parabolic_vertex, refinement_step, search, split_samples
-from waveforest.diagnose.synthetic import SyntheticStudy
 from waveforest.effects import CATALOGUE
 from waveforest.errors import WaveforestError
 

@@ -6,10 +6,10 @@ from __future__ import annotations
 
 import pandas as pd
 import pytest
+from fixtures.tables import pulse_table
 
-from waveforest.analysis.synthetic import pulse_table
 from waveforest.cli import main
-from waveforest.io.tables import write_pulses
+from waveforest.io.pulses import write_pulses
 
 DATASET = dict(dataset="2010_12_1", year=2010, mean_range_m=1200, pulse_width_fwhm_ns=7.2,
                footprint_diameter_m=0.18, sampling_ns=1.0)
@@ -145,7 +145,7 @@ def test_misspelled_nested_config_key(campaign, capsys):
 
 def test_valid_tables_pass(campaign):
     """The fixture's tables are valid: the failures above come from the one bad value."""
-    from waveforest.analysis.campaign_tables import read_datasets, read_fields, read_targets
+    from waveforest.io.tables import read_datasets, read_fields, read_targets
 
     tmp, _ = campaign
     assert len(read_datasets(tmp / "datasets.csv")) == len(read_fields(tmp / "fields.csv")) == 1

@@ -3,12 +3,12 @@
 
 import numpy as np
 from click.testing import CliRunner
+from fixtures.pulses import synthetic_pulses
 from reference_io import RIEGL
 
 from waveforest.cli import cli
-from waveforest.io.las_write import write_waveform_las
-from waveforest.io.synthetic import synthetic_pulses
-from waveforest.io.tables import read_pulses
+from waveforest.io.las.write import write_waveform_las
+from waveforest.io.pulses import read_pulses
 
 
 def test_commands_are_registered():

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from reference_io import reference_gather
 
-from waveforest.io.gather import gather_samples
+from waveforest.io.las.gather import gather_samples
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])

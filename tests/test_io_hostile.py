@@ -18,16 +18,16 @@ import time
 import numpy as np
 import pyarrow.parquet as pq
 import pytest
+from fixtures.pulses import synthetic_pulses
 from reference_io import RIEGL, patch, point_field_position, reference_points, vlr_body_position
 from test_io_las_roundtrip import assert_tables_equal
 
 from waveforest.atomic import atomic_path
 from waveforest.cli import main
 from waveforest.errors import WaveforestError
-from waveforest.io.las_format import LasWaveformWarning
-from waveforest.io.las_read import read_waveform_las
-from waveforest.io.las_write import write_waveform_las
-from waveforest.io.synthetic import synthetic_pulses
+from waveforest.io.las.format import LasWaveformWarning
+from waveforest.io.las.read import read_waveform_las
+from waveforest.io.las.write import write_waveform_las
 
 PREVIOUS = b"previous output"
 HANG_TIMEOUT_S = 120
@@ -311,7 +311,7 @@ def test_write_error_inside_atomic_path_names_the_output(tmp_path):
 
 _SLOW_INGEST = """
 import sys, time
-import waveforest.io.tables as tables
+import waveforest.io.pulses as tables
 check = tables.check_pulses
 def slow(*args, **kw):  # a slow disk: every batch takes a while to write
     time.sleep(0.2)

@@ -1,15 +1,15 @@
-"""``waveforest.io.ingest.run``: the stage function behind ``waveforest ingest``."""
+"""``waveforest.stages.ingest.run``: the stage function behind ``waveforest ingest``."""
 
 import numpy as np
 import pyarrow.parquet as pq
 import pytest
+from fixtures.pulses import synthetic_pulses
 from test_io_las_roundtrip import assert_round_trip, assert_tables_equal
 
 from waveforest.errors import WaveforestError
-from waveforest.io.ingest import run
 from waveforest.io.las import LasWaveformWarning, read_waveform_las, summarise, write_waveform_las
-from waveforest.io.synthetic import synthetic_pulses
-from waveforest.io.tables import PULSE_SCHEMA, read_pulses
+from waveforest.io.pulses import PULSE_SCHEMA, read_pulses
+from waveforest.stages.ingest import run
 
 
 def test_run_writes_the_pulse_table(tmp_path):

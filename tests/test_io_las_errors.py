@@ -10,11 +10,11 @@ import os
 import laspy
 import numpy as np
 import pytest
+from fixtures.pulses import synthetic_pulses
 from reference_io import patch, point_field_position, reference_header, vlr_body_position
 
 from waveforest.cli import main
-from waveforest.io.las_write import write_waveform_las
-from waveforest.io.synthetic import synthetic_pulses
+from waveforest.io.las.write import write_waveform_las
 
 
 @pytest.fixture(scope="module")

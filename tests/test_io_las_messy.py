@@ -11,16 +11,16 @@ import laspy
 import numpy as np
 import pyarrow as pa
 import pytest
+from fixtures.pulses import synthetic_pulses
 from laspy.vlrs.known import WaveformPacketStruct, WaveformPacketVlr
 from reference_io import patch, point_field_position, reference_header, vlr_body_position
 from test_io_las_roundtrip import assert_round_trip, assert_tables_equal
 
 from waveforest.constants import RANGE_PER_NS
-from waveforest.io.las_format import LasWaveformWarning
-from waveforest.io.las_info import format_summary, summarise
-from waveforest.io.las_read import WaveformPulseReader, read_waveform_las
-from waveforest.io.las_write import write_waveform_las
-from waveforest.io.synthetic import synthetic_pulses
+from waveforest.io.las.format import LasWaveformWarning
+from waveforest.io.las.info import format_summary, summarise
+from waveforest.io.las.read import WaveformPulseReader, read_waveform_las
+from waveforest.io.las.write import write_waveform_las
 
 SPLIT_AT_NS = 30.0
 """Where the split-packet test cuts a waveform in two, ns from its first sample."""

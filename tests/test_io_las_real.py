@@ -10,7 +10,7 @@ from reference_io import RIEGL, reference_points, reference_pulses
 
 from waveforest.constants import RANGE_PER_NS
 from waveforest.io.las import WaveformPulseReader, open_waveform_las, read_waveform_las
-from waveforest.io.las_format import LasWaveformWarning
+from waveforest.io.las.format import LasWaveformWarning
 
 QUANT_M = 0.001
 """Coordinate scale of the RIEGL file, m."""

@@ -11,12 +11,12 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 import pytest
+from fixtures.pulses import synthetic_pulses
 from reference_io import reference_pulses
 
 from waveforest.constants import RANGE_PER_NS
 from waveforest.io.las import WaveformPulseReader, open_waveform_las, read_waveform_las
-from waveforest.io.las_write import WaveformLasWriter, write_waveform_las
-from waveforest.io.synthetic import synthetic_pulses
+from waveforest.io.las.write import WaveformLasWriter, write_waveform_las
 
 TIME_TOL_NS = 1e-5
 """Echo times are stored as float32 ps: 256 ns = 2.56e5 ps has a float32 step of 0.016 ps."""
@@ -232,7 +232,7 @@ def test_ordered_buckets_keep_the_returns_of_a_pulse_together(tmp_path):
 
 
 def test_writer_rejects_what_las_cannot_hold(tmp_path):
-    from waveforest.io.las_format import LasWaveformError
+    from waveforest.io.las.format import LasWaveformError
 
     t = synthetic_pulses(20, seed=9)
     bad = t.set_column(t.schema.get_field_index("samples"), "samples", pa.array([[0.5, 1.0]] * 20, pa.list_(pa.float32())))

@@ -2,10 +2,10 @@
 
 import numpy as np
 import pytest
+from fixtures.pulses import synthetic_pulses
 
-from waveforest.io.las_read import read_waveform_las
-from waveforest.io.las_write import write_waveform_las
-from waveforest.io.synthetic import synthetic_pulses
+from waveforest.io.las.read import read_waveform_las
+from waveforest.io.las.write import write_waveform_las
 from waveforest.io.trajectory import (
     Trajectory,
     TrajectoryError,

@@ -1,4 +1,4 @@
-"""The tracer against analytic answers (METHOD.md d): planes, a semi-transparent sheet over a
+"""The tracer against analytic answers (docs/method.md §(d)): planes, a semi-transparent sheet over a
 ground, gap fractions of random leaves, and the specular / hotspot effects."""
 
 import math

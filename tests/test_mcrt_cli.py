@@ -10,8 +10,8 @@ import pytest
 from fixtures import scenes as syn
 
 from waveforest.cli import main
-from waveforest.mcrt.runner import run
 from waveforest.scene import write_ply
+from waveforest.stages.trace import run
 
 
 @pytest.fixture()

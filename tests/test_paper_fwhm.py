@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from waveforest.analysis.paper import table3
+from waveforest.io.paper import table3
 
 _spec = importlib.util.spec_from_file_location(
     "paper_fwhm", Path(__file__).resolve().parents[1] / "benchmarks" / "paper_fwhm.py")

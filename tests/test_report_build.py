@@ -10,10 +10,10 @@ import pandas as pd
 from test_analysis_classify import _features
 
 from waveforest import config
-from waveforest.analysis import plots
-from waveforest.analysis.classify import classify_dataset
 from waveforest.cli import main
+from waveforest.report import plots
 from waveforest.report.build import run
+from waveforest.stages.classify import classify_dataset
 
 
 def _results(tmp_path):

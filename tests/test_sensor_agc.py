@@ -1,4 +1,4 @@
-"""AGC normalisation (Eq. 1, METHOD.md b): known b recovered, CV down to the noise-only value."""
+"""AGC normalisation (Eq. 1, docs/method.md §(b)): known b recovered, CV down to the noise-only value."""
 
 import json
 import math
@@ -17,7 +17,8 @@ from reference_sensor import (
 from waveforest.config import validate
 from waveforest.constants import RANGE_PER_NS
 from waveforest.errors import WaveforestError
-from waveforest.io.tables import list_to_padded, read_pulses, write_pulses
+from waveforest.io.pulses import list_to_padded, read_pulses, write_pulses
+from waveforest.io.tables import read_datasets, read_targets
 from waveforest.sensor import agc as agc_mod
 from waveforest.sensor import (
     agc_gain,
@@ -27,11 +28,10 @@ from waveforest.sensor import (
     normalise_intensity,
     normalise_waveforms,
     peak_amplitudes,
-    read_datasets,
-    read_targets,
     render,
     target_membership,
 )
+from waveforest.stages import agc as agc_stage
 
 B_TOL = 0.05  # "fitted b within 5 %"
 CV_NOISE_TOL = 0.10  # CV after normalisation within 10 % of the noise-only CV
@@ -96,7 +96,7 @@ def test_energy_statistic_is_unbiased_on_weak_targets(tmp_path, seed):
     b = {}
     for stat in ("peak", "energy"):
         cfg = validate({"agc": {"statistic": stat}, "calibrate": {"noise_tail": 50}, "sensor": {"digitizer_max": 255}})
-        b[stat] = agc_mod.run(src, read_targets(tpath), read_datasets(dpath), tmp_path / "n.parquet",
+        b[stat] = agc_stage.run(src, read_targets(tpath), read_datasets(dpath), tmp_path / "n.parquet",
                               tmp_path / "f.json", cfg, progress=False).b
     assert b["energy"] == pytest.approx(0.012, rel=B_TOL)
     assert b["peak"] < b["energy"]  # low by about the noise SD over the peak
@@ -127,7 +127,7 @@ def test_agc_stage(tmp_path):
     dpath, tpath = write_campaign_tables(tmp_path)
     cfg = validate({"agc": {"b_bounds": [0.0, 0.05], "grid_points": 81, "statistic": "peak"}, "calibrate": {"noise_tail": 50},
            "sensor": {"digitizer_max": 255}})
-    fit = agc_mod.run(src, read_targets(tpath), read_datasets(dpath), tmp_path / "norm.parquet",
+    fit = agc_stage.run(src, read_targets(tpath), read_datasets(dpath), tmp_path / "norm.parquet",
                       tmp_path / "fit.json", cfg, plot_path=tmp_path / "cv.png", progress=False)
     assert fit.b == pytest.approx(0.01, rel=B_TOL)
     assert fit.a == pytest.approx(truth["a"])
@@ -140,7 +140,7 @@ def test_agc_stage(tmp_path):
     assert sum(saved["n_per_target"].values()) + saved["n_saturated"] == 600
     assert (tmp_path / "cv.png").stat().st_size > 1000
     out = read_pulses(tmp_path / "norm.parquet")
-    meta = agc_mod.read_agc_metadata(tmp_path / "norm.parquet")
+    meta = agc_stage.read_agc_metadata(tmp_path / "norm.parquet")
     assert meta["b"] == pytest.approx(fit.b) and meta["n0"] == pytest.approx(fit.n0)
     g = out.column("agc_gain").to_numpy()
     assert np.allclose(g, 1 + (table.column("agc").to_numpy() - fit.a) * fit.b)
@@ -163,7 +163,7 @@ def test_agc_stage_without_agc_and_errors(tmp_path):
     src = write_pulses(table, tmp_path / "noagc.parquet")
     dpath, tpath = write_campaign_tables(tmp_path)
     with pytest.warns(UserWarning, match="no AGC"):
-        fit = agc_mod.run(src, read_targets(tpath), read_datasets(dpath), tmp_path / "n.parquet", tmp_path / "f.json",
+        fit = agc_stage.run(src, read_targets(tpath), read_datasets(dpath), tmp_path / "n.parquet", tmp_path / "f.json",
                           validate({}), progress=False)
     assert math.isnan(fit.b)
     out = read_pulses(tmp_path / "n.parquet")
@@ -174,7 +174,7 @@ def test_agc_stage_without_agc_and_errors(tmp_path):
     other = target_pulses(np.random.default_rng(4), SYSTEM, per_target=5, dataset="2099_01_1")[0]
     src2 = write_pulses(other, tmp_path / "other.parquet")
     with pytest.raises(WaveforestError, match="2099_01_1"):
-        agc_mod.run(src2, read_targets(tpath), read_datasets(dpath), tmp_path / "x.parquet", tmp_path / "x.json", validate({}),
+        agc_stage.run(src2, read_targets(tpath), read_datasets(dpath), tmp_path / "x.parquet", tmp_path / "x.json", validate({}),
                     progress=False)
     assert not (tmp_path / "x.parquet").exists() and not (tmp_path / "x.json").exists()
 
@@ -229,7 +229,7 @@ def test_agc_stage_nests_strips_within_targets(tmp_path):
     res = {}
     for gap in (30.0, 1e9):  # 1e9 s: every target one group, the strips pooled
         cfg = validate({"agc": {"b_bounds": [0.0, 0.05], "pass_gap_s": gap}})
-        res[gap] = agc_mod.run(src, targets, datasets, tmp_path / "n.parquet", tmp_path / "f.json", cfg,
+        res[gap] = agc_stage.run(src, targets, datasets, tmp_path / "n.parquet", tmp_path / "f.json", cfg,
                                progress=False)
     nested, pooled = res[30.0], res[1e9]
     assert nested.a == pytest.approx(a)

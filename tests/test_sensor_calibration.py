@@ -1,4 +1,4 @@
-"""Calibration (Eq. 8, METHOD.md e): S(t) of planar targets simulated through Eq. 7 is recovered."""
+"""Calibration (Eq. 8, docs/method.md §(e)): S(t) of planar targets simulated through Eq. 7 is recovered."""
 
 import json
 import math
@@ -8,10 +8,10 @@ import pytest
 from reference_sensor import target_pulses, write_campaign_tables
 from scipy.special import erf
 
-from waveforest.analysis.simulate import load_calibration as load_sim_calibration
 from waveforest.config import validate
 from waveforest.errors import WaveforestError
-from waveforest.io.tables import list_to_padded, write_pulses
+from waveforest.io.pulses import list_to_padded, write_pulses
+from waveforest.io.tables import read_datasets, read_targets
 from waveforest.sensor import (
     CFDParams,
     SystemWaveform,
@@ -21,11 +21,11 @@ from waveforest.sensor import (
     load_system_waveform,
     noise_stats,
     range_correction_of,
-    read_datasets,
-    read_targets,
 )
-from waveforest.sensor import agc as agc_mod
 from waveforest.sensor import calibration as cal_mod
+from waveforest.stages import agc as agc_stage
+from waveforest.stages import calibrate as cal_stage
+from waveforest.stages.simulate import load_calibration as load_sim_calibration
 
 S_L2_TOL = 0.02  # "recovered S(t) within 2 % (L2, relative)"
 FWHM_PER_SD = 2.0 * math.sqrt(2.0 * math.log(2.0))
@@ -118,8 +118,8 @@ def test_calibration_pulses_saturate_after_the_agc_gain():
             hdrf / math.pi, tr["target_index"][keep])
     noise = noise_stats(x, lens[keep], 50)
     assert g.min() < 0.85 and g.max() > 1.15
-    per_pulse = cal_mod.CalibrationPulses(*args, g, noise, (-15.0, 45.0)).system_waveform({"nonlinearity": 150.0})
-    one_level = cal_mod.CalibrationPulses(*args, np.ones(len(x)), noise, (-15.0, 45.0)).system_waveform(
+    per_pulse = cal_stage.CalibrationPulses(*args, g, noise, (-15.0, 45.0)).system_waveform({"nonlinearity": 150.0})
+    one_level = cal_stage.CalibrationPulses(*args, np.ones(len(x)), noise, (-15.0, 45.0)).system_waveform(
         {"nonlinearity": 150.0})
     err = rel_l2(per_pulse.aligned_to_cfd(), truth)
     assert err < S_L2_TOL, err
@@ -129,7 +129,7 @@ def test_calibration_pulses_saturate_after_the_agc_gain():
 
 def test_calibration_stage_after_agc(tmp_path):
     """Planar targets through Eq. 7 with a known AGC law -> agc -> calibrate: S(t) within 2 %,
-    the noise, and the CFD check of METHOD.md f on the target pulses."""
+    the noise, and the CFD check of docs/method.md §(f) on the target pulses."""
     truth = true_system()
     table, tr = target_pulses(np.random.default_rng(12), truth, per_target=80, b_true=0.01)
     src = write_pulses(table, tmp_path / "pulses.parquet")
@@ -137,8 +137,8 @@ def test_calibration_stage_after_agc(tmp_path):
     targets, datasets = read_targets(tpath), read_datasets(dpath)
     cfg = validate({"agc": {"b_bounds": [0.0, 0.05]}, "calibrate": {"noise_tail": 50, "window_ns": [-15.0, 45.0]},
            "sensor": {"digitizer_max": 255, "cfd": {"fraction": 0.5, "arming_sd": 4.0}}})
-    agc_mod.run(src, targets, datasets, tmp_path / "norm.parquet", tmp_path / "agc.json", cfg, progress=False)
-    res = cal_mod.run(tmp_path / "norm.parquet", targets, datasets, tmp_path / "S.parquet", tmp_path / "S.json", cfg,
+    agc_stage.run(src, targets, datasets, tmp_path / "norm.parquet", tmp_path / "agc.json", cfg, progress=False)
+    res = cal_stage.run(tmp_path / "norm.parquet", targets, datasets, tmp_path / "S.parquet", tmp_path / "S.json", cfg,
                       plot_path=tmp_path / "S.png", progress=False)
     est = load_system_waveform(tmp_path / "S.parquet")
     assert rel_l2(est, truth) < S_L2_TOL, rel_l2(est, truth)
@@ -167,7 +167,7 @@ def test_calibration_stage_errors(tmp_path):
     src = write_pulses(table, tmp_path / "few.parquet")
     dpath, tpath = write_campaign_tables(tmp_path)
     with pytest.raises(WaveforestError, match="calibrate.min_pulses"):
-        cal_mod.run(src, read_targets(tpath), read_datasets(dpath), tmp_path / "S.parquet", tmp_path / "S.json", validate({}),
+        cal_stage.run(src, read_targets(tpath), read_datasets(dpath), tmp_path / "S.parquet", tmp_path / "S.json", validate({}),
                     progress=False)
     assert not (tmp_path / "S.parquet").exists() and not (tmp_path / "S.json").exists()
     bad = tmp_path / "targets_bad.csv"

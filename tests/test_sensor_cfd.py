@@ -1,4 +1,4 @@
-"""Echo detection: the CFD against analytic Gaussian echoes and its NumPy reference (METHOD.md f)."""
+"""Echo detection: the CFD against analytic Gaussian echoes and its NumPy reference (docs/method.md §(f))."""
 
 import math
 

@@ -1,4 +1,4 @@
-"""CFD tuning against DR ranges (METHOD.md f): a known discriminator recovered from widened echoes."""
+"""CFD tuning against DR ranges (docs/method.md §(f)): a known discriminator recovered from widened echoes."""
 
 import math
 

@@ -9,7 +9,7 @@ from click.testing import CliRunner
 from reference_sensor import target_pulses, write_campaign_tables
 
 from waveforest.cli import cli, main
-from waveforest.io.tables import write_pulses
+from waveforest.io.pulses import write_pulses
 from waveforest.sensor import gaussian_system_waveform
 
 SYSTEM = gaussian_system_waveform(7.2, 2.0e9)

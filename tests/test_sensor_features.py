@@ -1,4 +1,4 @@
-"""First-echo features against analytic Gaussian echoes and the NumPy reference (METHOD.md h)."""
+"""First-echo features against analytic Gaussian echoes and the NumPy reference (docs/method.md §(h))."""
 
 import math
 

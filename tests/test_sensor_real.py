@@ -5,7 +5,7 @@ import pytest
 from reference_io import RIEGL
 
 from waveforest.constants import RANGE_PER_NS
-from waveforest.io.tables import list_to_padded, read_pulses
+from waveforest.io.pulses import list_to_padded, read_pulses
 from waveforest.sensor import CFDParams, detect_echoes, feature_table
 
 HEAD = 8  # RIEGL records start a few ns before the first return: their first samples are noise

@@ -4,7 +4,7 @@ import numpy as np
 import pyarrow as pa
 import pytest
 
-from waveforest.io import tables
+from waveforest.io import pulses as tables
 
 
 def test_padded_list_round_trip():

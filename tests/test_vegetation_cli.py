@@ -7,8 +7,8 @@ from click.testing import CliRunner
 
 from waveforest.cli import cli, main
 from waveforest.scene import read_ply
+from waveforest.stages.vegetation import run
 from waveforest.vegetation import build_scene
-from waveforest.vegetation.cli import run
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 

@@ -1,4 +1,4 @@
-"""The vegetation models seen by the MCRT engine (METHOD.md d, g; issue 4 checks):
+"""The vegetation models seen by the MCRT engine (docs/method.md §(d), g; issue 4 checks):
 
 - nadir gap fraction of the raspberry and fireweed plots: the share of vertical rays whose
   first hit is the ground equals the scene's rasterised gap fraction and is consistent with
@@ -21,8 +21,8 @@ from waveforest.vegetation import build_scene, leaf_area_index, nadir_gap_fracti
 
 GROUND, MISS = 0, 4
 OMEGA_RANGE = (0.75, 1.0)  # as in test_vegetation_structure
-FIRST_ORDER_RANGE = (0.57, 0.88)  # METHOD.md d: order 1 alone carries 57-88 % of sigma
-ORDERS_1_10_MIN = 0.97  # METHOD.md d: orders 1-10 carry > 97 %
+FIRST_ORDER_RANGE = (0.57, 0.88)  # docs/method.md §(d): order 1 alone carries 57-88 % of sigma
+ORDERS_1_10_MIN = 0.97  # docs/method.md §(d): orders 1-10 carry > 97 %
 MAX_ORDER = 25
 """Orders traced for the 'total' sigma: with leaf albedo 0.97 the tail beyond 25 is < 0.1 %."""
 

@@ -98,7 +98,7 @@ def test_same_seed_gives_the_identical_scene_and_another_seed_another(slug, h):
 
 
 def test_paper_optics_and_ground_plane():
-    # METHOD.md g: leaves 0.47/0.50; birch wood 0.50/0; raspberry and fireweed shoots 0.47/0;
+    # docs/method.md §(g): leaves 0.47/0.50; birch wood 0.50/0; raspberry and fireweed shoots 0.47/0;
     # Lambertian ground plane rho 0.30, tau 0
     for slug, h, wood in (("birch", 3.0, 0.50), ("raspberry", 1.0, 0.47), ("fireweed", 1.2, 0.47)):
         s = build_scene(slug, h, 1)

@@ -15,7 +15,7 @@ from waveforest.vegetation.leaves import load_outline
 from waveforest.vegetation.params import RES, species_params
 
 PLOT_M2 = 36.0
-LAI_PAPER = {"raspberry": 3.35, "fireweed": 2.0}  # METHOD.md g (Kuusk et al. 2004)
+LAI_PAPER = {"raspberry": 3.35, "fireweed": 2.0}  # docs/method.md §(g) (Kuusk et al. 2004)
 REALISED_TOL = 0.02  # the issue: realised LAI / leaf area within 2 % of the target
 KS_ALPHA = 0.01
 OMEGA_RANGE = (0.75, 1.0)

@@ -12,13 +12,17 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import json
+import math
 import os
 import stat
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
-from .errors import WaveforestError
+import numpy as np
+
+from waveforest.errors import WaveforestError
 
 _KINDS = {
     stat.S_ISDIR: "a directory",
@@ -114,3 +118,24 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     finally:
         if tmp.exists():
             tmp.unlink()
+
+
+def _plain(v):
+    """``v`` with NumPy scalars as Python values and non-finite floats as None, recursively."""
+    if isinstance(v, np.generic):
+        v = v.item()
+    if isinstance(v, float) and not math.isfinite(v):
+        return None
+    if isinstance(v, dict):
+        return {str(k): _plain(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_plain(x) for x in v]
+    return v
+
+
+def write_json(obj, path: str | os.PathLike) -> Path:
+    """Write ``obj`` as indented JSON, atomically; NaN and infinities are written as null."""
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(_plain(obj), indent=2, allow_nan=False) + "\n")
+    return path

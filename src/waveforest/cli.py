@@ -1,6 +1,6 @@
 """The ``waveforest`` command: one subcommand per pipeline stage (DESIGN.md).
 
-Subcommands live beside the code they call (``<package>/cli.py``) and are loaded
+Each subcommand lives in its stage module (``waveforest.stages.<stage>``) and is loaded
 lazily, so ``waveforest --help`` stays fast and a stage appears once it exists.
 """
 
@@ -16,27 +16,27 @@ from collections.abc import Iterator
 
 import click
 
-from . import __version__
-from .errors import WaveforestError
+from waveforest import __version__
+from waveforest.errors import WaveforestError
 
 # command name -> "module:attribute", in pipeline order
 COMMANDS = {
-    "synthesize": "waveforest.campaign.cli:synthesize",
-    "info": "waveforest.io.cli:info",
-    "ingest": "waveforest.io.cli:ingest",
-    "agc": "waveforest.sensor.cli:agc",
-    "calibrate": "waveforest.sensor.cli:calibrate",
-    "select": "waveforest.analysis.cli:select",
-    "vegetation": "waveforest.vegetation.cli:vegetation",
-    "trace": "waveforest.mcrt.cli:trace",
-    "simulate": "waveforest.analysis.cli:simulate",
-    "features": "waveforest.sensor.cli:features",
-    "compare": "waveforest.analysis.cli:compare",
-    "sensitivity": "waveforest.analysis.cli:sensitivity",
-    "sensor-study": "waveforest.analysis.cli:sensor_study",
-    "classify": "waveforest.analysis.cli:classify",
-    "diagnose": "waveforest.diagnose.cli:diagnose",
-    "report": "waveforest.report.cli:report",
+    "synthesize": "waveforest.stages.synthesize:synthesize",
+    "info": "waveforest.stages.info:info",
+    "ingest": "waveforest.stages.ingest:ingest",
+    "agc": "waveforest.stages.agc:agc",
+    "calibrate": "waveforest.stages.calibrate:calibrate",
+    "select": "waveforest.stages.select:select",
+    "vegetation": "waveforest.stages.vegetation:vegetation",
+    "trace": "waveforest.stages.trace:trace",
+    "simulate": "waveforest.stages.simulate:simulate",
+    "features": "waveforest.stages.features:features",
+    "compare": "waveforest.stages.compare:compare",
+    "sensitivity": "waveforest.stages.sensitivity:sensitivity",
+    "sensor-study": "waveforest.stages.sensor_study:sensor_study",
+    "classify": "waveforest.stages.classify:classify",
+    "diagnose": "waveforest.stages.diagnose:diagnose",
+    "report": "waveforest.stages.report:report",
 }
 
 

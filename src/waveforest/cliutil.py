@@ -1,18 +1,32 @@
-"""Options shared by every subcommand: --config, --seed, --threads."""
+"""What every subcommand shares: --config, --seed, --threads; path types; multi-value options;
+warnings shown as one line each."""
 
 from __future__ import annotations
 
+import contextlib
 import functools
+import sys
+import warnings
+from pathlib import Path
 
 import click
+import numba
+from tqdm import tqdm
 
-from . import config as _config
+from waveforest import config as _config
+
+EXISTING_FILE = click.Path(exists=True, dir_okay=False, path_type=Path)
+"""An input file that must exist."""
+OUT_FILE = click.Path(dir_okay=False, path_type=Path)
+"""An output file (written atomically by the stage)."""
+OUT_DIR = click.Path(file_okay=False, path_type=Path)
+"""An output folder."""
+EXISTING_DIR = click.Path(exists=True, file_okay=False, path_type=Path)
+"""An input folder that must exist."""
 
 
 def _set_threads(threads: int | None) -> None:
     if threads:
-        import numba
-
         numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
 
 
@@ -34,3 +48,48 @@ def stage_options(func):
         return func(*args, cfg=cfg, **kwargs)
 
     return wrapper
+
+
+class MultiValueOption(click.Option):
+    """An option that takes one or more values after a single flag (and may also repeat)."""
+
+    def __init__(self, *args, **kwargs):
+        kwargs["multiple"] = True
+        super().__init__(*args, **kwargs)
+
+
+class MultiValueCommand(click.Command):
+    """A command that rewrites ``--opt a b c`` into ``--opt a --opt b --opt c`` for
+    :class:`MultiValueOption` options before click parses the arguments.
+
+    Values are taken until the next token that starts with ``-``; positional arguments must
+    therefore come before such an option.
+    """
+
+    def parse_args(self, ctx, args):
+        flags = {o for p in self.params if isinstance(p, MultiValueOption) for o in p.opts}
+        out, current, fresh = [], None, False
+        for a in args:
+            if a.startswith("-") and a != "-":
+                current = a if a in flags else None
+                fresh = current is not None
+                out.append(a)
+                continue
+            if current is not None and not fresh:
+                out.append(current)
+            fresh = False
+            out.append(a)
+        return super().parse_args(ctx, out)
+
+
+@contextlib.contextmanager
+def warnings_to_stderr():
+    """Show every warning once as ``waveforest: warning: ...`` (clear of progress bars)."""
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        tqdm.write(f"waveforest: warning: {message}", file=sys.stderr)
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("always")
+        warnings.showwarning = show
+        yield

@@ -22,7 +22,9 @@ from typing import Any
 import jsonschema
 import yaml
 
-from .errors import WaveforestError
+from waveforest.errors import WaveforestError
+from waveforest.io.tables import FUNCTIONAL_GROUPS
+from waveforest.vegetation.params import slugs
 
 SCHEMA_PATH = Path(__file__).with_name("config.schema.yaml")
 
@@ -83,8 +85,6 @@ def _check_names(config: dict, source: str) -> None:
     """Species slugs and functional groups of the config are known ones."""
     # imported here, not at module level: pandas and the vegetation package's Numba kernels
     # (~1.5 s) are not needed by every stage that reads a config
-    from .analysis.campaign_tables import FUNCTIONAL_GROUPS
-    from .vegetation.params import slugs
 
     known = slugs()
 

@@ -13,13 +13,13 @@ RANGE_PER_NS = C_M_PER_NS / 2.0
 """One-way range per nanosecond of two-way time, m/ns (0.1499 m/ns)."""
 
 BIN_NS = 0.05
-"""Fine time grid of sigma(t) and S(t), ns of two-way time (METHOD.md c, d): 0.75 cm of range."""
+"""Fine time grid of sigma(t) and S(t), ns of two-way time (docs/method.md §(c), d): 0.75 cm of range."""
 
 RAY_EPS_M = 1e-4
 """Offset of a new ray origin from the surface it leaves, m (float32 Embree scenes near the origin)."""
 
 RECORD_NS = 256.0
-"""ALS60 waveform record length, ns (METHOD.md a)."""
+"""ALS60 waveform record length, ns (docs/method.md §(a))."""
 
 KIND_GROUND, KIND_LEAF, KIND_WOOD, KIND_OTHER = 0, 1, 2, 3
 """Scene element kinds (per-triangle ``kind`` in scenes and PLY files)."""

@@ -35,7 +35,7 @@ which prints each effect's largest shift):
   (Calamagrostis, Deschampsia, Epilobium, tree seedlings) reaches a green LAI of about 1-3 by
   mid-summer, so 2.5 is a dense but common layer. It moves birch E by +4.5 SE only: the
   selection keeps a tree's pulses only with a first echo above 1 m and the birch waveform
-  features only above 1.5 m (METHOD.md i1, i4), so the layer shows through multiple
+  features only above 1.5 m (docs/method.md §(i1), i4), so the layer shows through multiple
   scattering alone. It does show, strongly, in the pulses that reach the ground through
   gaps in the crowns (first echo under 1 m within 0.5 m of the stem), which ``diagnose``
   compares as a stratum of their own with ``diagnose.below_crown``: there it raises E and
@@ -47,7 +47,7 @@ which prints each effect's largest shift):
   of a cluster's shoots within 0.15 m of each axis of its centre (0.3 m moved the fireweed E
   by 2.2 SE only, in a campaign of a quarter of these pulses).
 - ``xy_error`` 0.25 m: the SD of the horizontal georeferencing error of the recorded data
-  relative to the field positions, the paper's "typical XY error 0.20-0.25 m" (METHOD.md a,
+  relative to the field positions, the paper's "typical XY error 0.20-0.25 m" (docs/method.md §(a),
   j). In the campaign it is a drift of the GNSS/INS solution that moves the recorded
   trajectory and points together (campaign/flight.py), so that ``simulate`` traces each
   recorded beam where the real one was not; in the model, ``simulate`` shifts each traced
@@ -60,7 +60,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from .errors import WaveforestError
+from waveforest.errors import WaveforestError
 
 
 @dataclass(frozen=True)

@@ -14,9 +14,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from plyfile import PlyData, PlyElement
 
-from .atomic import atomic_path
-from .errors import WaveforestError
+from waveforest.atomic import atomic_path
+from waveforest.errors import WaveforestError
 
 
 class SceneError(WaveforestError):
@@ -109,7 +110,6 @@ class Scene:
 
 def write_ply(scene: Scene, path: str | Path) -> Path:
     """Write ``scene`` as a binary little-endian PLY (faces carry rho, tau, kind)."""
-    from plyfile import PlyData, PlyElement
 
     n = len(scene)
     verts = np.empty(3 * n, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4")])
@@ -134,7 +134,6 @@ def write_ply(scene: Scene, path: str | Path) -> Path:
 
 def read_ply(path: str | Path) -> Scene:
     """Read a PLY whose faces carry ``rho``, ``tau`` and ``kind`` (polygons are fanned)."""
-    from plyfile import PlyData
 
     path = Path(path)
     if not path.exists():

@@ -1,4 +1,4 @@
-# First-echo waveform features (METHOD.md h) of real and simulated pulses: one code path.
+# First-echo waveform features (docs/method.md §(h)) of real and simulated pulses: one code path.
 
 
 rule features_real:

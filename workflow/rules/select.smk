@@ -1,4 +1,4 @@
-# Pulses that hit field samples (radius and echo rules, METHOD.md i1, i4).
+# Pulses that hit field samples (radius and echo rules, docs/method.md §(i1), i4).
 
 
 rule select:

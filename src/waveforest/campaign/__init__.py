@@ -13,12 +13,12 @@ sensor's DR discriminator), :mod:`.truth_sensor` (the sensor as it really behave
 :mod:`.synthesize` (orchestration), :mod:`.cli` (the command).
 """
 
-from .agc_loop import AGCParams, agc_sequence
-from .layout import Frame, Layout, build_layout
-from .params import load_datasets, load_layout, load_targets
-from .synthesize import CampaignSummary, resolve_effects, run
-from .system_pulse import TrueSystemWaveform, true_system_waveform
-from .truth_sensor import TruthSensor, record
+from waveforest.campaign.agc_loop import AGCParams, agc_sequence
+from waveforest.campaign.layout import Frame, Layout, build_layout
+from waveforest.campaign.params import load_datasets, load_layout, load_targets
+from waveforest.campaign.synthesize import CampaignSummary, resolve_effects, run
+from waveforest.campaign.system_pulse import TrueSystemWaveform, true_system_waveform
+from waveforest.campaign.truth_sensor import TruthSensor, record
 
 __all__ = [
     "AGCParams", "agc_sequence", "Frame", "Layout", "build_layout", "load_datasets", "load_layout",

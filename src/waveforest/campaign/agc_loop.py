@@ -1,6 +1,6 @@
 """The ALS60's automatic gain control (AGC) as the virtual sensor really runs it.
 
-Eq. 1 of METHOD.md (b) is the *gain law*: a pulse recorded with AGC value ``AGC`` has its
+Eq. 1 of docs/method.md §(b) is the *gain law*: a pulse recorded with AGC value ``AGC`` has its
 signal (not its noise) multiplied by
 
     gain = 1 + (AGC - a_law) * b_law                                          (Eq. 1)

@@ -1,7 +1,7 @@
 """The ALS60's own discrete-return (DR) discriminator, as the virtual sensor runs it.
 
 The real ALS60 finds its DR echoes with a constant fraction discriminator (CFD) in separate
-fast circuits that see the analog detector signal (METHOD.md f). The virtual sensor runs its
+fast circuits that see the analog detector signal (docs/method.md §(f)). The virtual sensor runs its
 CFD on the noise-free analog signal on the 0.05-ns grid (the timing noise of the real
 circuits is added afterwards as a jitter, and the amplitude-dependent range walk as a
 function of the echo amplitude, see :mod:`.truth_sensor`). Its parameters (fraction, delay,
@@ -16,7 +16,7 @@ Discriminator (per pulse, on x(t) = analog signal above the baseline, DN):
   crossing of y in [arming - delta, arming + search) (linear interpolation between bins),
   never before the end of the dead time of the previous echo;
 * the echo amplitude is the largest x in [crossing - pre, crossing + post];
-* at most ``max_echoes`` (4 for the ALS60, METHOD.md a) echoes per pulse.
+* at most ``max_echoes`` (4 for the ALS60, docs/method.md §(a)) echoes per pulse.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from ..constants import BIN_NS
+from waveforest.constants import BIN_NS
 
 ZERO_DN = 1e-9
 """Analog values below this magnitude (DN) are treated as exactly zero (FFT round-off)."""

@@ -1,7 +1,7 @@
 """Flights: strips, scan pattern, trajectories and the pulses that reach the sites.
 
 Each dataset is flown as parallel strips along the area's long axis, alternating the
-azimuths of ``datasets.csv`` (160 deg / 340 deg, METHOD.md a), at a flying height above the
+azimuths of ``datasets.csv`` (160 deg / 340 deg, docs/method.md §(a)), at a flying height above the
 mean terrain H = mean_range / E[sec(theta)] (theta uniform in tan over the swath, so that the
 mean range over the swath equals Table 2's mean range). Strips are spaced
 2 H tan(theta_max) (1 - overlap) apart across track, at least ``min_strips`` of them,
@@ -35,9 +35,9 @@ import numpy as np
 import pandas as pd
 from scipy.signal import lfilter
 
-from .layout import Frame
-from .params import azimuths
-from .rng import generator
+from waveforest.campaign.layout import Frame
+from waveforest.campaign.params import azimuths
+from waveforest.rng import generator
 
 
 def mean_secant(max_zenith_deg: float) -> float:
@@ -122,7 +122,7 @@ def georeferencing_error(trajectory: pd.DataFrame, pulse_strip: np.ndarray, puls
     process of SD ``sd_m`` and correlation time ``tau_s``, drawn at the trajectory's times
     and linearly interpolated to the pulses' GPS times. Added to the written trajectory and
     to the recorded points alike, it shifts each recorded beam as a whole, so that the
-    recorded beam passes a plant where the real one did not (METHOD.md j), and a trajectory
+    recorded beam passes a plant where the real one did not (docs/method.md §(j)), and a trajectory
     read back with linear interpolation gives exactly the pulses' recorded sensor positions.
 
     Parameters

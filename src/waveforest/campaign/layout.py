@@ -8,7 +8,7 @@ Isolation (why one 6 x 6 m scene per sample is the whole world of its pulses): s
 on a grid of ``sample_spacing_m`` (12 m) nodes, jittered by at most ``sample_jitter_m``
 (1 m), so two samples are at least 10 m apart. A pulse is generated only within
 ``radius_m + disc_margin_m`` (<= 1.7 m) of a sample; its receiver sees a 5-m circle
-around the beam (METHOD.md d), at most 4.2 m from the sample; the beam crosses at most
+around the beam (docs/method.md §(d)), at most 4.2 m from the sample; the beam crosses at most
 5 m * tan(15 deg) = 1.3 m horizontally over a 5-m tree. Everything a pulse can see therefore
 lies within the sample's own 6 x 6 m scene or on open ground beyond it (the scene's ground),
 never on a neighbouring sample (>= 10 - 3 = 7 m away). Stands are at least
@@ -23,9 +23,9 @@ The layout is drawn for every campaign year (2010, 2012) whatever datasets are g
 so a sample's position does not depend on the dataset selection; only the years of the
 generated datasets are written.
 
-Field-sample rules (METHOD.md a): species of Table 1 per year (P10/S10 -> 2010, S12 -> 2012),
+Field-sample rules (docs/method.md §(a)): species of Table 1 per year (P10/S10 -> 2010, S12 -> 2012),
 ``samples_per_species`` each; heights uniform in the species' [min_h, max_h] (birch 2.5-5 m,
-the comparison range of METHOD.md i1); radius 0.5 m (2010) / 1.0 m (2012); trees carry
+the comparison range of docs/method.md §(i1)); radius 0.5 m (2010) / 1.0 m (2012); trees carry
 ``is_tree = 1``; 2010 trees belong to the P10 plots with Table 1's share P10 / (P10 + S10).
 Coordinates are "GNSS" values written to mm; they are the true positions of the plants.
 """
@@ -37,11 +37,11 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from .params import CampaignParamsError, load_design_counts, load_layout, load_targets
-from .rng import generator
+from waveforest.campaign.params import CampaignParamsError, load_design_counts, load_layout, load_targets
+from waveforest.rng import generator
 
 YEARS = (2010, 2012)
-"""Campaign years (METHOD.md a)."""
+"""Campaign years (docs/method.md §(a))."""
 
 DESIGN_YEAR = {"P10": 2010, "S10": 2010, "S12": 2012}
 """Field designs of Table 1 and their year."""

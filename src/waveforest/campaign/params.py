@@ -29,8 +29,8 @@ import numpy as np
 import pandas as pd
 import yaml
 
-from .. import RESOURCES
-from ..errors import WaveforestError
+from waveforest import RESOURCES
+from waveforest.errors import WaveforestError
 
 CAMPAIGN_RESOURCES = RESOURCES / "campaign"
 """Folder of the campaign's parameter files."""
@@ -47,14 +47,14 @@ DATASET_COLUMNS = {
     "footprint_diameter_m": "1/e footprint diameter at the mean range, m (Table 2)",
     "sampling_ns": "waveform sampling interval, ns (Table 2)",
     "pulse_density_m2": "waveform pulse density, 1/m^2 (Table 2)",
-    "divergence_mrad": "full-angle 1/e beam divergence, mrad (METHOD.md a: 0.15)",
-    "max_scan_zenith_deg": "largest scan zenith angle, degrees (METHOD.md a: 15)",
+    "divergence_mrad": "full-angle 1/e beam divergence, mrad (docs/method.md §(a): 0.15)",
+    "max_scan_zenith_deg": "largest scan zenith angle, degrees (docs/method.md §(a): 15)",
     "flight_azimuths_deg": "azimuths of the strips, degrees, space-separated, alternating (160 340)",
     "min_strips": "fewest strips flown over the area",
     "strip_overlap": "side overlap of neighbouring strips, fraction of the swath",
     "speed_m_s": "aircraft ground speed, m/s",
     "start_gps_time_s": "GPS time (s of the GPS week) of the first strip",
-    "campaign_date": "date of the flight (METHOD.md a)",
+    "campaign_date": "date of the flight (docs/method.md §(a))",
 }
 """Columns of ``datasets.csv`` and their meaning."""
 
@@ -94,7 +94,7 @@ TARGET_COLUMNS = {
     "site": "name of the physical target site",
     "material": "material (tarp, asphalt, sand, bitumen_roof, old_asphalt, fine_sand, grass)",
     "years": "campaign years in which the site was flown, space-separated",
-    "hdrf": "published nadir HDRF at 1064 nm (METHOD.md e); empty for AGC-only targets",
+    "hdrf": "published nadir HDRF at 1064 nm (docs/method.md §(e)); empty for AGC-only targets",
     "true_rho": "reflectance of the Lambertian plane in the truth (= hdrf where known)",
     "calibration": "1 = used to calibrate S(t) (Eq. 8)",
     "agc": "1 = homogeneous target for the AGC fit (Eq. 1)",

@@ -18,8 +18,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..scene import Scene
-from .rng import int_seed
+from waveforest.rng import int_seed
+from waveforest.scene import Scene
+from waveforest.vegetation import build_scene
 
 TARP_LIFT_M = 0.003
 """Height of a tarp above the ground it lies on, m (its thickness; avoids coplanar faces)."""
@@ -81,7 +82,6 @@ def sample_scene(species: str, height_m: float, seed: int, sample_id: str, *, gr
     vegetation_effects : dict
         ``understory``, ``clumping``, ``lad_shift``, ``leaf_albedo`` (missing = off).
     """
-    from ..vegetation import build_scene
 
     return build_scene(species, float(height_m), int_seed(seed, "scene", sample_id), ground_rho=ground_rho,
                        lai_jitter=lai_jitter, **vegetation_effects)

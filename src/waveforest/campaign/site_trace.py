@@ -23,13 +23,15 @@ import time
 from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 from tqdm import tqdm
 
-from ..constants import BIN_NS
-from .rng import int_seed
-from .scenes import TARGET_RAYS, sample_scene, target_scene
-from .truth_sensor import TruthSensor, unit_gain_peaks
+from waveforest.campaign.scenes import TARGET_RAYS, sample_scene, target_scene
+from waveforest.campaign.truth_sensor import TruthSensor, unit_gain_peaks
+from waveforest.constants import BIN_NS
+from waveforest.mcrt import Beams, prepare, trace
+from waveforest.rng import int_seed
 
 SIGMA_TRIM_REL = 1e-6
 """sigma(t) bins at the ends of a site's batch below this fraction of its largest bin are not kept."""
@@ -147,7 +149,6 @@ def trim(sigma: np.ndarray) -> tuple[int, np.ndarray]:
 
 def trace_site(job: SiteJob, st: TraceSettings, threads: int | None = None) -> SiteResult:
     """Build the site's true scene, trace all its pulses, trim sigma and compute a0 per dataset."""
-    from ..mcrt import Beams, prepare, trace
 
     t_start = time.perf_counter()
     if job.kind == "sample":
@@ -180,7 +181,6 @@ def trace_site(job: SiteJob, st: TraceSettings, threads: int | None = None) -> S
 
 def _work(job: SiteJob, settings: TraceSettings) -> SiteResult:
     """A site on a worker thread: serial Numba kernels (the thread count is thread-local)."""
-    import numba
 
     numba.set_num_threads(1)
     return trace_site(job, settings, threads=1)

@@ -15,7 +15,7 @@ Order of work (each step's randomness has its own seeded stream, :mod:`.rng`):
    records each pulse (:func:`.truth_sensor.record`), the recorded geometry gets the per-strip
    positioning errors and the ``xy_error`` effect, and the pulse table goes to a LAS 1.4 file
    (point format 9, 8-bit samples, waveform packets inside the file: EVLR 65535) through
-   :func:`waveforest.io.las_write.write_waveform_las`, with its trajectory CSV;
+   :func:`waveforest.io.las.write.write_waveform_las`, with its trajectory CSV;
 6. ``datasets.csv``, ``fields.csv``, ``targets.csv``, ``README.md``, ``truth.json`` and
    ``truth_pulses.parquet``.
 
@@ -41,23 +41,26 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numba
 import numpy as np
 import pandas as pd
 import pyarrow as pa
 
-from .. import __version__
-from ..constants import RANGE_PER_NS
-from ..effects import CATALOGUE, active, parse_effects
-from ..errors import WaveforestError
-from ..io.tables import PULSE_SCHEMA, padded_to_list, write_table
-from .agc_loop import agc_sequence
-from .flight import georeferencing_error, plan_flight, site_pulses
-from .layout import FIELD_COLUMNS, TARGET_COLUMNS, build_layout
-from .params import CAMPAIGN_RESOURCES, load_datasets, load_layout
-from .readme import readme_text
-from .rng import generator
-from .site_trace import SiteJob, TraceSettings, trace_sites
-from .truth_sensor import MAX_ECHOES, TruthSensor, record
+from waveforest import __version__
+from waveforest.campaign.agc_loop import agc_sequence
+from waveforest.campaign.flight import georeferencing_error, plan_flight, site_pulses
+from waveforest.campaign.layout import FIELD_COLUMNS, TARGET_COLUMNS, build_layout
+from waveforest.campaign.params import CAMPAIGN_RESOURCES, load_datasets, load_layout
+from waveforest.campaign.readme import readme_text
+from waveforest.campaign.site_trace import SiteJob, TraceSettings, trace_sites
+from waveforest.campaign.truth_sensor import MAX_ECHOES, TruthSensor, record
+from waveforest.constants import RANGE_PER_NS
+from waveforest.effects import CATALOGUE, active, parse_effects
+from waveforest.errors import WaveforestError
+from waveforest.io.las.write import write_waveform_las
+from waveforest.io.pulses import PULSE_SCHEMA, padded_to_list, write_table
+from waveforest.rng import generator
+from waveforest.vegetation import species_table
 
 VEGETATION_EFFECTS = ("understory", "clumping", "lad_shift", "leaf_albedo")
 MCRT_EFFECTS = ("specular", "hotspot")
@@ -185,7 +188,6 @@ def run(cfg: dict, out_dir: str | os.PathLike, effects=None, seed: int | None = 
     years = sorted(set(int(y) for y in datasets["year"]))
     lay = load_layout()
 
-    from ..vegetation import species_table
 
     layout = build_layout(species_table(), int(camp["samples_per_species"]), seed)
     fields = layout.fields[layout.fields["year"].isin(years)].reset_index(drop=True)
@@ -306,7 +308,6 @@ def _trace_sites(allp: pd.DataFrame, site_info: pd.DataFrame, datasets: pd.DataF
     sigma(t) batches per dataset ``(site, rows, sigma, t0_ns, range_m)`` in site order and
     the true cover (share of first hits on vegetation) of every traced sample.
     """
-    import numba
 
     camp, vcfg = cfg["campaign"], cfg["vegetation"]
     names = list(datasets["dataset"])
@@ -374,7 +375,6 @@ def _jsonable(obj):
 def _record_dataset(row, sensor: TruthSensor, plan, p: pd.DataFrame, a0: np.ndarray, batches, eff, seed,
                     lay, out: Path, wkt):
     """Run the AGC loop and the sensor over one dataset's pulses; write its LAS and trajectory."""
-    from ..io.las_write import write_waveform_las
 
     ds = row["dataset"]
     n = len(p)

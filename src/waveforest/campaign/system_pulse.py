@@ -25,8 +25,8 @@ import numpy as np
 from scipy.optimize import brentq
 from scipy.special import erfc, erfcx
 
-from ..constants import BIN_NS
-from .dr_cfd import dr_cfd
+from waveforest.campaign.dr_cfd import dr_cfd
+from waveforest.constants import BIN_NS
 
 SHAPE_CUTOFF = 1e-5
 """The tabulated S(t) extends until the shape falls below this fraction of its peak."""

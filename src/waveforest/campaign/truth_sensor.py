@@ -1,6 +1,6 @@
 """The virtual ALS60 as it really behaves: from sigma(t) to DR echoes and a recorded waveform.
 
-What the analysis model assumes (METHOD.md c, f) and what this sensor does instead:
+What the analysis model assumes (docs/method.md §(c), f) and what this sensor does instead:
 
 ==========================  ======================================  ==========================================
                             analysis model                          this sensor (the "truth")
@@ -25,7 +25,7 @@ signal (so the DR discriminator, the DR intensity and the AGC loop see it too), 
 digitiser noise.
 
 Record: the waveform is triggered by the first DR echo and starts a uniform
-``pre_trigger_m`` (3.3-4.8 m of range) before it (METHOD.md a); it is ``record_ns`` (256 ns)
+``pre_trigger_m`` (3.3-4.8 m of range) before it (docs/method.md §(a)); it is ``record_ns`` (256 ns)
 long at the dataset's sampling interval; samples are point samples of the analog signal
 (linear interpolation of the 0.05-ns grid) plus noise, rounded and clipped to 0-255.
 
@@ -41,19 +41,19 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit, prange
 
-from ..constants import BIN_NS, RANGE_PER_NS, RECORD_NS
-from ..sensor.noise import gaussian_noise
-from ..sensor.signal import analog_waveforms
-from ..sensor.system_waveform import SystemWaveform
-from .agc_loop import AGCParams
-from .dr_cfd import dr_cfd
-from .system_pulse import TrueSystemWaveform, true_system_waveform
+from waveforest.campaign.agc_loop import AGCParams
+from waveforest.campaign.dr_cfd import dr_cfd
+from waveforest.campaign.system_pulse import TrueSystemWaveform, true_system_waveform
+from waveforest.constants import BIN_NS, RANGE_PER_NS, RECORD_NS
+from waveforest.sensor.noise import gaussian_noise
+from waveforest.sensor.signal import analog_waveforms
+from waveforest.sensor.system_waveform import SystemWaveform
 
 MAX_ECHOES = 4
-"""DR echoes per pulse (ALS60, METHOD.md a)."""
+"""DR echoes per pulse (ALS60, docs/method.md §(a))."""
 
 REFERENCE_RHO = 0.30
-"""Reflectance of the plane that ``ground_amplitude_dn`` refers to (the model ground, METHOD.md g)."""
+"""Reflectance of the plane that ``ground_amplitude_dn`` refers to (the model ground, docs/method.md §(g))."""
 
 
 @dataclass(frozen=True)

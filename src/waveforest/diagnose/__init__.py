@@ -1,7 +1,7 @@
 """Diagnosis: where simulation and measurement disagree, which missing effect explains it.
 
 Beyond Hovi & Korpela (2014): the authors listed candidate reasons for the gaps between
-their simulated and real waveform features (METHOD.md j) but could not test them. This
+their simulated and real waveform features (docs/method.md §(j)) but could not test them. This
 package does it as a workflow stage (``waveforest diagnose``):
 
 * :mod:`.gap` — the documented measure of disagreement per dataset x species x feature,
@@ -16,7 +16,15 @@ package does it as a workflow stage (``waveforest diagnose``):
 * :mod:`.run` / :mod:`.cli` — orchestration and the ``diagnose`` command.
 """
 
-from .gap import FEATURE_SD_FLOOR, FEATURES, GapData, GapReport, gap_report, paired_reduction, total_gap
+from waveforest.diagnose.gap import (
+    FEATURE_SD_FLOOR,
+    FEATURES,
+    GapData,
+    GapReport,
+    gap_report,
+    paired_reduction,
+    total_gap,
+)
 
 __all__ = [
     "FEATURES",

@@ -27,9 +27,9 @@ import math
 import numpy as np
 import pandas as pd
 
-from ..effects import CATALOGUE, Effect
-from ..errors import WaveforestError
-from . import gap as _gap
+from waveforest.diagnose import gap as _gap
+from waveforest.effects import CATALOGUE, Effect
+from waveforest.errors import WaveforestError
 
 VEGETATION_EFFECTS = tuple(n for n, e in CATALOGUE.items() if e.stage == "vegetation")
 """Effects that change the plants (a new value needs new vegetation instances)."""

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from ..atomic import atomic_path
+from waveforest.atomic import atomic_path
 
 BEFORE_COLOUR, AFTER_COLOUR = "#7f7f7f", "#c55a11"
 NAMED_COLOUR, OTHER_COLOUR = "#1f4e79", "#bfbfbf"

@@ -3,7 +3,7 @@
 A *cell* is one dataset x species (x stratum: feature tables may carry a ``stratum`` column,
 e.g. "below crown", which splits a species' pulses into cells labelled "birch below crown";
 the bootstrap still resamples the species' samples with all their pulses); in it, each
-waveform feature f (METHOD.md h: H, Npeaks, Apeak, FWHM, E) has real values x (n_r pulses)
+waveform feature f (docs/method.md §(h): H, Npeaks, Apeak, FWHM, E) has real values x (n_r pulses)
 and simulated values y (n_s pulses).
 
 Per cell and feature
@@ -48,23 +48,23 @@ are percentile intervals (descriptive only).
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import pandas as pd
 from scipy.stats import t as student_t
 from scipy.stats import wasserstein_distance
 
-from ..errors import WaveforestError
+from waveforest.errors import WaveforestError
 
 FEATURES: tuple[str, ...] = ("H", "Npeaks", "Apeak", "FWHM", "E")
-"""Features compared (METHOD.md h), in report order."""
+"""Features compared (docs/method.md §(h)), in report order."""
 
 _ROUNDING_SD = 1.0 / np.sqrt(12.0)
 """SD of a uniform rounding error of one unit."""
 
 FEATURE_SD_FLOOR: dict[str, float] = {
-    "H": 0.05,  # m: echo timing precision of the CFD (|dR| < 0.10 m for 95 %, METHOD f)
+    "H": 0.05,  # m: echo timing precision of the CFD (|dR| < 0.10 m for 95 %, docs/method.md §(f))
     "Npeaks": _ROUNDING_SD,  # a count
     "Apeak": _ROUNDING_SD,  # DN: 8-bit rounding
     "FWHM": 0.1,  # ns: interpolated half-maximum crossings at 1-ns sampling
@@ -830,6 +830,5 @@ def before_after(
 
 def _with_valid(data: GapData, valid: np.ndarray) -> GapData:
     """``data`` with another validity mask (a shallow copy)."""
-    from dataclasses import replace
 
     return replace(data, valid=valid)

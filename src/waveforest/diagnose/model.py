@@ -30,9 +30,9 @@ from pathlib import Path
 
 import yaml
 
-from ..atomic import atomic_path
-from ..effects import CATALOGUE
-from ..errors import WaveforestError
+from waveforest.atomic import atomic_path
+from waveforest.effects import CATALOGUE
+from waveforest.errors import WaveforestError
 
 VERDICTS = ("none", "named", "unexplained")
 """The three outcomes of a diagnosis."""

@@ -69,10 +69,10 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import pandas as pd
 
-from ..effects import CATALOGUE
-from ..errors import WaveforestError
-from . import catalogue as cat
-from . import gap as _gap
+from waveforest.diagnose import catalogue as cat
+from waveforest.diagnose import gap as _gap
+from waveforest.effects import CATALOGUE
+from waveforest.errors import WaveforestError
 
 Simulator = Callable[[pd.DataFrame, dict, int], pd.DataFrame]
 """``simulate(pulses, effects, seed) -> feature table``: one row per simulated pulse with

@@ -1,6 +1,6 @@
 """The study's real simulation chain as the diagnosis's ``simulate(pulses, effects, seed)``.
 
-A thin adapter over :func:`waveforest.analysis.simulate.simulate_pulses` (vegetation ->
+A thin adapter over :func:`waveforest.stages.simulate.simulate_pulses` (vegetation ->
 MCRT -> sensor -> CFD; effects routed to the module that applies each) and
 :func:`waveforest.sensor.feature_table` (first-echo features, the same code as for the real
 pulses). It adds four things:
@@ -58,7 +58,18 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.compute as pc
 
-from ..errors import WaveforestError
+from waveforest.constants import RANGE_PER_NS
+from waveforest.errors import WaveforestError
+from waveforest.io.pulses import list_to_padded, padded_to_list
+from waveforest.io.tables import dataset_row
+from waveforest.mcrt import prepare
+from waveforest.model.forward import SensorSetup, hash_ids, stable_hash, twin_echoes
+from waveforest.sensor import CFDParams, FeatureParams, feature_table, range_correction_of
+from waveforest.sensor._checks import gain_or_one
+from waveforest.sensor.agc import GAIN_COLUMN
+from waveforest.sensor.calibration import calibration_effects
+from waveforest.stages.simulate import simulate_pulses
+from waveforest.vegetation import build_scene, species_table
 
 BELOW_CROWN = "below crown"
 """``stratum`` of the pulses of ``select``'s ``below_crown_set`` (the others have "")."""
@@ -84,7 +95,7 @@ def apply_rules(features: pd.DataFrame, cfg: dict) -> pd.DataFrame:
     dropped (``select``'s rule, which the real pulses satisfy by construction), and so are
     rows of the stratum "below crown" whose first echo lies at or above it (the mirror
     rule); for species in ``simulate.compare_min_h_m`` the waveform features of the other
-    rows with H at or below the threshold become NaN (``compare``'s rule, METHOD.md i1).
+    rows with H at or below the threshold become NaN (``compare``'s rule, docs/method.md §(i1)).
     Rows without a first echo (H NaN) are dropped.
 
     Parameters
@@ -143,7 +154,7 @@ def own_cfd_echoes(pulses: pa.Table, calibration, cfg: dict) -> pa.Table:
     """``pulses`` with their DR echoes replaced by the CFD echoes of their own waveforms.
 
     The CFD, its range correction and its arming on the recorded noise (noise SD / AGC gain)
-    are those that give a simulated twin its echoes (:func:`waveforest.analysis.pulse_sim.twin_echoes`);
+    are those that give a simulated twin its echoes (:func:`waveforest.model.forward.twin_echoes`);
     times, amplitudes and positions (on the recorded beam line, anchor + dir t c/2, as a
     twin's) replace the DR's. A pulse without a CFD echo is left out, as a twin without one is.
 
@@ -151,16 +162,11 @@ def own_cfd_echoes(pulses: pa.Table, calibration, cfg: dict) -> pa.Table:
     ----------
     pulses : pa.Table
         AGC-normalised pulse rows of one dataset (``agc`` or ``select`` table rows).
-    calibration : waveforest.analysis.simulate.Calibration
+    calibration : waveforest.stages.simulate.Calibration
         The dataset's calibration (CFD, range correction, noise).
     cfg : dict
         Loaded study config (``sensor.cfd`` when the calibration has no CFD).
     """
-    from ..analysis.pulse_sim import SensorSetup, twin_echoes
-    from ..constants import RANGE_PER_NS
-    from ..io.tables import list_to_padded, padded_to_list
-    from ..sensor._checks import gain_or_one
-    from ..sensor.agc import GAIN_COLUMN
 
     samples, lengths = list_to_padded(pulses.column("samples"))
     sampling = pulses.column("sampling_ns").to_numpy(zero_copy_only=False)
@@ -188,7 +194,6 @@ def own_cfd_echoes(pulses: pa.Table, calibration, cfg: dict) -> pa.Table:
 
 def _is_tree_model(species: str) -> bool:
     """Whether ``build_scene`` grows the understory layer under this species (tree models)."""
-    from ..vegetation import species_table
 
     t = species_table()
     row = t[t["slug"] == species]
@@ -214,8 +219,6 @@ class _SceneCache:
         self.hits = 0
 
     def __call__(self, species, height, seed, **kwargs):
-        from ..mcrt import prepare
-        from ..vegetation import build_scene
 
         kw = {k: float(v) for k, v in kwargs.items()}
         if kw.get("understory", 0.0) and not _is_tree_model(str(species)):
@@ -243,9 +246,9 @@ class StudySimulator:
     selected : dict
         Dataset -> ``select`` pulse table (pa.Table) of that dataset.
     datasets : DataFrame
-        The campaign's datasets.csv (:func:`waveforest.analysis.campaign_tables.read_datasets`).
+        The campaign's datasets.csv (:func:`waveforest.io.tables.read_datasets`).
     calibrations : dict
-        Dataset -> (Calibration of :mod:`waveforest.analysis.simulate`, calibration JSON dict).
+        Dataset -> (Calibration of :mod:`waveforest.stages.simulate`, calibration JSON dict).
     cfg : dict
         Loaded study config.
     n_rays : int, optional
@@ -265,7 +268,6 @@ class StudySimulator:
     def __init__(self, selected: dict, datasets: pd.DataFrame, calibrations: dict, cfg: dict, *,
                  n_rays: int | None = None, threads: int | None = None, base_effects: dict | None = None,
                  range_correction: bool = True, calibration_pulses: dict | None = None):
-        from ..analysis.campaign_tables import dataset_row
 
         self.selected = selected
         self.info = {ds: dataset_row(datasets, ds) for ds in selected}
@@ -289,7 +291,6 @@ class StudySimulator:
         The calibrate stage's own when the calibration-shaping sensor effects are those of the
         base model or no target pulses were given; else S(t) recalibrated under them.
         """
-        from ..sensor.calibration import calibration_effects
 
         wanted = calibration_effects(effects)
         if wanted == calibration_effects(self.base_effects) or dataset not in self.calibration_pulses:
@@ -311,8 +312,6 @@ class StudySimulator:
 
     def _features(self, sub: pa.Table, ds: str, model: dict, cfg: dict, stream: int = 0) -> pd.DataFrame | None:
         """Feature table of the twins of the rows of ``sub`` (one dataset); None when none has an echo."""
-        from ..analysis.simulate import simulate_pulses
-        from ..sensor import CFDParams, FeatureParams, feature_table, range_correction_of
 
         cal, meta = self.calibration(ds, model)
         sim, _ = simulate_pulses(sub, self.info[ds], cal, cfg, effects=model, progress=False, threads=self.threads,
@@ -331,7 +330,6 @@ class StudySimulator:
         stem on the recorded beam line); attempt k > 0 turns the beam about the stem by a seeded
         azimuth (:func:`turned_about_stems`) and draws rays, noise and offsets anew (random
         stream k) over the same plant."""
-        from ..analysis.pulse_sim import hash_ids, stable_hash
 
         low, radius = float(self.cfg["select"]["tree_min_echo_h_m"]), float(self.cfg["select"]["tree_radius_m"])
         found = []

@@ -1,204 +1,256 @@
-"""The pulse table: one row per laser pulse, for real and simulated pulses alike.
+"""The CSV tables of a campaign folder: ``datasets.csv``, ``fields.csv``, ``targets.csv``.
 
-Schema (DESIGN.md, "Data contracts"). Times inside a waveform count from its first
-sample; sample ``k`` is at ``k * sampling_ns``. Coordinates are those of the LAS file
-(projected, metres). Unknown values are NaN, never invented.
+These are the files a user fills in for real data (the virtual campaign writes the same
+schema), and this module is their one reader: every stage that reads a table calls
+:func:`read_datasets`, :func:`read_fields` or :func:`read_targets`. Each checks the required
+columns, their types and ranges, and returns a :class:`pandas.DataFrame`; a bad file ends in
+one :class:`CampaignTableError` naming the file, the column (and row) and what was expected.
 
-========================  ==============  ==========================================
-column                    type            meaning
-========================  ==============  ==========================================
-dataset                   string          dataset name, e.g. ``2010_12_1``
-pulse_id                  int64           unique within the dataset
-source                    string          ``real`` or ``sim``
-gps_time                  float64         s (GPS time of the LAS points)
-sensor_x/_y/_z            float64         sensor position at emission, m (NaN if unknown)
-dir_x/_y/_z               float64         unit beam direction, sensor -> target
-anchor_x/_y/_z            float64         position of the first waveform sample, m
-range_m                   float64         sensor -> first DR echo, m (NaN if unknown)
-scan_angle_deg            float64         scan angle of the LAS point, degrees
-agc                       float64         AGC value (NaN if the data have none)
-sampling_ns               float64         waveform sampling interval, ns
-digitizer_gain            float64         volts per DN (LAS descriptor)
-digitizer_offset          float64         volts at DN 0 (LAS descriptor)
-samples                   list<float32>   waveform, DN (AGC-normalised after ``agc``)
-n_echoes                  int16           number of DR echoes of the pulse
-echo_x/_y/_z              list<float64>   DR echo positions, m, in return order
-echo_time_ns              list<float64>   DR echo times from the first sample, ns
-echo_intensity            list<float32>   DR echo intensity, DN
-========================  ==============  ==========================================
+============  =====================================================================
+table         required columns (types)
+============  =====================================================================
+datasets.csv  dataset (str), year (int), mean_range_m, pulse_width_fwhm_ns,
+              footprint_diameter_m, sampling_ns (float); optional: las_file,
+              trajectory_file, divergence_mrad, pulse_density_m2, max_scan_zenith_deg
+fields.csv    sample_id (str), year (int), species (str slug), functional_group (str),
+              x, y, ground_z, height_m, radius_m (float), is_tree (0/1); optional:
+              stand_id, design, canopy_cover_pct (may be empty)
+targets.csv   target_id (str), year (int), material (str), x, y, z, radius_m (float),
+              calibration (0/1), agc (0/1); optional: hdrf (empty for AGC-only targets)
+============  =====================================================================
 
-After ``select`` a pulse table also has: sample_id (string), species (string),
-functional_group (string), ground_z (float64, m: GNSS ground elevation of the sample).
+Every table holds at least one row; names (dataset, sample_id, target_id) are unique.
+Every number is finite and within :data:`RANGES` (physical bounds, generous for any airborne
+waveform campaign: e.g. an HDRF in (0, 1] -- a reference target brighter than a perfect
+Lambertian reflector at nadir is a unit error --, a range in (0, 100 km), a divergence in
+(0, 100] mrad, a scan zenith in [0, 90) degrees). ``species`` is a species slug of Table 1
+(``resources/vegetation``), ``functional_group`` one of :data:`FUNCTIONAL_GROUPS`, and a
+calibration target has an HDRF.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import pyarrow as pa
-import pyarrow.parquet as pq
+import pandas as pd
 
-from ..atomic import atomic_path
-from ..errors import WaveforestError
+from waveforest.errors import WaveforestError
+from waveforest.vegetation.params import slugs
 
-_F64, _F32 = pa.float64(), pa.float32()
+FUNCTIONAL_GROUPS = ("conifer", "broadleaf", "low_green", "low_barren_abiotic")
+"""The four functional groups of docs/method.md §(i4), in the paper's order."""
 
-PULSE_SCHEMA = pa.schema(
-    [
-        ("dataset", pa.string()),
-        ("pulse_id", pa.int64()),
-        ("source", pa.string()),
-        ("gps_time", _F64),
-        ("sensor_x", _F64), ("sensor_y", _F64), ("sensor_z", _F64),
-        ("dir_x", _F64), ("dir_y", _F64), ("dir_z", _F64),
-        ("anchor_x", _F64), ("anchor_y", _F64), ("anchor_z", _F64),
-        ("range_m", _F64),
-        ("scan_angle_deg", _F64),
-        ("agc", _F64),
-        ("sampling_ns", _F64),
-        ("digitizer_gain", _F64),
-        ("digitizer_offset", _F64),
-        ("samples", pa.list_(_F32)),
-        ("n_echoes", pa.int16()),
-        ("echo_x", pa.list_(_F64)), ("echo_y", pa.list_(_F64)), ("echo_z", pa.list_(_F64)),
-        ("echo_time_ns", pa.list_(_F64)),
-        ("echo_intensity", pa.list_(_F32)),
-    ]
-)
-"""Arrow schema of a pulse table (minimum columns; later stages append columns)."""
-
-SELECT_FIELDS = [
-    pa.field("sample_id", pa.string()),
-    pa.field("species", pa.string()),
-    pa.field("functional_group", pa.string()),
-    pa.field("ground_z", _F64),
-]
-"""Columns that ``select`` appends to a pulse table."""
+_DATASET_COLUMNS = {
+    "dataset": "str", "year": "int",
+    "mean_range_m": "float", "pulse_width_fwhm_ns": "float",
+    "footprint_diameter_m": "float", "sampling_ns": "float",
+}
+_DATASET_OPTIONAL = {
+    "las_file": "str", "trajectory_file": "str", "divergence_mrad": "float",
+    "pulse_density_m2": "float", "max_scan_zenith_deg": "float",
+}
+_FIELD_COLUMNS = {
+    "sample_id": "str", "year": "int", "species": "str", "functional_group": "str",
+    "x": "float", "y": "float", "ground_z": "float", "height_m": "float",
+    "radius_m": "float", "is_tree": "bool",
+}
+_FIELD_OPTIONAL = {"stand_id": "str", "design": "str", "canopy_cover_pct": "float"}
+_TARGET_COLUMNS = {
+    "target_id": "str", "year": "int", "material": "str",
+    "x": "float", "y": "float", "z": "float", "radius_m": "float",
+    "calibration": "bool", "agc": "bool",
+}
+_TARGET_OPTIONAL = {"hdrf": "float"}
 
 
-class TableError(WaveforestError):
-    """A table that does not follow its schema."""
+@dataclass(frozen=True)
+class Bounds:
+    """The range a column's numbers must lie in (``closed``: the bound itself is allowed)."""
+
+    lo: float = -np.inf
+    hi: float = np.inf
+    lo_closed: bool = False
+    hi_closed: bool = False
+    unit: str = ""
+
+    def holds(self, v: np.ndarray) -> np.ndarray:
+        """Finite and within the bounds."""
+        with np.errstate(invalid="ignore"):
+            lo = v >= self.lo if self.lo_closed else v > self.lo
+            hi = v <= self.hi if self.hi_closed else v < self.hi
+        return np.isfinite(v) & lo & hi
+
+    def __str__(self) -> str:
+        unit = f" {self.unit}" if self.unit else ""
+        if np.isinf(self.lo) and np.isinf(self.hi):
+            return f"a finite number ({self.unit})" if self.unit else "a finite number"
+        return f"{'[' if self.lo_closed else '('}{self.lo:g}, {self.hi:g}{']' if self.hi_closed else ')'}{unit}"
 
 
-def check_pulses(table: pa.Table, source: str | Path = "<table>") -> pa.Table:
-    """Return ``table`` cast to :data:`PULSE_SCHEMA` column types; raise on a missing column."""
-    missing = [f.name for f in PULSE_SCHEMA if f.name not in table.column_names]
-    if missing:
-        raise TableError(f"{source}: pulse table lacks column(s) {', '.join(missing)}")
-    cols, fields = [], []
-    for f in PULSE_SCHEMA:
-        col = table.column(f.name)
-        if col.type != f.type:
-            try:
-                col = col.cast(f.type)
-            except (pa.ArrowInvalid, pa.ArrowNotImplementedError) as exc:
-                raise TableError(f"{source}: column {f.name} is {col.type}, expected {f.type}") from exc
-        cols.append(col)
-        fields.append(f)
-    for name in table.column_names:  # extra columns (select, features, ...) are kept
-        if name not in PULSE_SCHEMA.names:
-            cols.append(table.column(name))
-            fields.append(table.schema.field(name))
-    return pa.Table.from_arrays(cols, schema=pa.schema(fields))
+_YEAR = Bounds(1900, 2200, True, True)
+_COORD = Bounds(unit="m")
+RANGES: dict[str, dict[str, Bounds]] = {
+    "datasets": {
+        "year": _YEAR,
+        "mean_range_m": Bounds(0, 1e5, unit="m"),
+        "pulse_width_fwhm_ns": Bounds(0, 1e3, unit="ns"),
+        "footprint_diameter_m": Bounds(0, 1e3, unit="m"),
+        "sampling_ns": Bounds(0, 1e3, unit="ns"),
+        "divergence_mrad": Bounds(0, 100, hi_closed=True, unit="mrad"),
+        "pulse_density_m2": Bounds(0, 1e6, unit="per m2"),
+        "max_scan_zenith_deg": Bounds(0, 90, lo_closed=True, unit="degrees"),
+    },
+    "fields": {
+        "year": _YEAR, "x": _COORD, "y": _COORD, "ground_z": _COORD,
+        "height_m": Bounds(0, 150, True, True, "m"),
+        "radius_m": Bounds(0, 1e3, unit="m"),
+        "canopy_cover_pct": Bounds(0, 100, True, True, "%"),
+    },
+    "targets": {
+        "year": _YEAR, "x": _COORD, "y": _COORD, "z": _COORD,
+        "radius_m": Bounds(0, 1e3, unit="m"),
+        "hdrf": Bounds(0, 1, hi_closed=True),
+    },
+}
+"""Table -> column -> the :class:`Bounds` of its numbers (empty optional cells are allowed)."""
 
 
-def read_pulses(path: str | Path, columns: list[str] | None = None) -> pa.Table:
-    """Read a pulse table from Parquet and check it against :data:`PULSE_SCHEMA`."""
+class CampaignTableError(WaveforestError):
+    """A campaign CSV table that does not follow its schema."""
+
+
+def _coerce(df: pd.DataFrame, name: str, kind: str, source: str, required: bool) -> None:
+    col = df[name]
+    if kind == "str":
+        if required and col.isna().any():
+            row = int(np.flatnonzero(col.isna().to_numpy())[0])
+            raise CampaignTableError(f"{source}: column {name}, row {row + 2}: empty value; expected text")
+        df[name] = col.astype("string").str.strip().astype(object).where(col.notna(), None)
+        return
+    values = pd.to_numeric(col, errors="coerce")
+    bad = values.isna() & col.notna() & (col.astype(str).str.strip() != "")
+    if bad.any():
+        row = int(np.flatnonzero(bad.to_numpy())[0])
+        raise CampaignTableError(
+            f"{source}: column {name}, row {row + 2}: {col.iloc[row]!r} is not a number")
+    empty = values.isna().to_numpy()
+    if (kind != "float" or required) and empty.any():
+        row = int(np.flatnonzero(empty)[0])
+        raise CampaignTableError(f"{source}: column {name}, row {row + 2}: empty value; expected a number")
+    if kind == "float":
+        df[name] = values.astype(float)
+        return
+    v = values.to_numpy(dtype=np.float64)
+    if kind == "int":
+        wrong = ~(np.isfinite(v) & (v == np.round(v)))
+        if wrong.any():
+            row = int(np.flatnonzero(wrong)[0])
+            raise CampaignTableError(f"{source}: column {name}, row {row + 2}: {col.iloc[row]!r}; expected an integer")
+        df[name] = v.astype(np.int64)
+    elif kind == "bool":
+        wrong = ~np.isin(v, (0, 1))
+        if wrong.any():
+            row = int(np.flatnonzero(wrong)[0])
+            raise CampaignTableError(f"{source}: column {name}, row {row + 2}: {col.iloc[row]!r}; expected 0 or 1")
+        df[name] = v.astype(bool)
+
+
+def _check_ranges(df: pd.DataFrame, ranges: dict, source: str) -> None:
+    """Every given number of the columns of ``ranges`` is finite and within its bounds."""
+    for name, bounds in ranges.items():
+        if name not in df.columns:
+            continue
+        v = df[name].to_numpy(dtype=np.float64)
+        wrong = ~np.isnan(v) & ~bounds.holds(v)  # NaN: an empty optional cell (required ones are refused)
+        if wrong.any():
+            row = int(np.flatnonzero(wrong)[0])
+            raise CampaignTableError(f"{source}: column {name}, row {row + 2}: {v[row]:g}; expected {bounds}")
+
+
+def _check_names(df: pd.DataFrame, name: str, known, what: str, source: str) -> None:
+    wrong = ~df[name].isin(known).to_numpy()
+    if wrong.any():
+        row = int(np.flatnonzero(wrong)[0])
+        raise CampaignTableError(f"{source}: column {name}, row {row + 2}: unknown {what} {df[name].iloc[row]!r}; "
+                                 f"expected one of {', '.join(known)}")
+
+
+def _read(path: str | Path, required: dict, optional: dict, key: str, table: str) -> pd.DataFrame:
     path = Path(path)
     if not path.exists():
-        raise TableError(f"{path}: no such file")
+        raise CampaignTableError(f"{path}: no such file")
     try:
-        table = pq.read_table(path, columns=columns)
-    except (pa.ArrowInvalid, OSError) as exc:
-        raise TableError(f"{path}: not a readable Parquet file ({exc})") from exc
-    return table if columns is not None else check_pulses(table, path)
+        df = pd.read_csv(path, dtype=str, keep_default_na=True)
+    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
+        raise CampaignTableError(f"{path}: not a readable CSV table ({exc})") from None
+    df.columns = [str(c).strip() for c in df.columns]
+    missing = [c for c in required if c not in df.columns]
+    if missing:
+        raise CampaignTableError(
+            f"{path}: missing column(s) {', '.join(missing)}; expected {', '.join(required)}")
+    if df.empty:
+        raise CampaignTableError(f"{path}: no rows; expected at least one row (one per {key})")
+    for name, kind in required.items():
+        _coerce(df, name, kind, str(path), required=True)
+    for name, kind in optional.items():
+        if name in df.columns:
+            _coerce(df, name, kind, str(path), required=False)
+        else:
+            df[name] = np.nan if kind == "float" else None
+    _check_ranges(df, RANGES[table], str(path))
+    dup = df[key].duplicated()
+    if dup.any():
+        raise CampaignTableError(f"{path}: {key} {df[key][dup].iloc[0]!r} appears more than once; expected unique names")
+    return df.reset_index(drop=True)
 
 
-def write_table(table: pa.Table, path: str | Path) -> Path:
-    """Write any Arrow table to Parquet atomically (zstd)."""
-    path = Path(path)
-    with atomic_path(path) as tmp:
-        pq.write_table(table, tmp, compression="zstd")
-    return path
+def read_datasets(path: str | Path) -> pd.DataFrame:
+    """Read and check ``datasets.csv`` (one row per dataset; module docstring for the rules)."""
+    return _read(path, _DATASET_COLUMNS, _DATASET_OPTIONAL, "dataset", "datasets")
 
 
-def write_pulses(table: pa.Table, path: str | Path) -> Path:
-    """Check ``table`` against the pulse schema and write it to Parquet atomically."""
-    return write_table(check_pulses(table, path), path)
+def read_fields(path: str | Path) -> pd.DataFrame:
+    """Read and check ``fields.csv`` (one row per field sample; module docstring for the rules)."""
+    df = _read(path, _FIELD_COLUMNS, _FIELD_OPTIONAL, "sample_id", "fields")
+    _check_names(df, "species", slugs(), "species", str(path))
+    _check_names(df, "functional_group", FUNCTIONAL_GROUPS, "functional group", str(path))
+    return df
 
 
-_STREAM_OPTIONS = dict(compression="lz4", use_dictionary=["dataset", "source"], write_statistics=False)
-"""Parquet options of streamed pulse tables: fast lz4, no dictionaries or statistics on the
-noise-like waveform lists. Writing the table, mostly the ``samples`` list column, is ~4/5 of
-ingest's time: on one core of the idle 2-core machine the reader alone runs at ~1,000,000
-pulses/s of 256 samples, the whole ingest at 195,000-235,000 (benchmarks/ingest.py). No
-compression writes faster for a 2x larger file; zstd with defaults halves the rate for a 2.4x
-smaller one; byte-stream-split and larger write batches or pages gain nothing measurable."""
+def read_targets(path: str | Path) -> pd.DataFrame:
+    """Read and check ``targets.csv`` (one row per reference target; module docstring for the rules)."""
+    df = _read(path, _TARGET_COLUMNS, _TARGET_OPTIONAL, "target_id", "targets")
+    no_hdrf = df["calibration"].to_numpy() & np.isnan(df["hdrf"].to_numpy(dtype=np.float64))
+    if no_hdrf.any():
+        row = int(np.flatnonzero(no_hdrf)[0])
+        raise CampaignTableError(f"{path}: column hdrf, row {row + 2}: calibration target "
+                                 f"{df['target_id'].iloc[row]!r} needs an HDRF in {RANGES['targets']['hdrf']}")
+    return df
 
 
-def write_pulse_batches(batches: Iterable[pa.Table], path: str | Path) -> int:
-    """Stream pulse tables into one Parquet file atomically; return the number of rows.
+def dataset_year(datasets: pd.DataFrame, name: str, source: str | Path = "datasets.csv") -> int:
+    """The year of dataset ``name``; a clear error if it is not listed."""
+    return int(dataset_row(datasets, name, source)["year"])
 
-    Memory stays bounded by the size of one batch. The schema is that of the first
-    batch (after :func:`check_pulses`); later batches are cast to it.
+
+def dataset_row(datasets: pd.DataFrame, name: str, source: str | Path = "datasets.csv") -> pd.Series:
+    """The row of dataset ``name``; a clear error if it is not listed."""
+    rows = datasets[datasets["dataset"] == name]
+    if rows.empty:
+        listed = ", ".join(datasets["dataset"].astype(str))
+        raise CampaignTableError(f"{source}: dataset {name!r} is not listed (listed: {listed})")
+    return rows.iloc[0]
+
+
+def divergence_mrad(row: pd.Series) -> float:
+    """Full-angle 1/e beam divergence of a dataset, mrad.
+
+    ``divergence_mrad`` when given, else ``footprint_diameter_m / mean_range_m``
+    (docs/method.md §(a): footprint diameter (1/e) = R x divergence).
     """
-    path = Path(path)
-    n = 0
-    with atomic_path(path) as tmp:
-        writer = None
-        try:
-            for batch in batches:
-                batch = check_pulses(batch, path)
-                if writer is None:
-                    writer = pq.ParquetWriter(tmp, batch.schema, **_STREAM_OPTIONS)
-                writer.write_table(batch.cast(writer.schema))
-                n += batch.num_rows
-            if writer is None:  # no rows: still a valid, empty table
-                writer = pq.ParquetWriter(tmp, PULSE_SCHEMA, **_STREAM_OPTIONS)
-        finally:
-            if writer is not None:
-                writer.close()
-    return n
-
-
-def iter_pulses(path: str | Path, batch_rows: int = 65536, columns: list[str] | None = None) -> Iterator[pa.Table]:
-    """Iterate over a pulse Parquet file in batches of at most ``batch_rows`` rows."""
-    pf = pq.ParquetFile(path)
-    for rb in pf.iter_batches(batch_size=batch_rows, columns=columns):
-        yield pa.Table.from_batches([rb])
-
-
-def list_to_padded(column: pa.ChunkedArray | pa.Array, fill: float = np.nan, dtype=np.float32) -> tuple[np.ndarray, np.ndarray]:
-    """A list column as a padded 2-D array and the row lengths.
-
-    Returns
-    -------
-    values : (n, max_len) ``dtype``, padded with ``fill``
-    lengths : (n,) int64
-    """
-    if isinstance(column, pa.ChunkedArray):
-        column = column.combine_chunks() if column.num_chunks != 1 else column.chunk(0)
-    offsets = column.offsets.to_numpy().astype(np.int64)
-    offsets = offsets - offsets[0]
-    flat = column.flatten().to_numpy(zero_copy_only=False).astype(dtype, copy=False)
-    lengths = np.diff(offsets)
-    n = len(lengths)
-    width = int(lengths.max()) if n else 0
-    out = np.full((n, width), fill, dtype=dtype)
-    if n and width:
-        rows = np.repeat(np.arange(n), lengths)
-        cols = np.arange(len(flat)) - np.repeat(offsets[:-1], lengths)
-        out[rows, cols] = flat
-    return out, lengths
-
-
-def padded_to_list(values: np.ndarray, lengths: np.ndarray, type_: pa.DataType = _F32) -> pa.ListArray:
-    """Inverse of :func:`list_to_padded`: rows of ``values`` cut to ``lengths`` as an Arrow list array."""
-    values = np.asarray(values)
-    lengths = np.asarray(lengths, dtype=np.int64)
-    mask = np.arange(values.shape[1])[None, :] < lengths[:, None] if values.ndim == 2 else None
-    flat = values[mask] if mask is not None else values[:0]
-    offsets = np.concatenate([[0], np.cumsum(lengths)]).astype(np.int32)
-    return pa.ListArray.from_arrays(pa.array(offsets), pa.array(flat, type=type_))
+    value = row.get("divergence_mrad", np.nan)
+    if value is not None and np.isfinite(value) and value > 0:
+        return float(value)
+    return float(row["footprint_diameter_m"]) / float(row["mean_range_m"]) * 1e3

@@ -13,8 +13,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 
-from ..errors import WaveforestError
+from waveforest.errors import WaveforestError
 
 TRAJECTORY_COLUMNS = ("gps_time", "x", "y", "z")
 
@@ -93,7 +94,6 @@ class Trajectory:
 
 def read_trajectory(path: str | os.PathLike) -> Trajectory:
     """Read a trajectory CSV (``gps_time, x, y, z``); rows may come in any time order."""
-    import pandas as pd  # here, not at module level: keeps ingest's resident memory small
 
     path = Path(path)
     if not path.is_file():

@@ -1,4 +1,4 @@
-"""Monte Carlo ray tracing of LiDAR pulses: scene + pulses -> sigma(t) (METHOD.md d).
+"""Monte Carlo ray tracing of LiDAR pulses: scene + pulses -> sigma(t) (docs/method.md §(d)).
 
 Public API::
 
@@ -13,10 +13,10 @@ Modules: :mod:`.beams` (pulses), :mod:`.prepare` (a scene made ready, :func:`pre
 :mod:`.tracer` (wavefront orchestration), :mod:`.threads` (thread counts).
 """
 
-from .backends import DirectEmbreeIntersector, EmbreeIntersector, NumpyIntersector
-from .beams import Beams, direction_from_angles
-from .prepare import PreparedScene, prepare
-from .tracer import DEFAULT_WINDOW_NS, TraceResult, trace
+from waveforest.mcrt.backends import DirectEmbreeIntersector, EmbreeIntersector, NumpyIntersector
+from waveforest.mcrt.beams import Beams, direction_from_angles
+from waveforest.mcrt.prepare import PreparedScene, prepare
+from waveforest.mcrt.tracer import DEFAULT_WINDOW_NS, TraceResult, trace
 
 __all__ = [
     "Beams",

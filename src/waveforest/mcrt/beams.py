@@ -1,4 +1,4 @@
-"""Laser beams: sensor position, pointing direction and Gaussian footprint (METHOD.md d, "Beam").
+"""Laser beams: sensor position, pointing direction and Gaussian footprint (docs/method.md §(d), "Beam").
 
 A beam's irradiance across its axis is Gaussian, E(r) ~ exp(-(2 r / d)^2) with d the 1/e
 footprint diameter, so the ray offsets have a per-axis SD of d / (2 sqrt 2).

@@ -1,4 +1,4 @@
-"""Numba kernels of the wavefront tracer (METHOD.md d): ray emission, one scattering order,
+"""Numba kernels of the wavefront tracer (docs/method.md §(d)): ray emission, one scattering order,
 and the binning of receiver contributions.
 
 Each private ``_..._kernel`` is a pure ``@njit`` function on contiguous arrays; the public
@@ -30,8 +30,8 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit, prange
 
-from ..constants import C_M_PER_NS, KIND_GROUND, KIND_LEAF, RAY_EPS_M
-from .threads import MIN_PARALLEL_RAYS, NumbaThreads
+from waveforest.constants import C_M_PER_NS, KIND_GROUND, KIND_LEAF, RAY_EPS_M
+from waveforest.mcrt.threads import MIN_PARALLEL_RAYS, NumbaThreads
 
 GOLDEN = np.uint64(0x9E3779B97F4A7C15)
 """SplitMix64 increment (2^64 / golden ratio)."""
@@ -387,7 +387,7 @@ def _emit_kernel(sensor, axis, e1, e2, sd, range_m, plane_m, key, n_rays,
 
 
 def emit_rays(frame: BeamFrame, footprint_m, range_m, plane_m, n_rays: int, sampler: str = "random") -> Rays:
-    """The rays of a chunk of beams, started on a plane just before the scene (METHOD.md d).
+    """The rays of a chunk of beams, started on a plane just before the scene (docs/method.md §(d)).
 
     Ray offsets across the axis are Gaussian with per-axis SD ``footprint / (2 sqrt 2)``
     (irradiance exp(-(2r/d)^2), d the 1/e diameter). Each ray starts where it crosses the
@@ -633,7 +633,7 @@ def scatter(order: int, last: bool, rays: Rays, tfar: np.ndarray, prim: np.ndarr
             specular: float = 0.0, phong_n: float = 40.0, hotspot: float = 1.0,
             eps: float = RAY_EPS_M, out: Scattered | None = None, sampler: str = "random",
             survive: np.ndarray | None = None, floor_power: float = 0.0) -> Scattered:
-    """One scattering order of a wavefront: contributions, binning and new rays (METHOD.md d).
+    """One scattering order of a wavefront: contributions, binning and new rays (docs/method.md §(d)).
 
     For each ray that hit triangle ``prim`` at distance ``tfar``:
 

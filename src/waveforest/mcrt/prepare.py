@@ -13,9 +13,9 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from ..scene import Scene, SceneError
-from .backends import BACKENDS, Intersector
-from .backends.embree import DEFAULT_QUALITY, QUALITIES
+from waveforest.mcrt.backends import BACKENDS, Intersector
+from waveforest.mcrt.backends.embree import DEFAULT_QUALITY, QUALITIES
+from waveforest.scene import Scene, SceneError
 
 
 @dataclass(frozen=True, eq=False)

@@ -1,4 +1,4 @@
-"""The wavefront Monte Carlo ray tracer: scene + pulses -> sigma(t) per pulse (METHOD.md d).
+"""The wavefront Monte Carlo ray tracer: scene + pulses -> sigma(t) per pulse (docs/method.md §(d)).
 
 All rays of a chunk of pulses advance one scattering order per step: one batched Embree
 intersection call, one Numba kernel (receiver contributions, binning, new rays), one batched
@@ -20,7 +20,7 @@ Randomness: a counter-based generator keyed by (seed, pulse index in the call, r
 draw) (:mod:`.kernels`), so the same seed gives the identical result whatever the threads,
 the chunking and the parallel mode. ``sampler="sobol"`` draws the same uniforms from a per-pulse
 Owen-scrambled Sobol' sequence instead (randomized QMC); ``roulette`` ends low-power paths by
-an unbiased Russian roulette (a weight window). Both are off by default (METHOD.md d as written).
+an unbiased Russian roulette (a weight window). Both are off by default (docs/method.md §(d) as written).
 
 Embree: the default intersector calls ``rtcIntersect1`` / ``rtcOccluded1`` from Numba kernels
 (:mod:`.backends.embree`) on a BVH of HIGH build quality; profiled on the vegetation scenes (30,000 rays,
@@ -40,18 +40,31 @@ statistically sound (a pool of instances with random placement), as the calling 
 from __future__ import annotations
 
 import math
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
+import numba
 import numpy as np
+import pandas as pd
 
-from ..constants import BIN_NS, C_M_PER_NS, RANGE_PER_NS, RAY_EPS_M
-from ..effects import CATALOGUE, SPECULAR_PHONG_EXPONENT
-from ..scene import Scene
-from .beams import Beams
-from .kernels import (MISS_KIND, SAMPLERS, BeamFrame, Scattered, accumulate, beam_keys, compact, emit_rays,
-                      scatter, take_rays)
-from .prepare import PreparedScene, prepare
-from .threads import MIN_PARALLEL_RAYS, NumbaThreads, default_threads
+from waveforest.constants import BIN_NS, C_M_PER_NS, RANGE_PER_NS, RAY_EPS_M
+from waveforest.effects import CATALOGUE, SPECULAR_PHONG_EXPONENT
+from waveforest.mcrt.beams import Beams
+from waveforest.mcrt.kernels import (
+    MISS_KIND,
+    SAMPLERS,
+    BeamFrame,
+    Scattered,
+    accumulate,
+    beam_keys,
+    compact,
+    emit_rays,
+    scatter,
+    take_rays,
+)
+from waveforest.mcrt.prepare import PreparedScene, prepare
+from waveforest.mcrt.threads import MIN_PARALLEL_RAYS, NumbaThreads, default_threads
+from waveforest.scene import Scene
 
 DEFAULT_WINDOW_NS = 100.0
 """Default sigma window, ns of two-way time after t0 (15 m of one-way range: a 6 x 6 m scene
@@ -92,9 +105,7 @@ def _map_serial_workers(fn, items, workers: int):
     the ``nogil`` kernels release the GIL, so the workers run concurrently. Yields results
     in the order of ``items``.
     """
-    from concurrent.futures import ThreadPoolExecutor
 
-    import numba
 
     def work(item):
         numba.set_num_threads(1)
@@ -165,7 +176,6 @@ class TraceResult:
         (one-way range of that time), ``sigma`` and, if traced ``by_order``,
         ``sigma_order_1`` ... ``sigma_order_<max_order>``.
         """
-        import pandas as pd
 
         t = self.t0_ns[i] + self.bin_ns * np.arange(self.n_bins)
         cols = {"time_ns": t, "range_m": t * RANGE_PER_NS, "sigma": self.sigma[i]}
@@ -289,7 +299,7 @@ def trace(scene: Scene | PreparedScene, beams: Beams, n_rays: int = 30000, max_o
           by_order: bool = False, chunk_rays: int = CHUNK_RAYS, threads: int | None = None,
           parallel: str = "pulses", progress: bool = False, sampler: str = "random",
           survival=1.0, roulette: float = 0.0) -> TraceResult:
-    """Forward Monte Carlo ray tracing of LiDAR pulses through a scene (METHOD.md d, Eq. 2).
+    """Forward Monte Carlo ray tracing of LiDAR pulses through a scene (docs/method.md §(d), Eq. 2).
 
     Parameters
     ----------
@@ -337,7 +347,7 @@ def trace(scene: Scene | PreparedScene, beams: Beams, n_rays: int = 30000, max_o
     survival : float or sequence of float
         Russian roulette: probability in (0, 1] that a ray scattered at order n continues to
         order n + 1 (power divided by it); a sequence gives orders 1, 2, ... and its last
-        value holds for the higher orders. 1 = every ray continues (METHOD.md d).
+        value holds for the higher orders. 1 = every ray continues (docs/method.md §(d)).
     roulette : float
         Weight-window Russian roulette: a ray whose power would fall below ``roulette`` times
         its emitted power (1 / n_rays) continues with probability power / that floor, and then

@@ -1,5 +1,5 @@
 """The study report: every table and figure of a run, the config and software versions."""
 
-from .build import ReportOutputs, collect, run, versions
+from waveforest.report.build import ReportOutputs, collect, run, versions
 
 __all__ = ["ReportOutputs", "collect", "run", "versions"]

@@ -24,12 +24,13 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import pyarrow.parquet as pq
 import yaml
 
-from ..analysis import paper
-from ..analysis.classify import table4
-from ..analysis.markdown import format_value, to_markdown
-from ..atomic import atomic_path
+from waveforest.atomic import atomic_path
+from waveforest.io import paper
+from waveforest.report.markdown import format_value, to_markdown
+from waveforest.stages.classify import table4
 
 MAX_TABLE_ROWS = 400
 """Longest table shown in full; longer ones are cut (the CSV holds all rows)."""
@@ -82,7 +83,7 @@ def _read_csv(path: Path) -> pd.DataFrame:
 
 
 def _calibration(results: Path, used: set) -> Section | None:
-    sec = Section("System waveform calibration and AGC (METHOD.md b, e)")
+    sec = Section("System waveform calibration and AGC (docs/method.md §(b), e)")
     rows = []
     for path in sorted((results / "calibration").glob("*.json")):
         used.add(path)
@@ -112,7 +113,7 @@ def _calibration(results: Path, used: set) -> Section | None:
     if not rows:
         return None
     sec.table("Calibration per dataset (noise from the last samples of target pulses; AGC fit of Eq. 1; "
-              "CFD tuned against the DR ranges, METHOD.md f)",
+              "CFD tuned against the DR ranges, docs/method.md §(f))",
               pd.DataFrame(rows))
     for png in sorted((results / "calibration").glob("*.png")):
         used.add(png)
@@ -121,7 +122,6 @@ def _calibration(results: Path, used: set) -> Section | None:
 
 
 def _selection(results: Path, used: set) -> Section | None:
-    import pyarrow.parquet as pq
 
     frames = []
     for p in sorted((results / "select").glob("*.parquet")):
@@ -138,7 +138,7 @@ def _selection(results: Path, used: set) -> Section | None:
     t = g.agg(pulses=("species", "size"), samples=("sample_id", "nunique"),
               classification=("classification_set", "sum"), comparison=("comparison_set", "sum"),
               below_crown=("below_crown_set", "sum")).reset_index()
-    sec = Section("Selected pulses (METHOD.md i1, i4)")
+    sec = Section("Selected pulses (docs/method.md §(i1), i4)")
     sec.text("Pulses whose first DR echo hit a field sample; `classification`: single DR echo of a species "
              "with enough pulses; `comparison`: modelled species (birch 2.5-5 m); `below_crown`: first echo "
              "under the crown of a comparison tree, lower than the tree rule's height (diagnose only).")
@@ -150,7 +150,7 @@ def _compare(results: Path, used: set) -> Section | None:
     d = results / "compare"
     if not (d / "table3.csv").exists():
         return None
-    sec = Section("Real vs simulated features (Table 3, Figs. 6-7; METHOD.md i1)")
+    sec = Section("Real vs simulated features (Table 3, Figs. 6-7; docs/method.md §(i1))")
     t3 = _read_csv(d / "table3.csv")
     used.add(d / "table3.csv")
     used.add(d / "table3.md")
@@ -177,7 +177,7 @@ def _sensitivity(results: Path, used: set) -> Section | None:
     d = results / "sensitivity"
     if not (d / "sensitivity.csv").exists():
         return None
-    sec = Section("Sensitivity to vegetation parameters (Fig. 8; METHOD.md i2)")
+    sec = Section("Sensitivity to vegetation parameters (Fig. 8; docs/method.md §(i2))")
     used.add(d / "sensitivity.csv")
     sec.text("3-m birch, no ground, nadir, R 1200 m, sensor XY jitter +-0.30 m; mean Apeak +- SE per setting. "
              "Paper: spherical LAD gives Apeak ~55 DN; +-10 deg mean leaf angle changes Apeak 20-30 %; leaf rho "
@@ -197,7 +197,7 @@ def _sensor_study(results: Path, used: set) -> Section | None:
     d = results / "sensor_study"
     if not (d / "sensor_study.csv").exists():
         return None
-    sec = Section("Sensor parameters and three-species classification (Fig. 9; METHOD.md i3)")
+    sec = Section("Sensor parameters and three-species classification (Fig. 9; docs/method.md §(i3))")
     used.add(d / "sensor_study.csv")
     t = _read_csv(d / "sensor_study.csv")
     sec.text("Simulated birch, raspberry, fireweed at 1200 m; LDA on Apeak, FWHM, E. `resubstitution` = "
@@ -233,7 +233,7 @@ def _classify(results: Path, used: set, out_dir: Path) -> Section | None:
         t4.to_csv(tmp, index=False, float_format="%.6g")
     with atomic_path(out_dir / "table4.md") as tmp:
         tmp.write_text("# Real-data classification of four functional groups (Table 4 analogue)\n\n" + to_markdown(t4))
-    sec = Section("Real-data classification (Table 4; METHOD.md i4)")
+    sec = Section("Real-data classification (Table 4; docs/method.md §(i4))")
     sec.text("LDA of conifer / broadleaf / low green / low barren + abiotic on E and Apeak normalised by the sand-road "
              "mean. Percent correct and kappa by resubstitution (as the paper) and cross-validated with folds that "
              "never split a field sample (`cv_*`); `paper_*`: Hovi & Korpela (2014) Table 4.")

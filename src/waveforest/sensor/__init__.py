@@ -1,4 +1,4 @@
-"""The sensor model and waveform processing (METHOD.md b, c, e, f, h).
+"""The sensor model and waveform processing (docs/method.md §(b), c, e, f, h).
 
 Everything between sigma(t) and a feature table, for real and simulated waveforms alike:
 
@@ -14,15 +14,30 @@ Everything between sigma(t) and a feature table, for real and simulated waveform
 CLI stages: ``waveforest agc``, ``waveforest calibrate``, ``waveforest features``.
 """
 
-from .agc import agc_gain, fit_b, nested_cv, normalise_intensity, normalise_pulses, normalise_waveforms, peak_amplitudes
-from .calibration import calibrate_system_waveform, cfd_of, load_calibration, range_correction_of
-from .cfd import Echoes, RangeCorrection, apply_range_correction, detect_echoes, fit_range_correction, gaussian_cfd_time
-from .features import FEATURE_NAMES, feature_table, first_echo_features
-from .noise import NoiseStats, ar1, noise_stats
-from .params import CFDParams, FeatureParams
-from .signal import Rendered, analog_waveforms, apply_trigger_loss, render
-from .system_waveform import SystemWaveform, gaussian_system_waveform, load_system_waveform
-from .targets import pulse_targets, read_datasets, read_targets, target_membership
+from waveforest.sensor.agc import (
+    agc_gain,
+    fit_b,
+    nested_cv,
+    normalise_intensity,
+    normalise_pulses,
+    normalise_waveforms,
+    peak_amplitudes,
+)
+from waveforest.sensor.calibration import calibrate_system_waveform, cfd_of, load_calibration, range_correction_of
+from waveforest.sensor.cfd import (
+    Echoes,
+    RangeCorrection,
+    apply_range_correction,
+    detect_echoes,
+    fit_range_correction,
+    gaussian_cfd_time,
+)
+from waveforest.sensor.features import FEATURE_NAMES, feature_table, first_echo_features
+from waveforest.sensor.noise import NoiseStats, ar1, noise_stats
+from waveforest.sensor.params import CFDParams, FeatureParams
+from waveforest.sensor.signal import Rendered, analog_waveforms, apply_trigger_loss, render
+from waveforest.sensor.system_waveform import SystemWaveform, gaussian_system_waveform, load_system_waveform
+from waveforest.sensor.targets import pulse_targets, target_membership
 
 __all__ = [
     "SystemWaveform", "gaussian_system_waveform", "load_system_waveform",
@@ -34,5 +49,5 @@ __all__ = [
     "nested_cv", "fit_b",
     "calibrate_system_waveform", "cfd_of", "load_calibration", "range_correction_of",
     "NoiseStats", "noise_stats", "ar1",
-    "read_targets", "read_datasets", "target_membership", "pulse_targets",
+    "target_membership", "pulse_targets",
 ]

@@ -9,7 +9,7 @@ def waveforms(samples, lengths=None, name: str = "samples") -> tuple[np.ndarray,
     """A C-contiguous float32 (n, n_s) waveform array and its (n,) int64 valid lengths.
 
     Samples beyond a row's length may be anything (NaN padding of
-    :func:`waveforest.io.tables.list_to_padded`); samples within it must be finite.
+    :func:`waveforest.io.pulses.list_to_padded`); samples within it must be finite.
     """
     x = np.asarray(samples)
     if x.ndim != 2:

@@ -1,4 +1,4 @@
-"""AGC normalisation, Eq. 1 (METHOD.md b).
+"""AGC normalisation, Eq. 1 (docs/method.md §(b)).
 
 ``I_cal = I_obs / (1 + (AGC - a) b)`` for DR intensities, and for waveforms, sample-wise on
 the part above the noise floor:
@@ -12,7 +12,7 @@ within-target relative SD ("nested CV") of an echo amplitude A over homogeneous 
 
     CV(b) = sqrt( sum_k sum_i (A_ki / mean_i(A_ki) - 1)^2 / (N - K) ),  A_ki = A_raw,ki / g_ki(b)
 
-``agc.statistic`` chooses A_raw. ``peak`` is METHOD.md (b) word for word: max V - n0. Its
+``agc.statistic`` chooses A_raw. ``peak`` is docs/method.md §(b) word for word: max V - n0. Its
 noise part is not gained: the largest of a few noisy samples near the top exceeds the true
 peak by about one noise SD whatever the gain, so on weak targets A_raw = g A_0 + delta and the
 fit reads g^(1 - delta / A) -- b comes out low by about delta / A (-11 % on the virtual
@@ -48,24 +48,15 @@ through unnormalised with a warning and b = NaN (the AGC is not faked).
 
 from __future__ import annotations
 
-import json
 import math
-import warnings
 from dataclasses import asdict, dataclass, field
-from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
-import pyarrow.parquet as pq
 from scipy.optimize import minimize_scalar
 
-from ..atomic import atomic_path
-from ..errors import WaveforestError, WaveforestWarning
-from ..io.tables import check_pulses, iter_pulses, list_to_padded
-from . import _checks
-from .noise import tail_samples
-from .params import GAIN_MIN
-from .targets import dataset_year, pulse_targets
+import waveforest.sensor._checks as _checks
+from waveforest.sensor.params import GAIN_MIN
 
 AGC_METADATA_KEY = b"waveforest.agc"
 """Parquet schema-metadata key of a normalised pulse table: JSON with dataset, a, b, n0."""
@@ -156,7 +147,7 @@ def window_sums(samples, lengths, half_window) -> tuple[np.ndarray, np.ndarray]:
 
 
 def nested_cv(amplitudes, agc, groups, a: float, b: float) -> float:
-    """Pooled within-target relative SD of AGC-normalised amplitudes (METHOD.md b suggestion).
+    """Pooled within-target relative SD of AGC-normalised amplitudes (docs/method.md §(b) suggestion).
 
     Parameters
     ----------
@@ -348,200 +339,9 @@ def normalise_pulses(pulses: pa.Table, a: float, b: float, n0: float) -> pa.Tabl
 _PASS1_COLUMNS = ["dataset", "gps_time", "agc", "echo_x", "echo_y", "samples", "sampling_ns"]
 
 
-def _single_dataset(names: set, path) -> str:
-    if len(names) != 1:
-        raise WaveforestError(
-            f"{path}: holds datasets {', '.join(sorted(map(str, names))) or '(none)'}; expected exactly one "
-            "(run the step once per dataset file)")
-    return next(iter(names))
 
 
-def run(pulses_path, targets, datasets, out_path, fit_path, cfg: dict, *, plot_path=None,
-        batch_rows: int = 65536, progress: bool = True) -> AGCFit:
-    """The ``agc`` stage: fit b on the AGC targets, normalise every pulse, write both outputs.
-
-    Parameters
-    ----------
-    pulses_path : pulse table of one dataset (Parquet).  targets, datasets : DataFrames of
-    targets.csv / datasets.csv (see :mod:`waveforest.sensor.targets`).  out_path : normalised
-    pulse table (Parquet, with :data:`GAIN_COLUMN` and schema metadata a, b, n0).
-    fit_path : JSON of the :class:`AGCFit`.  cfg : validated config (:func:`waveforest.config.validate`;
-    sections agc, calibrate, sensor).
-    plot_path : optional PNG of CV(b).
-
-    Returns
-    -------
-    AGCFit
-    """
-    from tqdm import tqdm
-
-    pulses_path = Path(pulses_path)
-    if not pulses_path.exists():
-        raise WaveforestError(f"{pulses_path}: no such file")
-    sec = cfg["agc"]
-    tail = int(cfg["calibrate"]["noise_tail"])
-    dmax = float(cfg["sensor"]["digitizer_max"])
-    min_per_target = int(sec["min_pulses_per_target"])
-    gap_s = float(sec["pass_gap_s"])
-    statistic = str(sec["statistic"])  # energy | peak (the schema's enum)
-    half_window_ns = float(sec["energy_half_window_ns"])
-    names: set = set()
-    agc_sum = agc_n = 0.0
-    agc_min, agc_max = np.inf, -np.inf
-    n_total = n_missing = 0
-    tail_sum = tail_sq = tail_n = 0.0
-    fit_rows: list[tuple] = []
-    year_cache: dict = {}
-    batches = iter_pulses(pulses_path, batch_rows, columns=_PASS1_COLUMNS)
-    for batch in tqdm(batches, desc="agc: read", unit="batch", disable=not progress, file=None):
-        ds = batch.column("dataset").to_numpy(zero_copy_only=False)
-        names.update(set(np.unique(ds.astype(str))))
-        name = _single_dataset(names, pulses_path)
-        if name not in year_cache:
-            year_cache[name] = dataset_year(datasets, name)
-        agc = batch.column("agc").to_numpy(zero_copy_only=False).astype(np.float64)
-        fin = np.isfinite(agc)
-        n_total += agc.size
-        n_missing += int((~fin).sum())
-        if fin.any():
-            agc_sum += agc[fin].sum()
-            agc_n += fin.sum()
-            agc_min, agc_max = min(agc_min, agc[fin].min()), max(agc_max, agc[fin].max())
-        samples, lens = list_to_padded(batch.column("samples"))
-        if samples.shape[1]:
-            tv, ok = tail_samples(samples, lens, tail)
-            v = tv[ok]
-            tail_sum += v.sum()
-            tail_sq += (v**2).sum()
-            tail_n += v.size
-        tidx = pulse_targets(batch, targets, year_cache[name])
-        on = tidx >= 0
-        on[on] = targets["agc"].to_numpy(dtype=bool)[tidx[on]]
-        if on.any():
-            raw_max = peak_amplitudes(samples[on], lens[on], 0.0)
-            if statistic == "energy":
-                dt = batch.column("sampling_ns").to_numpy(zero_copy_only=False).astype(np.float64)[on]
-                sums, counts = window_sums(samples[on], lens[on], np.maximum(np.rint(half_window_ns / dt), 1))
-            else:
-                sums, counts = raw_max, np.ones(raw_max.size, np.int64)
-            gps = batch.column("gps_time").to_numpy(zero_copy_only=False).astype(np.float64)
-            fit_rows.append((raw_max, sums, counts, agc[on], tidx[on], gps[on]))
-    if not names:
-        raise WaveforestError(f"{pulses_path}: the pulse table is empty")
-    name = _single_dataset(names, pulses_path)
-    year = year_cache[name]
-    if tail_n < 2:
-        raise WaveforestError(f"{pulses_path}: no waveform samples to estimate the noise floor n0")
-    n0 = tail_sum / tail_n
-    noise_sd = math.sqrt(max(tail_sq / tail_n - n0**2, 0.0) * tail_n / (tail_n - 1))
-
-    def cat(i, dtype=np.float64):
-        return np.concatenate([r[i] for r in fit_rows]) if fit_rows else np.empty(0, dtype=dtype)
-
-    raw_max, sums, counts, fagc, ftgt, fgps = cat(0), cat(1), cat(2, np.int64), cat(3), cat(4, np.int64), cat(5)
-    fpass = target_passes(fgps, ftgt, gap_s)  # passes from all target pulses, clipped ones included
-    sat = raw_max >= dmax
-    keep = ~sat & np.isfinite(fagc) & np.isfinite(sums)
-    amps = sums[keep] - counts[keep] * n0  # the fit statistic above n0 (module docstring)
-    fagc, ftgt, fpass = fagc[keep], ftgt[keep], fpass[keep]
-    fgrp = ftgt * (int(fpass.max()) + 1 if fpass.size else 1) + fpass  # one group per target pass
-    ids, counts = np.unique(fgrp, return_counts=True)
-    good = np.isin(fgrp, ids[counts >= min_per_target])
-    amps, fagc, ftgt, fpass, fgrp = amps[good], fagc[good], ftgt[good], fpass[good], fgrp[good]
-    tid = targets["target_id"].to_numpy()
-    n_per_target = {str(tid[k]): int(c) for k, c in zip(*np.unique(ftgt, return_counts=True))}
-    pass_label = {int(g): f"{tid[k]}#{p}" for g, k, p in zip(fgrp, ftgt, fpass)}
-    n_per_pass = {pass_label[int(g)]: int(c) for g, c in zip(*np.unique(fgrp, return_counts=True))}
-
-    fixed = sec["b"]
-    bounds = tuple(sec["b_bounds"])
-    if agc_n == 0:
-        warnings.warn(f"{pulses_path}: dataset {name} has no AGC values; waveforms are not normalised (b = NaN)",
-                      WaveforestWarning, stacklevel=2)
-        a = b = cv_before = cv_after = float("nan")
-        grid = curve = np.empty(0)
-        eff_bounds = (float("nan"), float("nan"))
-    else:
-        a = agc_sum / agc_n
-        all_agc = np.array([agc_min, agc_max])
-        eff_bounds = feasible_b_bounds(all_agc, a, bounds)
-        if n_missing:
-            warnings.warn(f"{pulses_path}: {n_missing} pulse(s) without AGC are left unnormalised", WaveforestWarning, stacklevel=2)
-        if fixed is not None:
-            b, grid, curve = float(fixed), np.empty(0), np.empty(0)
-            agc_gain(all_agc, a, b)  # raises if the fixed b makes a gain <= 0
-            cv_after = nested_cv(amps, fagc, fgrp, a, b) if amps.size else float("nan")
-        else:
-            if amps.size - len(n_per_target) < 2:
-                raise WaveforestError(
-                    f"dataset {name}: too few pulses on AGC targets (targets.csv rows with agc = 1 and year {year}; "
-                    f"found {amps.size} usable pulses on {len(n_per_target)} target(s)); set agc.b in the config "
-                    "to use a fixed b instead")
-            b, cv_after, grid, curve = fit_b(amps, fagc, fgrp, a, bounds, int(sec["grid_points"]),
-                                             all_agc=all_agc)
-        cv_before = nested_cv(amps, fagc, fgrp, a, 0.0) if amps.size else float("nan")
-
-    label = lambda d: {str(tid[k]): v for k, v in d.items()}  # noqa: E731
-    plabel = lambda d: {pass_label[int(g)]: v for g, v in d.items()}  # noqa: E731
-    have_a, have_b = amps.size and np.isfinite(a), amps.size and np.isfinite(b)
-    fit = AGCFit(
-        dataset=str(name), year=int(year), a=float(a), b=float(b), n0=float(n0), noise_sd=float(noise_sd),
-        b_bounds=tuple(float(v) for v in eff_bounds), cv_before=float(cv_before), cv_after=float(cv_after),
-        n_pulses_total=int(n_total), n_fit_pulses=int(amps.size), n_missing_agc=int(n_missing),
-        n_saturated=int(sat.sum()), n_per_target=n_per_target,
-        cv_per_target_before=label(cv_per_group(amps, fagc, ftgt, a, 0.0)) if have_a else {},
-        cv_per_target_after=label(cv_per_group(amps, fagc, ftgt, a, b)) if have_b else {},
-        pass_gap_s=gap_s, n_per_pass=n_per_pass,
-        cv_per_pass_before=plabel(cv_per_group(amps, fagc, fgrp, a, 0.0)) if have_a else {},
-        cv_per_pass_after=plabel(cv_per_group(amps, fagc, fgrp, a, b)) if have_b else {},
-        b_grid=grid.tolist(), cv_grid=curve.tolist(), fixed_b=fixed is not None, statistic=statistic,
-    )
-
-    meta = {AGC_METADATA_KEY: json.dumps({"dataset": fit.dataset, "a": fit.a, "b": fit.b, "n0": fit.n0}).encode()}
-    out_path = Path(out_path)
-    with atomic_path(out_path) as tmp:
-        writer = None
-        try:
-            for batch in tqdm(iter_pulses(pulses_path, batch_rows), desc="agc: normalise", unit="batch",
-                              disable=not progress):
-                batch = normalise_pulses(check_pulses(batch, pulses_path), fit.a, fit.b, fit.n0)
-                if writer is None:
-                    writer = pq.ParquetWriter(tmp, batch.schema.with_metadata(meta), compression="zstd")
-                writer.write_table(batch.cast(writer.schema))
-        finally:
-            if writer is not None:
-                writer.close()
-    write_json(fit.to_dict(), fit_path)
-    if plot_path is not None and len(fit.b_grid):
-        from .plots import plot_cv_curve
-
-        plot_cv_curve(fit, plot_path)
-    return fit
 
 
-def write_json(obj: dict, path) -> Path:
-    """Write a JSON document atomically (NaN written as null)."""
-    path = Path(path)
-
-    def clean(v):
-        if isinstance(v, float) and not math.isfinite(v):
-            return None
-        if isinstance(v, dict):
-            return {str(k): clean(x) for k, x in v.items()}
-        if isinstance(v, (list, tuple)):
-            return [clean(x) for x in v]
-        if isinstance(v, np.generic):
-            return clean(v.item())
-        return v
-
-    with atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(clean(obj), indent=2) + "\n")
-    return path
 
 
-def read_agc_metadata(path) -> dict:
-    """The {dataset, a, b, n0} metadata of a normalised pulse table ({} if absent)."""
-    md = pq.read_schema(path).metadata or {}
-    if AGC_METADATA_KEY in md:
-        return json.loads(md[AGC_METADATA_KEY])
-    return {}

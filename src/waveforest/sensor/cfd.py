@@ -1,4 +1,4 @@
-"""Echo detection: a constant fraction discriminator on the waveform (METHOD.md f).
+"""Echo detection: a constant fraction discriminator on the waveform (docs/method.md §(f)).
 
 The waveform ``x`` (samples minus the noise mean) is upsampled to the 0.05-ns grid by linear
 interpolation, ``x_f[m] = x(m * 0.05 ns)``, and the CFD signal is
@@ -36,7 +36,7 @@ waveforms share it, and the range correction fitted against DR ranges absorbs it
 Working on the piecewise-linear interpolant directly is exactly the 0.05-ns upsampling of
 the method, without storing the 20x longer upsampled waveform.
 
-Range correction (METHOD.md f): ``dR(Apeak) = DR range - own CFD range`` fitted on pulses
+Range correction (docs/method.md §(f)): ``dR(Apeak) = DR range - own CFD range`` fitted on pulses
 where DR ranges exist (:func:`fit_range_correction`), a binned table with linear
 interpolation between bin medians, a constant, or the identity when there is neither a trend
 nor an offset.
@@ -51,9 +51,9 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit, prange
 
-from ..constants import RANGE_PER_NS
-from . import _checks
-from .params import CFD_PERSIST_FRACTION, FINE_EPS, FINE_NS, RANGE_TREND_Z, CFDParams
+import waveforest.sensor._checks as _checks
+from waveforest.constants import RANGE_PER_NS
+from waveforest.sensor.params import CFD_PERSIST_FRACTION, FINE_EPS, FINE_NS, RANGE_TREND_Z, CFDParams
 
 
 @njit(cache=True)
@@ -218,7 +218,7 @@ class Echoes(NamedTuple):
 def detect_echoes(samples, lengths, sampling_ns, noise_mean, noise_sd, cfd: CFDParams | None = None,
                   max_echoes: int = 4, *, fwhm_ns: float | None = None,
                   range_correction: RangeCorrection | None = None) -> Echoes:
-    """Echoes of every waveform by the constant fraction discriminator (METHOD.md f).
+    """Echoes of every waveform by the constant fraction discriminator (docs/method.md §(f)).
 
     Parameters
     ----------
@@ -269,7 +269,7 @@ def gaussian_cfd_time(mu_ns: float, sd_ns: float, cfd: CFDParams) -> float:
 
 @dataclass(frozen=True)
 class RangeCorrection:
-    """Amplitude-dependent range correction dR(Apeak), m, added to CFD ranges (METHOD.md f).
+    """Amplitude-dependent range correction dR(Apeak), m, added to CFD ranges (docs/method.md §(f)).
 
     ``apeak`` are the nodes (bin medians of the peak amplitude, DN) and ``delta_m`` the
     correction there (bin medians of DR range - CFD range); linear interpolation between
@@ -330,7 +330,7 @@ def _median_se(v: np.ndarray) -> float:
 
 
 def fit_range_correction(apeak, dr_minus_cfd_m, *, n_bins: int = 8, min_per_bin: int = 20) -> RangeCorrection:
-    """Fit dR(Apeak) = DR range - own CFD range as a binned table (METHOD.md f).
+    """Fit dR(Apeak) = DR range - own CFD range as a binned table (docs/method.md §(f)).
 
     Bins hold equal numbers of pulses (amplitude quantiles); the node of a bin is its median
     amplitude and its value the median dR. The table is kept only if some bin differs from

@@ -1,4 +1,4 @@
-"""Tuning of the CFD fraction and delay against the sensor's DR ranges (METHOD.md f).
+"""Tuning of the CFD fraction and delay against the sensor's DR ranges (docs/method.md §(f)).
 
 The paper tuned its CFD "by running it on real WFs (planar surfaces, mature forest, birch
 saplings) and comparing with the real DR ranges: |dR| < 0.10 m for > 95 % of pulses, no bias".
@@ -31,9 +31,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 import pandas as pd
 
-from ..constants import RANGE_PER_NS
-from .cfd import RangeCorrection, detect_echoes, fit_range_correction
-from .params import CFD_CHECK_M, RANGE_GATE_M, CFDParams
+from waveforest.constants import RANGE_PER_NS
+from waveforest.sensor.cfd import RangeCorrection, detect_echoes, fit_range_correction
+from waveforest.sensor.params import CFD_CHECK_M, RANGE_GATE_M, CFDParams
 
 FRACTIONS = np.round(np.arange(0.20, 0.601, 0.05), 2)
 """CFD fractions f of the tuning grid."""

@@ -1,4 +1,4 @@
-"""First-echo waveform features (METHOD.md h), the same code for real and simulated pulses.
+"""First-echo waveform features (docs/method.md §(h)), the same code for real and simulated pulses.
 
 For each waveform, with c-bar the noise mean and SD its SD (dataset values):
 
@@ -35,15 +35,16 @@ import pandas as pd
 import pyarrow as pa
 from numba import njit, prange
 
-from ..constants import RANGE_PER_NS
-from ..errors import WaveforestError, WaveforestWarning
-from ..io.tables import PULSE_SCHEMA, list_to_padded
-from . import _checks
-from .noise import NoiseStats
-from .params import ECHO_SEARCH_NS, CFDParams, FeatureParams
+import waveforest.sensor._checks as _checks
+from waveforest.constants import RANGE_PER_NS
+from waveforest.errors import WaveforestWarning
+from waveforest.io.pulses import PULSE_SCHEMA, list_to_padded
+from waveforest.sensor.cfd import detect_echoes
+from waveforest.sensor.noise import NoiseStats
+from waveforest.sensor.params import ECHO_SEARCH_NS, CFDParams, FeatureParams
 
 FEATURE_NAMES = ("Npeaks", "Apeak", "FWHM", "E")
-"""The radiometric/shape features of METHOD.md (h) (H is geometric, added by feature_table)."""
+"""The radiometric/shape features of docs/method.md §(h) (H is geometric, added by feature_table)."""
 
 
 @njit(cache=True)
@@ -147,7 +148,7 @@ def _features_kernel(samples, lengths, dt, mean, sd, t_echo, seg_sd, rise_sd, se
 def first_echo_features(samples, lengths, sampling_ns, echo_time_ns, noise_mean, noise_sd,
                         segment_sd: float = 3.0, peak_rise_sd: float = 2.0, *,
                         echo_search_ns: float | None = None) -> dict[str, np.ndarray]:
-    """First-echo features of a table of waveforms (METHOD.md h).
+    """First-echo features of a table of waveforms (docs/method.md §(h)).
 
     Parameters
     ----------
@@ -236,7 +237,6 @@ def feature_table(pulses: pa.Table, noise: Mapping, params: FeatureParams | None
         mean[m], sd[m], fwhm = _noise_of(noise, name)
         missing = m & ~np.isfinite(t_echo) & (lens > 0)
         if missing.any():
-            from .cfd import detect_echoes
 
             c = ((cfd.get(name) if isinstance(cfd, Mapping) else cfd) or CFDParams()).resolved(fwhm)
             idx = np.flatnonzero(missing)
@@ -273,52 +273,3 @@ def feature_table(pulses: pa.Table, noise: Mapping, params: FeatureParams | None
     return pd.DataFrame(out)
 
 
-def run(pulse_paths, calibration_paths, out_path, cfg: dict, *, batch_rows: int = 65536,
-        progress: bool = True) -> pd.DataFrame:
-    """The ``features`` stage: first-echo features of one or more pulse tables -> one Parquet.
-
-    Parameters
-    ----------
-    pulse_paths : pulse tables (real, AGC-normalised, or simulated chunks) -- read in batches.
-    calibration_paths : calibration JSONs (``calibrate`` output) giving each dataset's noise.
-    out_path : feature table (Parquet).  cfg : validated config (sections sensor.features, sensor.cfd).
-
-    Returns
-    -------
-    pandas.DataFrame, the table written.
-    """
-    from pathlib import Path
-
-    from tqdm import tqdm
-
-    from ..io.tables import check_pulses, iter_pulses, write_table
-    from .calibration import cfd_of, load_calibration, range_correction_of
-
-    noise, corrections, cfd = {}, {}, {}
-    use_rc = bool(cfg["sensor"]["cfd"]["range_correction"])
-    for p in calibration_paths:
-        c = load_calibration(p)
-        noise[c["dataset"]] = c
-        cfd[c["dataset"]] = cfd_of(c) or CFDParams.from_config(cfg)
-        if use_rc:
-            corrections[c["dataset"]] = range_correction_of(c)
-    params = FeatureParams.from_config(cfg)
-    parts = []
-    for path in pulse_paths:
-        path = Path(path)
-        if not path.exists():
-            raise WaveforestError(f"{path}: no such file")
-        for batch in tqdm(iter_pulses(path, batch_rows), desc=f"features: {path.name}", unit="batch",
-                          disable=not progress):
-            batch = check_pulses(batch, path)
-            names = set(np.unique(batch.column("dataset").to_numpy(zero_copy_only=False).astype(str)))
-            unknown = sorted(names - set(noise))
-            if unknown:
-                raise WaveforestError(
-                    f"{path}: dataset(s) {', '.join(unknown)} have no calibration JSON among "
-                    f"{', '.join(map(str, calibration_paths)) or '(none)'}")
-            parts.append(feature_table(batch, noise, params, cfd=cfd, range_corrections=corrections))
-    df = pd.concat(parts, ignore_index=True) if parts else pd.DataFrame(
-        columns=["dataset", "pulse_id", "source", "n_echoes", "echo_time_ns", *FEATURE_NAMES, "H", "echo_z"])
-    write_table(pa.Table.from_pandas(df, preserve_index=False), out_path)
-    return df

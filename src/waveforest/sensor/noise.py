@@ -1,11 +1,11 @@
-"""Additive waveform noise c of Eq. 7 and its estimate from the record tail (METHOD.md c, e).
+"""Additive waveform noise c of Eq. 7 and its estimate from the record tail (docs/method.md §(c), e).
 
 The model's noise is Gaussian with the dataset's mean and SD, independent between samples,
 added at the output sampling rate. The ``noise_autocorr`` effect (src/waveforest/effects.py)
 makes it a stationary AR(1) process with the same marginal SD:
 ``e[0] = z[0]``, ``e[k] = phi e[k-1] + sqrt(1 - phi^2) z[k]`` (z standard normal), scaled by SD.
 
-The estimate (METHOD.md e): the last ``tail`` samples of each waveform (50 by default) hold
+The estimate (docs/method.md §(e)): the last ``tail`` samples of each waveform (50 by default) hold
 noise only; the mean and SD of all of them pooled give c-bar and its SD. Recorded samples are
 integers (8-bit digitiser), so the recorded SD includes the rounding variance 1/12 DN^2;
 :attr:`NoiseStats.sd_analog` removes it, which is the SD to give the signal model (that rounds
@@ -20,8 +20,8 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from numba import njit, prange
 
-from . import _checks
-from .params import INTEGER_TOL, QUANTISATION_VAR
+import waveforest.sensor._checks as _checks
+from waveforest.sensor.params import INTEGER_TOL, QUANTISATION_VAR
 
 
 @njit(parallel=True, cache=True)
@@ -78,7 +78,7 @@ def gaussian_noise(rng: np.random.Generator, shape: tuple[int, int], mean, sd, a
 
 @dataclass(frozen=True)
 class NoiseStats:
-    """Noise estimate from waveform tails (METHOD.md e).
+    """Noise estimate from waveform tails (docs/method.md §(e)).
 
     mean : float, DN (c-bar).  sd : float, DN, SD of the recorded tail samples.
     sd_analog : float, DN, sd with the rounding variance removed when the samples are integers.
@@ -118,7 +118,7 @@ def tail_samples(samples, lengths, tail: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def noise_stats(samples, lengths=None, tail: int = 50, *, gain=None, n0: float | None = None) -> NoiseStats:
-    """Noise mean and SD from the last ``tail`` samples of each waveform (METHOD.md e).
+    """Noise mean and SD from the last ``tail`` samples of each waveform (docs/method.md §(e)).
 
     Parameters
     ----------

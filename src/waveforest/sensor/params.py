@@ -2,8 +2,8 @@
 
 Every threshold, epsilon and default of ``waveforest.sensor`` that is not a config key lives
 here (STYLE.md: tolerances as named constants in one module), next to the two parameter
-records that the config fills: :class:`CFDParams` (METHOD.md f) and :class:`FeatureParams`
-(METHOD.md h).
+records that the config fills: :class:`CFDParams` (docs/method.md §(f)) and :class:`FeatureParams`
+(docs/method.md §(h)).
 """
 
 from __future__ import annotations
@@ -12,11 +12,11 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ..constants import BIN_NS
+from waveforest.constants import BIN_NS
 
 FINE_NS = BIN_NS
 """Fine time grid of the processing, ns: S(t), sigma(t), the CFD upsampling and the
-calibration resampling all use it (METHOD.md c, e, f)."""
+calibration resampling all use it (docs/method.md §(c), e, f)."""
 
 GRID_TOL_NS = 1e-6
 """Largest deviation of a tabulated S(t) time step from :data:`FINE_NS`, ns."""
@@ -39,7 +39,7 @@ GAUSSIAN_EXTENT_SD = 6.0
 
 ECHO_SEARCH_NS = 2.0
 """Default largest distance, ns, between an echo time and the nearest sample above the
-segment threshold (the segment must contain the echo; METHOD.md h)."""
+segment threshold (the segment must contain the echo; docs/method.md §(h))."""
 
 GAIN_MIN = 0.05
 """Smallest AGC gain 1 + (AGC - a) b allowed in Eq. 1; the b search interval is narrowed so
@@ -53,19 +53,19 @@ INTEGER_TOL = 1e-3
 
 RANGE_TREND_Z = 3.0
 """A range-correction table is kept only if some bin differs from the pooled median by more
-than this many standard errors (otherwise: no trend, METHOD.md f)."""
+than this many standard errors (otherwise: no trend, docs/method.md §(f))."""
 
 RANGE_GATE_M = 1.0
 """Pulses whose own CFD range differs from the DR range by more than this (m) are treated as
 different echoes and left out of the range-correction fit and the CFD check."""
 
 CFD_CHECK_M = 0.10
-"""The paper's CFD criterion: |DR range - CFD range| < 0.10 m for > 95 % of pulses (METHOD.md f)."""
+"""The paper's CFD criterion: |DR range - CFD range| < 0.10 m for > 95 % of pulses (docs/method.md §(f))."""
 
 
 @dataclass(frozen=True)
 class CFDParams:
-    """Constant fraction discriminator of METHOD.md (f).
+    """Constant fraction discriminator of docs/method.md §(f).
 
     The CFD signal is ``y(t) = fraction * x(t) - x(t - delay_ns)`` on the noise-subtracted
     waveform ``x`` upsampled to :data:`FINE_NS`; an echo is a + to - zero crossing of ``y``
@@ -149,7 +149,7 @@ class CFDParams:
 
 @dataclass(frozen=True)
 class FeatureParams:
-    """First-echo feature settings of METHOD.md (h).
+    """First-echo feature settings of docs/method.md §(h).
 
     Attributes
     ----------

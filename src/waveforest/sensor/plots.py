@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atomic import atomic_path
+from waveforest.atomic import atomic_path
 
 
 def _pyplot():
@@ -46,7 +46,7 @@ def plot_system_waveform(system, path, title: str = "System waveform S(t)", tuni
                 label=f"tuned: f = {cfd.fraction:.2f}, delay = {cfd.delay_ns:.2f} ns")
         ax.set_xlabel("CFD fraction f")
         ax.set_ylabel("CFD delay, ns")
-        ax.set_title("CFD tuning against the DR ranges (METHOD.md f)")
+        ax.set_title("CFD tuning against the DR ranges (docs/method.md §(f))")
         ax.legend(fontsize=8, loc="lower left", framealpha=0.8)
     fig.tight_layout()
     path = Path(path)

@@ -1,10 +1,10 @@
-"""The signal model of Eq. 7: from sigma(t) to a recorded ALS60-like waveform (METHOD.md c).
+"""The signal model of Eq. 7: from sigma(t) to a recorded ALS60-like waveform (docs/method.md §(c)).
 
 For each pulse, on the 0.05-ns grid:
 
 1. ``trigger_loss`` effect: the fraction f of sigma(t) is removed earliest first (cumulative,
    the bin that straddles the cut is scaled) -- energy intercepted before the trigger.
-2. Eq. 7 as a discrete convolution of per-bin sums (METHOD c, note 1):
+2. Eq. 7 as a discrete convolution of per-bin sums (docs/method.md §(c), note 1):
    ``V[k] = gain * sum_j S[k - j] sigma[j] / R^2``. sigma bin j (left edge ``t0 + j h``) is
    placed at its centre ``t0 + (j + 1/2) h``, so V[k] lies at ``t0 + t_S[0] + (k + 1/2) h``.
    ``gain`` is an optional per-pulse factor of the signal (the virtual campaign's AGC).
@@ -19,7 +19,7 @@ For each pulse, on the 0.05-ns grid:
    range, i.e. / RANGE_PER_NS ns of two-way time) before the trigger, on a free-running
    digitiser clock of random phase: samples at ``phi + i dt`` (phi uniform in [0, dt)), the
    first tick not before ``trigger - pre``. Point sampling of the fine signal (linear).
-6. Noise at the output rate (METHOD c, note 3): Gaussian, dataset mean and SD; with the
+6. Noise at the output rate (docs/method.md §(c), note 3): Gaussian, dataset mean and SD; with the
    ``noise_autocorr`` effect a stationary AR(1) of the same SD.
 7. Rounding to integer DN and clipping to [0, digitizer_max] (``quantise=True``).
 
@@ -44,12 +44,12 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit, prange
 
-from ..constants import RANGE_PER_NS, RECORD_NS
-from . import _checks
-from .cfd import _cfd_kernel
-from .noise import gaussian_noise
-from .params import FINE_NS, CFDParams
-from .system_waveform import SystemWaveform
+import waveforest.sensor._checks as _checks
+from waveforest.constants import RANGE_PER_NS, RECORD_NS
+from waveforest.sensor.cfd import _cfd_kernel
+from waveforest.sensor.noise import gaussian_noise
+from waveforest.sensor.params import FINE_NS, CFDParams
+from waveforest.sensor.system_waveform import SystemWaveform
 
 _CHUNK = 1024
 """Pulses per block of fine-grid signals in :func:`render` (~1024 x a few thousand float64)."""
@@ -225,7 +225,7 @@ def render(sigma, t0_ns, range_m, system: SystemWaveform, noise_mean, noise_sd, 
            digitizer_max: int = 255, cfd: CFDParams | None = None, noise_autocorr: float = 0.0,
            nonlinearity=0.0, trigger_loss: float = 0.0, gain=None, quantise: bool = True,
            bin_ns: float = FINE_NS) -> Rendered:
-    """Recorded waveforms of pulses with cross-section profiles sigma(t) (Eq. 7, METHOD.md c).
+    """Recorded waveforms of pulses with cross-section profiles sigma(t) (Eq. 7, docs/method.md §(c)).
 
     Parameters
     ----------

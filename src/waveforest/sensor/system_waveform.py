@@ -1,4 +1,4 @@
-"""The system waveform S(t) of Eqs. 6-8 (METHOD.md c, e).
+"""The system waveform S(t) of Eqs. 6-8 (docs/method.md §(c), e).
 
 S(t) is tabulated on the 0.05-ns grid of sigma(t). Units: DN m^2 per unit sigma, where sigma
 is the per-bin sum of the MCRT cross-section per unit emitted power (a Lambertian plane at
@@ -8,7 +8,7 @@ normal incidence gives rho / pi), so that a planar target at range R produces
 Time origin: t = 0 is the CFD echo time of a planar target (a spike in sigma), so that the
 CFD of :mod:`waveforest.sensor.cfd` on a simulated planar return finds the spike's time and
 simulated ranges reproduce the DR ranges without bias. A calibrated S(t) gets this origin from
-the alignment on the DR echo times (METHOD.md e); the analytic Gaussian is placed so that the
+the alignment on the DR echo times (docs/method.md §(e)); the analytic Gaussian is placed so that the
 CFD crossing is at 0 (for the default CFD: the Gaussian peak).
 """
 
@@ -23,9 +23,10 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from ..atomic import atomic_path
-from ..errors import WaveforestError
-from .params import CFD_SELF_ARM_FRACTION, FINE_NS, GAUSSIAN_EXTENT_SD, GRID_TOL_NS, CFDParams
+from waveforest.atomic import atomic_path
+from waveforest.errors import WaveforestError
+from waveforest.sensor.cfd import _cfd_one
+from waveforest.sensor.params import CFD_SELF_ARM_FRACTION, FINE_NS, GAUSSIAN_EXTENT_SD, GRID_TOL_NS, CFDParams
 
 _FWHM_PER_SD = 2.0 * math.sqrt(2.0 * math.log(2.0))
 """FWHM of a Gaussian in units of its SD (2.3548)."""
@@ -116,7 +117,7 @@ class SystemWaveform:
 
     # -- transformations ----------------------------------------------------------------
     def stretched(self, fwhm_ns: float) -> SystemWaveform:
-        """The same pulse shape with FWHM ``fwhm_ns`` at constant energy (METHOD.md i3).
+        """The same pulse shape with FWHM ``fwhm_ns`` at constant energy (docs/method.md §(i3)).
 
         ``s'(t) = s(t / k) / k`` with ``k = fwhm_ns / self.fwhm_ns``; t = 0 stays at 0 (for a
         CFD whose delay scales with the pulse width, the default, the CFD time stays at 0).
@@ -151,7 +152,6 @@ class SystemWaveform:
         The arming level is :data:`CFD_SELF_ARM_FRACTION` of the peak (no noise here). For a
         correctly aligned S(t) this is 0 to within a fine step.
         """
-        from .cfd import _cfd_one  # local: keeps importing this module free of Numba compilation
 
         cfd = (cfd or CFDParams()).resolved(self.fwhm_ns)
         t = np.full(1, np.nan)

@@ -1,4 +1,4 @@
-"""Reference targets of a campaign and the pulses that hit them (METHOD.md b, e).
+"""Reference targets of a campaign and the pulses that hit them (docs/method.md §(b), e).
 
 ``targets.csv`` (the schema the virtual campaign writes and a user fills in):
 target_id, year, material, hdrf (nadir HDRF at 1064 nm; empty for AGC-only targets),
@@ -10,9 +10,7 @@ A pulse belongs to a target if its first DR echo (echo_x[0], echo_y[0]) lies wit
 radius_m of the target centre (x, y) and the target's year is the dataset's year; if several
 targets qualify, the nearest centre wins.
 
-The tables have one reader, :mod:`waveforest.analysis.campaign_tables` (re-exported here:
-:func:`read_targets`, :func:`read_datasets`, :func:`dataset_year`), whose checks every stage
-shares.
+The tables have one reader, :mod:`waveforest.io.tables`, whose checks every stage shares.
 """
 
 from __future__ import annotations
@@ -21,14 +19,9 @@ import numpy as np
 import pandas as pd
 import pyarrow as pa
 
-from ..analysis.campaign_tables import CampaignTableError, dataset_year, read_datasets, read_targets
-from ..io.tables import list_to_padded
+from waveforest.io.pulses import list_to_padded
 
-__all__ = ["CampaignTableError", "TargetTableError", "dataset_year", "read_datasets", "read_targets",
-           "target_membership", "first_echo_xy", "pulse_targets"]
-
-TargetTableError = CampaignTableError
-"""The error of a bad targets.csv or datasets.csv (the campaign tables' one error type)."""
+__all__ = ["target_membership", "first_echo_xy", "pulse_targets"]
 
 
 def target_membership(x, y, year: int, targets: pd.DataFrame) -> np.ndarray:

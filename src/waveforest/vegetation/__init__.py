@@ -1,4 +1,4 @@
-"""Geometric-optical vegetation models (METHOD.md g): scenes of triangles for the MCRT engine.
+"""Geometric-optical vegetation models (docs/method.md §(g)): scenes of triangles for the MCRT engine.
 
 ``build_scene(species, height, seed, **params)`` gives a :class:`~waveforest.scene.Scene` of
 a 6 x 6 m plot: one tree at the origin (birch and the other trees), a plot of shoots
@@ -14,11 +14,11 @@ Modules: :mod:`.params` (parameter files), :mod:`.lad` (leaf angle distributions
 :mod:`.gaps` (LAI, nadir gap fraction), :mod:`.render` (PNG), :mod:`.cli` (the command).
 """
 
-from .build import Built, VegetationError, build, build_scene
-from .gaps import leaf_area_index, nadir_coverage, nadir_gap_fraction
-from .lad import LAD_NAMES, LeafAngleDistribution, lad_by_name, sample_normals
-from .params import PLOT_AREA_M2, UnknownSpeciesError, slugs, species_params, species_table
-from .tree import allometric_leaf_area
+from waveforest.vegetation.build import Built, VegetationError, build, build_scene
+from waveforest.vegetation.gaps import leaf_area_index, nadir_coverage, nadir_gap_fraction
+from waveforest.vegetation.lad import LAD_NAMES, LeafAngleDistribution, lad_by_name, sample_normals
+from waveforest.vegetation.params import PLOT_AREA_M2, UnknownSpeciesError, slugs, species_params, species_table
+from waveforest.vegetation.tree import allometric_leaf_area
 
 __all__ = [
     "Built",

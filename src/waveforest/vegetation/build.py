@@ -26,13 +26,13 @@ Effects (``waveforest.effects``, each off by default):
 
 Other parameters: ``mean_leaf_angle`` (degrees) replaces the species LAD by the beta form
 with that mean (the species' concentration; at 0 or 90 all leaves lie at that angle), applied
-before ``lad_shift``. This is the choice made for the sensitivity sweep (METHOD.md i2): the
+before ``lad_shift``. This is the choice made for the sensitivity sweep (docs/method.md §(i2)): the
 paper's alternative "all leaves at the angle" is the limit of a concentration -> infinity
 and is not used because it makes leaves of a planar canopy exactly parallel.
 ``leaf_area_scale`` multiplies every leaf's area after the structure (leaf count, shoot count)
 is fixed, so the total leaf area and LAI scale with it. ``leaf_rho``/``leaf_tau`` replace the
 species' leaf optics (before ``leaf_albedo``). ``lai_jitter`` is the relative uniform variation
-(+-) of the instance's LAI (plots) or total leaf area (trees) (METHOD.md g: "small random LAI
+(+-) of the instance's LAI (plots) or total leaf area (trees) (docs/method.md §(g): "small random LAI
 variation", amount UNSPECIFIED; 10 % by default).
 """
 
@@ -43,16 +43,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..constants import KIND_GROUND, KIND_LEAF, KIND_WOOD
-from ..effects import CATALOGUE, UNDERSTORY_HEIGHT_M
-from ..errors import WaveforestError
-from ..scene import Scene
-from .generic import build_layer, build_residue, build_surface, build_tufts
-from .ground import ground_plane
-from .herbs import build_shoots
-from .lad import LeafAngleDistribution, lad_by_name
-from .params import PLOT_AREA_M2, species_params
-from .tree import allometric_leaf_area, build_tree
+from waveforest.constants import KIND_GROUND, KIND_LEAF, KIND_WOOD
+from waveforest.effects import CATALOGUE, UNDERSTORY_HEIGHT_M
+from waveforest.errors import WaveforestError
+from waveforest.scene import Scene
+from waveforest.vegetation.generic import build_layer, build_residue, build_surface, build_tufts
+from waveforest.vegetation.ground import ground_plane
+from waveforest.vegetation.herbs import build_shoots
+from waveforest.vegetation.lad import LeafAngleDistribution, lad_by_name
+from waveforest.vegetation.params import PLOT_AREA_M2, species_params
+from waveforest.vegetation.tree import allometric_leaf_area, build_tree
 
 UNDERSTORY_SPECIES = "fresh_grass_low"
 """Model and optics of the understory layer (effect ``understory``)."""
@@ -272,7 +272,7 @@ def build_scene(species: str, height: float, seed: int, *, ground_rho: float = 0
     seed : int
         Seed of every random draw (same arguments -> identical scene).
     ground_rho : float
-        Reflectance of the Lambertian ground plane (METHOD.md g: 0.30).
+        Reflectance of the Lambertian ground plane (docs/method.md §(g): 0.30).
     lai_jitter : float
         Relative uniform (+-) variation of the instance's LAI / total leaf area.
     understory, clumping, lad_shift, leaf_albedo : float

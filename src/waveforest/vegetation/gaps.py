@@ -13,9 +13,9 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from ..constants import KIND_LEAF, KIND_OTHER, KIND_WOOD
-from ..scene import Scene
-from .params import PLOT_AREA_M2
+from waveforest.constants import KIND_LEAF, KIND_OTHER, KIND_WOOD
+from waveforest.scene import Scene
+from waveforest.vegetation.params import PLOT_AREA_M2
 
 GAP_CELL_M = 0.01
 """Default grid spacing of the coverage raster, m."""

@@ -37,13 +37,13 @@ import math
 
 import numpy as np
 
-from .ground import heightfield_triangles, relief_field
-from .lad import LeafAngleDistribution, sample_normals
-from .leaves import load_outline, place_leaves
-from .params import PLOT_AREA_M2, PLOT_HALF_M, SpeciesParams
-from .placement import positions, thomas_positions, uniform_positions, wrap
-from .plant import Plant, horizontal, isotropic
-from .wood import prisms
+from waveforest.vegetation.ground import heightfield_triangles, relief_field
+from waveforest.vegetation.lad import LeafAngleDistribution, sample_normals
+from waveforest.vegetation.leaves import load_outline, place_leaves
+from waveforest.vegetation.params import PLOT_AREA_M2, PLOT_HALF_M, SpeciesParams
+from waveforest.vegetation.placement import positions, thomas_positions, uniform_positions, wrap
+from waveforest.vegetation.plant import Plant, horizontal, isotropic
+from waveforest.vegetation.wood import prisms
 
 BATCH_MARGIN = 1.25
 """Tufts drawn per batch, relative to the expected number needed for the target area."""

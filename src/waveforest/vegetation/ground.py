@@ -1,6 +1,6 @@
 """Ground: a Lambertian plane, or a surface with micro-relief.
 
-The plane (METHOD.md g: rho 0.30, tau 0) is two triangles covering the plot at z = 0 with
+The plane (docs/method.md §(g): rho 0.30, tau 0) is two triangles covering the plot at z = 0 with
 upward normals. Micro-relief (abiotic surfaces, moss and lichen carpets, soil under logging
 residue) is a periodic Gaussian random field on a regular grid: white noise filtered in
 Fourier space to a Gaussian covariance C(r) = s^2 exp(-r^2 / l^2) (spectral density
@@ -12,9 +12,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..constants import KIND_GROUND
-from ..scene import Scene
-from .params import PLOT_HALF_M
+from waveforest.constants import KIND_GROUND
+from waveforest.scene import Scene
+from waveforest.vegetation.params import PLOT_HALF_M
 
 
 def ground_plane(rho: float, half: float = PLOT_HALF_M) -> Scene:

@@ -1,10 +1,10 @@
 """Herb plots of shoots: raspberry, fireweed (Hovi & Korpela 2014) and bracken.
 
-METHOD.md g: shoots (a stem with leaves along it) at random positions in the 6 x 6 m plot
+docs/method.md §(g): shoots (a stem with leaves along it) at random positions in the 6 x 6 m plot
 until the plot reaches its LAI (raspberry 3.35, fireweed 2.0, from Kuusk et al. 2004), with a
 small random LAI variation per instance; planophile leaves, uniform azimuths; leaf rho/tau
 0.47/0.50, stem 0.47/0. The paper's own shoot regressions are UNSPECIFIED; the structure
-here follows the METHOD.md suggestions, numbers in ``structure.csv``:
+here follows the docs/method.md suggestions, numbers in ``structure.csv``:
 
 - **Shoot heights** uniform in [``shoot_height_min_frac`` h, h], the first shoot exactly h, so
   the plot top is the field height h.
@@ -46,12 +46,12 @@ import math
 
 import numpy as np
 
-from .lad import LeafAngleDistribution, sample_normals
-from .leaves import load_outline, place_leaves
-from .params import SpeciesParams
-from .placement import positions, wrap
-from .plant import Plant, horizontal, piecewise_profile
-from .wood import prisms
+from waveforest.vegetation.lad import LeafAngleDistribution, sample_normals
+from waveforest.vegetation.leaves import load_outline, place_leaves
+from waveforest.vegetation.params import SpeciesParams
+from waveforest.vegetation.placement import positions, wrap
+from waveforest.vegetation.plant import Plant, horizontal, piecewise_profile
+from waveforest.vegetation.wood import prisms
 
 
 def _layout(p: SpeciesParams, hs: np.ndarray):

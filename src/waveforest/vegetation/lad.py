@@ -1,7 +1,7 @@
 """Leaf angle distributions (LAD): densities, exact sampling, G-function.
 
 The leaf inclination angle theta in [0, pi/2] is the angle between the leaf normal and the
-vertical; azimuths are uniform (METHOD.md g). Densities per radian, integrating to 1:
+vertical; azimuths are uniform (docs/method.md §(g)). Densities per radian, integrating to 1:
 
 ==============  ============================  =========================================
 name            f(theta)                      CDF F(theta)

@@ -9,7 +9,7 @@ ear clipping; every leaf of a scene is that template scaled and rotated, all lea
 with L the leaf length, w a width factor, m the midrib direction and b = n x m, so that the
 right-hand normal of each triangle is the sampled leaf normal n. The midrib is the
 direction ``toward`` (e.g. away from the stem) projected on the leaf plane: the leaf normal
-keeps the sampled inclination and azimuth exactly (METHOD.md g) while the blade points away
+keeps the sampled inclination and azimuth exactly (docs/method.md §(g)) while the blade points away
 from where it is attached.
 """
 
@@ -22,7 +22,7 @@ import numpy as np
 import pandas as pd
 from numba import njit
 
-from .params import RES, ParameterFileError
+from waveforest.vegetation.params import RES, ParameterFileError
 
 _PARALLEL_EPS = 1e-9
 """|toward x normal| below this means ``toward`` is parallel to the normal (fallback frame)."""

@@ -23,8 +23,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .. import RESOURCES
-from ..errors import WaveforestError
+from waveforest import RESOURCES
+from waveforest.errors import WaveforestError
 
 RES = RESOURCES / "vegetation"
 """Folder of the vegetation parameter files."""

@@ -2,7 +2,7 @@
 
 The plot is treated as one tile of an endless canopy: positions (shoot bases, leaf bases)
 are wrapped into [-3, 3)^2, so that the leaf area density is the same up to the edges
-and the realised LAI is exactly the target (METHOD.md g: "shoots at random positions").
+and the realised LAI is exactly the target (docs/method.md §(g): "shoots at random positions").
 
 Clustering (effect ``clumping``) is a Thomas process (Thomas 1949): cluster centres
 (parents) uniform in the plot, each plant assigned to a random parent and displaced from
@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .params import PLOT_HALF_M
+from waveforest.vegetation.params import PLOT_HALF_M
 
 
 def wrap(xy: np.ndarray, half: float = PLOT_HALF_M) -> np.ndarray:

@@ -11,9 +11,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atomic import atomic_path
-from ..constants import KIND_GROUND, KIND_LEAF, KIND_OTHER, KIND_WOOD
-from ..scene import Scene
+from waveforest.atomic import atomic_path
+from waveforest.constants import KIND_GROUND, KIND_LEAF, KIND_OTHER, KIND_WOOD
+from waveforest.scene import Scene
 
 KIND_COLOURS = {
     KIND_GROUND: (0.62, 0.55, 0.45),

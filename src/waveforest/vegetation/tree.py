@@ -1,6 +1,6 @@
 """Procedural trees: birch (Hovi & Korpela 2014) and the generic broadleaf and conifer trees.
 
-One tree stands at the origin of the 6 x 6 m plot (METHOD.md g). From the height h:
+One tree stands at the origin of the 6 x 6 m plot (docs/method.md §(g)). From the height h:
 
 1. **Stem** from (0, 0, 0) to (0, 0, h), diameter ``stem_base_diameter_per_h`` h at the base
    tapering to ``stem_top_diameter_m``.
@@ -45,11 +45,11 @@ import math
 
 import numpy as np
 
-from .lad import LeafAngleDistribution, sample_normals
-from .leaves import crossed_planes, load_outline, place_leaves
-from .params import PLOT_HALF_M, SpeciesParams
-from .plant import Plant, isotropic, lognormal_areas, unit_dirs
-from .wood import prisms
+from waveforest.vegetation.lad import LeafAngleDistribution, sample_normals
+from waveforest.vegetation.leaves import crossed_planes, load_outline, place_leaves
+from waveforest.vegetation.params import PLOT_HALF_M, SpeciesParams
+from waveforest.vegetation.plant import Plant, isotropic, lognormal_areas, unit_dirs
+from waveforest.vegetation.wood import prisms
 
 NEEDLE_SHOOT_ELEMENT = "rectangle"
 """Foliage element name that makes a tree a needle-shoot (conifer) tree."""

@@ -8,11 +8,11 @@
 
 from __future__ import annotations
 
-from . import embree
-from .base import Intersector
-from .embree import DirectEmbreeIntersector
-from .embreex import EmbreeIntersector
-from .numpy import NumpyIntersector
+from waveforest.mcrt.backends import embree
+from waveforest.mcrt.backends.base import Intersector
+from waveforest.mcrt.backends.embree import DirectEmbreeIntersector
+from waveforest.mcrt.backends.embreex import EmbreeIntersector
+from waveforest.mcrt.backends.numpy import NumpyIntersector
 
 
 def _embree(triangles, quality: str) -> Intersector:

@@ -1,4 +1,4 @@
-"""Embree 4 called directly from Numba kernels (the library embreex ships), METHOD.md d.
+"""Embree 4 called directly from Numba kernels (the library embreex ships), docs/method.md §(d).
 
 embreex's ``EmbreeScene.run`` traces a batch of rays one ``rtcIntersect1`` at a time from a
 Cython loop, on a BVH of MEDIUM build quality it gives no way to change. Here the same Embree
@@ -43,9 +43,9 @@ try:  # the library embreex ships
 except ImportError:  # pragma: no cover - embreex is a dependency
     embreex = None
 
-from ..kernels import take_rays
-from ..threads import MIN_PARALLEL_RAYS, NumbaThreads
-from .base import RayQueries, check_triangles
+from waveforest.mcrt.backends.base import RayQueries, check_triangles
+from waveforest.mcrt.kernels import take_rays
+from waveforest.mcrt.threads import MIN_PARALLEL_RAYS, NumbaThreads
 
 QUALITIES = {"low": 0, "medium": 1, "high": 2}
 """Embree BVH build qualities (RTC_BUILD_QUALITY_*)."""

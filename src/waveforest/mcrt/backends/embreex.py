@@ -14,8 +14,8 @@ import numpy as np
 from embreex import rtcore_scene as rtcs
 from embreex.mesh_construction import TriangleMesh
 
-from ..threads import default_threads
-from .base import RayQueries, check_triangles
+from waveforest.mcrt.backends.base import RayQueries, check_triangles
+from waveforest.mcrt.threads import default_threads
 
 MIN_SPLIT_RAYS = 4096
 """Embree calls with fewer rays than this are not split over threads (thread overhead)."""

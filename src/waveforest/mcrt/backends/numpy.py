@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import RayQueries, check_triangles
+from waveforest.mcrt.backends.base import RayQueries, check_triangles
 
 NUMPY_BLOCK = 2_000_000
 """Largest rays x triangles block of the NumPy intersector (bounds its memory)."""

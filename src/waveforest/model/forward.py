@@ -1,0 +1,297 @@
+"""One code path from a vegetation instance and beams to waveforms, echoes and features.
+
+Used by ``simulate`` (real pulse geometry), ``sensitivity`` and ``sensor_study``:
+
+    scene --mcrt.trace--> sigma(t) --sensor.render (Eq. 7)--> waveform
+          --sensor.detect_echoes (CFD)--> echoes --sensor.first_echo_features--> features
+
+The order of docs/method.md §(c): sigma and S(t) on the 0.05-ns grid, convolution, / R^2, noise,
+sampling, rounding; then the CFD and the features exactly as for real waveforms.
+"""
+
+from __future__ import annotations
+
+import zlib
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from waveforest.constants import RANGE_PER_NS
+from waveforest.effects import CATALOGUE
+from waveforest.errors import WaveforestError
+from waveforest.mcrt import trace
+from waveforest.sensor import CFDParams, FeatureParams, detect_echoes, first_echo_features, render
+from waveforest.sensor.agc import divide_gain
+
+MAX_ECHOES = 4
+"""DR echoes per pulse (ALS60, docs/method.md §(a))."""
+
+
+def stable_hash(*parts) -> int:
+    """A 32-bit hash of ints and strings that is the same in every process and platform."""
+    text = "\x1f".join(str(p) for p in parts)
+    return zlib.crc32(text.encode("utf-8"))
+
+
+_M64 = np.uint64(0xFFFFFFFFFFFFFFFF)
+
+
+def hash_ids(key: int, ids) -> np.ndarray:
+    """Vectorised 64-bit mix (splitmix64 finaliser) of integer ids under a key.
+
+    Parameters
+    ----------
+    key : int
+        E.g. :func:`stable_hash` of the seed, dataset and purpose.
+    ids : (n,) int
+
+    Returns
+    -------
+    (n,) uint64, uniformly scrambled; the same in every process.
+    """
+    with np.errstate(over="ignore"):
+        z = np.asarray(ids, dtype=np.int64).astype(np.uint64) ^ np.uint64(int(key) & 0xFFFFFFFFFFFFFFFF)
+        z = z + np.uint64(0x9E3779B97F4A7C15)
+        z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+        z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+        return z ^ (z >> np.uint64(31))
+
+
+def seed_sequence(*parts) -> np.random.SeedSequence:
+    """A SeedSequence from ints and strings (strings enter through :func:`stable_hash`)."""
+    entropy = [int(p) if isinstance(p, (int, np.integer)) else stable_hash(p) for p in parts]
+    return np.random.SeedSequence(entropy)
+
+
+def int_seed(*parts) -> int:
+    """A non-negative 63-bit integer seed derived from ``parts``."""
+    return int(seed_sequence(*parts).generate_state(1, dtype=np.uint64)[0] >> np.uint64(1))
+
+
+def split_effects(effects: dict | None) -> tuple[dict, dict, dict, float]:
+    """Effects by the module that applies them (src/waveforest/effects.py).
+
+    Returns
+    -------
+    vegetation : dict
+        ``build_scene`` keyword arguments (understory, clumping, lad_shift, leaf_albedo).
+    mcrt : dict
+        ``trace`` keyword arguments (specular, hotspot).
+    sensor : dict
+        ``render`` keyword arguments (noise_autocorr, nonlinearity, trigger_loss).
+    xy_error : float
+        SD of the per-pulse horizontal offset of the beam, m (per axis).
+    """
+    veg, mcrt, sensor, xy = {}, {}, {}, 0.0
+    for name, value in (effects or {}).items():
+        if name not in CATALOGUE:
+            raise WaveforestError(f"effect {name!r}: unknown; expected one of {', '.join(CATALOGUE)}")
+        stage = CATALOGUE[name].stage
+        if stage == "vegetation":
+            veg[name] = float(value)
+        elif stage == "mcrt":
+            mcrt[name] = float(value)
+        elif stage == "sensor":
+            sensor[name] = float(value)
+        elif name == "xy_error":
+            xy = float(value)
+        else:  # pragma: no cover - the catalogue has no other stage
+            raise WaveforestError(f"effect {name!r}: stage {stage!r} is not handled")
+    return veg, mcrt, sensor, xy
+
+
+@dataclass(frozen=True)
+class SensorSetup:
+    """Everything between sigma(t) and features for one dataset (or study setting).
+
+    Attributes
+    ----------
+    system : waveforest.sensor.SystemWaveform
+        S(t), DN m^2 per unit sigma (Eq. 7).
+    noise_mean, noise_sd : float, DN
+    sampling_ns : float, ns
+    cfd : waveforest.sensor.CFDParams (resolved against ``system.fwhm_ns``)
+    features : waveforest.sensor.FeatureParams
+    record_ns : float, ns
+    pre_trigger_m : (float, float), m
+    digitizer_max : int, DN
+    render_effects : dict
+        noise_autocorr, nonlinearity, trigger_loss (effects; off by default).
+    range_correction : waveforest.sensor.RangeCorrection or None
+        Amplitude-dependent range correction applied to the simulated CFD echoes.
+    """
+
+    system: object
+    noise_mean: float
+    noise_sd: float
+    sampling_ns: float
+    cfd: object
+    features: object
+    record_ns: float = 256.0
+    pre_trigger_m: tuple = (3.3, 4.8)
+    digitizer_max: int = 255
+    render_effects: dict = field(default_factory=dict)
+    range_correction: object = None
+
+    @classmethod
+    def from_config(cls, cfg: dict, system, noise_mean: float, noise_sd: float, sampling_ns: float,
+                    render_effects: dict | None = None, range_correction=None, cfd=None) -> SensorSetup:
+        """The setup of the config's ``sensor`` section with a given S(t), noise and sampling.
+
+        ``cfd``: the calibration's CFD (that of its range correction); None = ``sensor.cfd``.
+        """
+
+        s = cfg["sensor"]
+        return cls(
+            system=system, noise_mean=float(noise_mean), noise_sd=float(noise_sd),
+            sampling_ns=float(sampling_ns),
+            cfd=(cfd or CFDParams.from_config(cfg)).resolved(system.fwhm_ns),
+            features=FeatureParams.from_config(cfg),
+            record_ns=float(s["record_ns"]), pre_trigger_m=tuple(s["pre_trigger_m"]),
+            digitizer_max=int(s["digitizer_max"]), render_effects=dict(render_effects or {}),
+            range_correction=range_correction,
+        )
+
+    def with_system(self, system, cfg: dict) -> SensorSetup:
+        """The same setup with another S(t) (the CFD delay and dead time follow its FWHM)."""
+
+        return replace(self, system=system, cfd=CFDParams.from_config(cfg).resolved(system.fwhm_ns))
+
+
+@dataclass(frozen=True)
+class MCRTSetup:
+    """Keyword arguments of ``waveforest.mcrt.trace`` (config section ``mcrt`` plus effects)."""
+
+    n_rays: int = 30000
+    max_order: int = 10
+    bin_ns: float = 0.05
+    viewed_diameter_m: float = 5.0
+    effects: dict = field(default_factory=dict)
+
+    @classmethod
+    def from_config(cls, cfg: dict, n_rays: int | None = None, effects: dict | None = None) -> MCRTSetup:
+        m = cfg["mcrt"]
+        return cls(n_rays=int(n_rays or m["n_rays"]), max_order=int(m["max_order"]),
+                   bin_ns=float(m["bin_ns"]), viewed_diameter_m=float(m["viewed_diameter_m"]),
+                   effects=dict(effects or {}))
+
+    def kwargs(self) -> dict:
+        return dict(n_rays=self.n_rays, max_order=self.max_order, bin_ns=self.bin_ns,
+                    viewed_diameter_m=self.viewed_diameter_m, **self.effects)
+
+
+@dataclass
+class SimPulses:
+    """Simulated pulses of one batch.
+
+    Attributes
+    ----------
+    samples : (n, n_s) float32, DN (NaN beyond ``lengths``)
+    lengths : (n,) int64
+    sampling_ns : float
+    first_sample_ns : (n,) float64, two-way time from emission of sample 0, ns (NaN: no trigger)
+    echo_times_ns : (n, 4) float64, CFD echo times from the first sample, NaN-padded
+    echo_amplitudes : (n, 4) float64, DN above the noise mean
+    n_echoes : (n,) int16
+    sigma_total : (n,) float64, total sigma of the pulse (all orders)
+    first_hit_counts : (n, 5) int64 (rays first hitting ground, leaf, wood, other; misses)
+    """
+
+    samples: np.ndarray
+    lengths: np.ndarray
+    sampling_ns: float
+    first_sample_ns: np.ndarray
+    echo_times_ns: np.ndarray
+    echo_amplitudes: np.ndarray
+    n_echoes: np.ndarray
+    sigma_total: np.ndarray
+    first_hit_counts: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.lengths)
+
+    def echo_ranges_m(self) -> np.ndarray:
+        """(n, 4) one-way range from the sensor of each echo, m (NaN-padded)."""
+        return (self.first_sample_ns[:, None] + self.echo_times_ns) * RANGE_PER_NS
+
+    def features(self, setup: SensorSetup) -> dict:
+        """First-echo features (docs/method.md §(h)) of every pulse: Npeaks, Apeak, FWHM, E (NaN without echo)."""
+
+        return first_echo_features(self.samples, self.lengths, self.sampling_ns, self.echo_times_ns[:, 0],
+                                   setup.noise_mean, setup.noise_sd,
+                                   segment_sd=setup.features.segment_sd,
+                                   peak_rise_sd=setup.features.peak_rise_sd,
+                                   echo_search_ns=setup.features.echo_search_ns)
+
+
+def twin_echoes(samples, lengths, sampling_ns, setup: SensorSetup, gain=None):
+    """CFD echoes of AGC-normalised waveforms, found as a simulated twin's are.
+
+    The setup's CFD and range correction, armed on the recorded noise: noise_sd / g in
+    normalised DN (``gain`` None: g = 1). Returns :class:`waveforest.sensor.Echoes`.
+    """
+
+    noise_sd = setup.noise_sd if gain is None else setup.noise_sd / np.asarray(gain, dtype=np.float64)
+    return detect_echoes(samples, lengths, sampling_ns, setup.noise_mean, noise_sd, setup.cfd,
+                         max_echoes=MAX_ECHOES, range_correction=setup.range_correction)
+
+
+def render_sigma(sigma: np.ndarray, t0_ns: np.ndarray, range_m: np.ndarray, setup: SensorSetup,
+                 rng: np.random.Generator, sigma_total: np.ndarray | None = None,
+                 first_hit_counts: np.ndarray | None = None, gain: np.ndarray | None = None) -> SimPulses:
+    """sigma(t) -> waveforms (Eq. 7) -> CFD echoes, for a batch of pulses.
+
+    Parameters
+    ----------
+    sigma : (n, n_bins) float64, per-bin sums on the 0.05-ns grid (mcrt.TraceResult.sigma)
+    t0_ns : (n,) float64, two-way time from emission of bin 0's left edge, ns
+    range_m : (n,) float64, R of Eq. 7, m
+    setup : SensorSetup
+    rng : numpy Generator (sampling phase, pre-trigger, noise)
+    gain : (n,) float64, optional
+        AGC gains (Eq. 1) of the real pulses these are twins of. Each waveform is then
+        recorded as the sensor records it, signal x g + noise (trigger, saturation, rounding
+        and clipping on the gained signal), and AGC-normalised as the real one is,
+        (V - c-bar)/g + c-bar: its noise has SD noise_sd / g and its rounding steps 1/g DN,
+        like the real normalised waveform's (the AGC does not gain the noise, docs/method.md §(b)).
+        The CFD arms at ``cfd.arming_sd`` SDs of the recorded noise, as the DR circuits see
+        it: noise_sd / g in normalised DN. None: gain 1 (a pulse of no real recording).
+    """
+
+    n = sigma.shape[0]
+    r = render(sigma, t0_ns, range_m, setup.system, setup.noise_mean, setup.noise_sd, setup.sampling_ns, rng,
+               record_ns=setup.record_ns, pre_trigger_m=tuple(setup.pre_trigger_m),
+               digitizer_max=setup.digitizer_max, cfd=setup.cfd, gain=gain, **setup.render_effects)
+    samples = np.asarray(r.samples, dtype=np.float32)
+    if gain is not None:
+        samples = divide_gain(samples, gain, setup.noise_mean)
+    lengths = np.full(n, samples.shape[1], dtype=np.int64)
+    first = np.asarray(r.first_sample_ns, dtype=np.float64)
+    times, amps, counts = twin_echoes(samples, lengths, setup.sampling_ns, setup, gain)
+    no_trigger = ~np.isfinite(np.asarray(r.trigger_ns, dtype=float))
+    counts = np.where(no_trigger, 0, counts).astype(np.int16)
+    times = np.where(no_trigger[:, None], np.nan, times)
+    amps = np.where(no_trigger[:, None], np.nan, amps)
+    return SimPulses(
+        samples=samples, lengths=lengths, sampling_ns=float(setup.sampling_ns), first_sample_ns=first,
+        echo_times_ns=times, echo_amplitudes=amps, n_echoes=counts,
+        sigma_total=np.zeros(n) if sigma_total is None else sigma_total,
+        first_hit_counts=np.zeros((n, 5), np.int64) if first_hit_counts is None else first_hit_counts,
+    )
+
+
+def trace_and_render(scene, beams, range_m: np.ndarray, mcrt: MCRTSetup, setup: SensorSetup,
+                     trace_seed: int, rng: np.random.Generator, threads: int | None = None,
+                     gain: np.ndarray | None = None):
+    """MCRT of ``beams`` through ``scene`` (a Scene or PreparedScene), then :func:`render_sigma`
+    (``gain``: the AGC gains of the real pulses twinned, see there).
+
+    Returns
+    -------
+    (SimPulses, TraceResult)
+    """
+
+    res = trace(scene, beams, seed=int(trace_seed), threads=threads, **mcrt.kwargs())
+    sim = render_sigma(res.sigma, res.t0_ns, np.asarray(range_m, dtype=float), setup, rng,
+                       sigma_total=res.total, first_hit_counts=res.first_hit_counts, gain=gain)
+    return sim, res

@@ -1,0 +1,29 @@
+"""The ``info`` stage."""
+
+from __future__ import annotations
+
+import click
+
+from waveforest.cliutil import (
+    stage_options,
+)
+from waveforest.io.las.info import format_summary, summarise
+
+
+@click.command()
+@click.argument("las_file", type=click.Path(dir_okay=False))
+@click.option("--agc-attribute", default=None,
+              help="Point or extra-bytes dimension holding the AGC (default: config agc.attribute, i.e. user_data).")
+@stage_options
+def info(las_file, agc_attribute, cfg):
+    """Summarise a LAS waveform file: version, point format, descriptors, pulses, packets,
+    returns, samples per packet, AGC and bounds (like lasinfo)."""
+
+    icfg = cfg["ingest"]
+    summary = summarise(
+        las_file,
+        agc_attribute=agc_attribute if agc_attribute is not None else cfg["agc"]["attribute"],
+        chunk_points=icfg["chunk_points"],
+        bucket_points=icfg["bucket_points"],
+    )
+    click.echo(format_summary(summary))

@@ -1,0 +1,235 @@
+"""The ``trace`` stage: one scene, one pulse -> sigma(t) table (Parquet or CSV) and a plot.
+
+The scene is a PLY file whose faces carry ``rho``, ``tau`` and ``kind``, or a vegetation
+instance built by :func:`waveforest.vegetation.build_scene` from a species and a height.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import click
+import numpy as np
+import pyarrow as pa
+
+from waveforest.atomic import atomic_path
+from waveforest.cliutil import (
+    stage_options,
+)
+from waveforest.constants import RANGE_PER_NS
+from waveforest.effects import CATALOGUE, parse_effects
+from waveforest.errors import WaveforestError
+from waveforest.io.pulses import write_table
+from waveforest.mcrt.beams import Beams
+from waveforest.mcrt.tracer import DEFAULT_WINDOW_NS, TraceResult
+from waveforest.mcrt.tracer import trace as trace_pulses
+from waveforest.scene import Scene, read_ply
+from waveforest.vegetation import build_scene
+
+DEFAULT_DIVERGENCE_MRAD = 0.15
+"""ALS60 1/e beam divergence (docs/method.md §(a)), used when neither footprint nor divergence is given."""
+
+TABLE_SUFFIXES = (".parquet", ".csv")
+
+PLOT_FRACTION = 0.999
+"""The plot of sigma(t) spans the bins holding this fraction of the binned sigma."""
+
+
+def load_scene(scene_path: str | Path | None, species: str | None = None, height: float | None = None,
+               seed: int = 0, vegetation_options: dict | None = None) -> Scene:
+    """The scene to trace: a PLY file, or a vegetation instance of ``species`` and ``height``."""
+    if (scene_path is None) == (species is None):
+        raise WaveforestError("trace: give either a scene PLY file or --species (with --height), not both")
+    if scene_path is not None:
+        return read_ply(scene_path)
+    if height is None or not height > 0:
+        raise WaveforestError("trace: --species needs --height (m, > 0)")
+    return build_scene(species, float(height), int(seed), **(vegetation_options or {}))
+
+
+def mcrt_effects(effects) -> dict[str, float]:
+    """The MCRT effects (``specular``, ``hotspot``) from NAME=VALUE strings or a mapping."""
+    parsed = parse_effects(effects)
+    wrong = [k for k in parsed if CATALOGUE[k].stage != "mcrt"]
+    if wrong:
+        raise WaveforestError(f"--effect {', '.join(wrong)}: not an MCRT effect (expected specular or hotspot)")
+    return parsed
+
+
+def write_sigma(result: TraceResult, path: str | Path, i: int = 0, metadata: dict | None = None) -> Path:
+    """Write sigma(t) of pulse ``i`` (time, range, sigma, sigma per order) as Parquet or CSV.
+
+    The suffix chooses the format; Parquet files carry ``metadata`` (JSON) in the schema.
+    """
+
+
+    path = Path(path)
+    if path.suffix.lower() not in TABLE_SUFFIXES:
+        raise WaveforestError(f"{path}: expected a .parquet or .csv output file")
+    df = result.frame(i)
+    if path.suffix.lower() == ".csv":
+        with atomic_path(path) as tmp:
+            df.to_csv(tmp, index=False, float_format="%.10g")
+        return path
+    table = pa.Table.from_pandas(df, preserve_index=False)
+    meta = {"waveforest.trace": json.dumps(metadata or {}, default=float)}
+    return write_table(table.replace_schema_metadata(meta), path)
+
+
+def plot_sigma(result: TraceResult, path: str | Path, i: int = 0, title: str = "") -> Path:
+    """PNG of sigma(t) of pulse ``i``, total and per scattering order, against range."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    path = Path(path)
+    sigma = result.sigma[i]
+    nz = np.flatnonzero(sigma)
+    if nz.size:  # from the first return to 99.9 % of the binned sigma
+        cum = np.cumsum(sigma)
+        lo, hi = nz[0], int(np.searchsorted(cum, PLOT_FRACTION * cum[-1])) + 1
+    else:
+        lo, hi = 0, result.n_bins
+    pad = max(10, (hi - lo) // 10)
+    sl = slice(max(0, lo - pad), min(result.n_bins, hi + pad))
+    rng_m = result.bin_ns * np.arange(result.n_bins) * RANGE_PER_NS  # one-way range after bin 0
+    fig, ax = plt.subplots(figsize=(7, 4))
+    ax.plot(rng_m[sl], sigma[sl] / result.bin_ns, color="k", lw=1.5, label="total")
+    if result.sigma_by_order is not None:
+        for k in range(result.max_order):
+            s = result.sigma_by_order[i, k]
+            if np.any(s[sl] > 0):
+                ax.plot(rng_m[sl], s[sl] / result.bin_ns, lw=0.8, label=f"order {k + 1}")
+    ax.set_xlabel("range after bin 0 (m)")
+    ax.set_ylabel("sigma (sr$^{-1}$ ns$^{-1}$ per unit power)")
+    ax.set_title(title or f"sigma(t): total {result.total[i]:.4g}, {result.n_rays} rays")
+    ax.legend(fontsize=7, ncol=2)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=120, format="png")
+    plt.close(fig)
+    return path
+
+
+def run(scene_path: str | Path | None, out: str | Path, *, species: str | None = None,
+        height: float | None = None, range_m: float = 1200.0, scan_zenith_deg: float = 0.0,
+        azimuth_deg: float = 0.0, footprint_m: float | None = None, divergence_mrad: float | None = None,
+        target=(0.0, 0.0, 0.0), n_rays: int = 30000, max_order: int = 10, bin_ns: float = 0.05,
+        viewed_diameter_m: float = 5.0, window_ns: float = DEFAULT_WINDOW_NS, seed: int = 0,
+        effects=None, plot: str | Path | None = None, vegetation_options: dict | None = None) -> TraceResult:
+    """Trace one pulse through one scene and write its sigma(t) (and a plot).
+
+    Parameters
+    ----------
+    scene_path : path or None
+        PLY scene (faces with rho, tau, kind); None with ``species`` and ``height``.
+    out : path
+        ``.parquet`` or ``.csv`` output.
+    range_m, scan_zenith_deg, azimuth_deg : float
+        Sensor distance from ``target`` (m), beam zenith and compass azimuth (degrees).
+    footprint_m, divergence_mrad : float, optional
+        Collimated 1/e footprint, or divergence of a diverging beam (default 0.15 mrad).
+    target : (3,) float
+        Point on the beam axis at ``range_m`` (scene coordinates, m).
+    n_rays, max_order, bin_ns, viewed_diameter_m, window_ns, seed
+        As :func:`waveforest.mcrt.trace`.
+    effects : list of "NAME=VALUE" or mapping, optional
+        ``specular`` and/or ``hotspot``.
+    plot : path, optional
+        PNG of sigma(t) by order.
+
+    Returns
+    -------
+    TraceResult
+    """
+    out = Path(out)
+    if out.suffix.lower() not in TABLE_SUFFIXES:
+        raise WaveforestError(f"{out}: expected a .parquet or .csv output file")
+    if footprint_m is not None and divergence_mrad is not None:
+        raise WaveforestError("trace: give --footprint or --divergence, not both")
+    if footprint_m is None and divergence_mrad is None:
+        divergence_mrad = DEFAULT_DIVERGENCE_MRAD
+    fx = mcrt_effects(effects)
+    scene = load_scene(scene_path, species, height, seed, vegetation_options)
+    try:
+        beams = Beams.toward(np.asarray(target, float), float(range_m), float(scan_zenith_deg),
+                             float(azimuth_deg), footprint_m=footprint_m, divergence_mrad=divergence_mrad)
+        result = trace_pulses(scene, beams, n_rays=n_rays, max_order=max_order, bin_ns=bin_ns,
+                       viewed_diameter_m=viewed_diameter_m, seed=seed, window_ns=window_ns,
+                       by_order=True, specular=fx.get("specular", CATALOGUE["specular"].off),
+                       hotspot=fx.get("hotspot", CATALOGUE["hotspot"].off))
+    except ValueError as exc:
+        if isinstance(exc, WaveforestError):
+            raise
+        raise WaveforestError(f"trace: {exc}") from None
+    meta = {
+        "scene": str(scene_path) if scene_path is not None else f"{species} h={height}",
+        "sensor_xyz": beams.origin[0].tolist(), "dir_xyz": beams.direction[0].tolist(),
+        "footprint_m": float(beams.footprint_m[0]), "range_m": float(range_m),
+        "t0_ns": float(result.t0_ns[0]), "bin_ns": result.bin_ns, "n_rays": n_rays,
+        "max_order": max_order, "seed": seed, "effects": fx,
+        "order_totals": result.order_totals[0].tolist(), "sigma_dropped": float(result.sigma_dropped[0]),
+        "first_hit_counts": result.first_hit_counts[0].tolist(),
+    }
+    write_sigma(result, out, 0, meta)
+    if plot is not None:
+        plot_sigma(result, plot)
+    return result
+
+
+@click.command("trace")
+@click.argument("scene", required=False, type=click.Path(dir_okay=False))
+@click.option("--out", "out", required=True, type=click.Path(dir_okay=False),
+              help="Output sigma(t) table, .parquet or .csv (time_ns, range_m, sigma, sigma per order).")
+@click.option("--species", default=None, help="Trace a vegetation instance of this species slug instead of SCENE.")
+@click.option("--height", type=float, default=None, help="Height of the vegetation instance, m (with --species).")
+@click.option("--range", "range_m", type=float, default=1200.0, show_default=True,
+              help="Sensor distance from the target point, m.")
+@click.option("--scan-zenith", type=float, default=0.0, show_default=True, help="Beam zenith angle, degrees.")
+@click.option("--azimuth", type=float, default=0.0, show_default=True,
+              help="Compass azimuth of the beam's travel, degrees clockwise from north (+y).")
+@click.option("--footprint", type=float, default=None,
+              help="1/e footprint diameter of a collimated beam, m (default: --divergence 0.15).")
+@click.option("--divergence", type=float, default=None, help="1/e beam divergence, mrad (diverging beam).")
+@click.option("--target-x", type=float, default=0.0, show_default=True, help="Target point x, m (scene coordinates).")
+@click.option("--target-y", type=float, default=0.0, show_default=True, help="Target point y, m.")
+@click.option("--target-z", type=float, default=0.0, show_default=True, help="Target point z, m.")
+@click.option("--rays", type=int, default=None, help="Rays per pulse (default: config mcrt.n_rays).")
+@click.option("--orders", type=int, default=None, help="Highest scattering order (default: config mcrt.max_order).")
+@click.option("--effect", "effects", multiple=True, metavar="NAME=VALUE",
+              help="MCRT effect: specular=FRACTION or hotspot=FACTOR (repeatable).")
+@click.option("--plot", type=click.Path(dir_okay=False), default=None, help="PNG of sigma(t) by scattering order.")
+@stage_options
+def trace(scene, out, species, height, range_m, scan_zenith, azimuth, footprint, divergence,
+          target_x, target_y, target_z, rays, orders, effects, plot, cfg):
+    """Trace one LiDAR pulse through SCENE (a PLY whose faces carry rho, tau, kind) -> sigma(t).
+
+    Writes sigma(t) on the fine time grid (config mcrt.bin_ns) with its per-order split,
+    and optionally a plot. Example:
+
+      waveforest trace canopy.ply --out sigma.parquet --range 1200 --scan-zenith 10 --plot sigma.png
+    """
+
+    m = cfg["mcrt"]
+    veg = cfg["vegetation"]
+    t = time.perf_counter()
+    res = run(
+        scene, out, species=species, height=height, range_m=range_m, scan_zenith_deg=scan_zenith,
+        azimuth_deg=azimuth, footprint_m=footprint, divergence_mrad=divergence,
+        target=(target_x, target_y, target_z),
+        n_rays=rays if rays is not None else m["n_rays"],
+        max_order=orders if orders is not None else m["max_order"],
+        bin_ns=m["bin_ns"], viewed_diameter_m=m["viewed_diameter_m"], window_ns=m["window_ns"],
+        seed=cfg["seed"], effects=list(effects), plot=plot,
+        vegetation_options={k: veg[k] for k in ("ground_rho", "lai_jitter")},
+    )
+    dt = time.perf_counter() - t
+    o = res.order_totals[0]
+    click.echo(
+        f"wrote {out}: 1 pulse, {res.n_bins} bins of {res.bin_ns:g} ns, sigma {res.total[0]:.5g} "
+        f"(order 1 {o[0]:.5g}, dropped {res.sigma_dropped[0]:.3g}), {res.n_rays} rays, {dt:.2f} s"
+        + (f"; plot {plot}" if plot else "")
+    )
