@@ -22,9 +22,9 @@ from typing import Any
 import jsonschema
 import yaml
 
+from waveforest.constants import FUNCTIONAL_GROUPS
 from waveforest.errors import WaveforestError
-from waveforest.io.tables import FUNCTIONAL_GROUPS
-from waveforest.vegetation.params import slugs
+from waveforest.species import species_slugs
 
 SCHEMA_PATH = Path(__file__).with_name("config.schema.yaml")
 
@@ -83,10 +83,7 @@ def _message(exc: jsonschema.ValidationError) -> str:
 
 def _check_names(config: dict, source: str) -> None:
     """Species slugs and functional groups of the config are known ones."""
-    # imported here, not at module level: pandas and the vegetation package's Numba kernels
-    # (~1.5 s) are not needed by every stage that reads a config
-
-    known = slugs()
+    known = species_slugs()
 
     def check(values, path: str, allowed, what: str) -> None:
         for v in values:

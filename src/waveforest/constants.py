@@ -1,4 +1,4 @@
-"""Physical constants, grids and numerical tolerances shared by every module.
+"""Physical constants, grids, numerical tolerances and fixed names shared by every module.
 
 One place for every epsilon and offset (STYLE.md), so that kernels and tests agree.
 """
@@ -25,3 +25,6 @@ KIND_GROUND, KIND_LEAF, KIND_WOOD, KIND_OTHER = 0, 1, 2, 3
 """Scene element kinds (per-triangle ``kind`` in scenes and PLY files)."""
 
 KIND_NAMES = {KIND_GROUND: "ground", KIND_LEAF: "leaf", KIND_WOOD: "wood", KIND_OTHER: "other"}
+
+FUNCTIONAL_GROUPS = ("conifer", "broadleaf", "low_green", "low_barren_abiotic")
+"""The four functional groups of docs/method.md §(i4), in the paper's order."""

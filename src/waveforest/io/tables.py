@@ -24,8 +24,8 @@ Every number is finite and within :data:`RANGES` (physical bounds, generous for 
 waveform campaign: e.g. an HDRF in (0, 1] -- a reference target brighter than a perfect
 Lambertian reflector at nadir is a unit error --, a range in (0, 100 km), a divergence in
 (0, 100] mrad, a scan zenith in [0, 90) degrees). ``species`` is a species slug of Table 1
-(``resources/vegetation``), ``functional_group`` one of :data:`FUNCTIONAL_GROUPS`, and a
-calibration target has an HDRF.
+(:func:`waveforest.species.species_slugs`), ``functional_group`` one of
+:data:`waveforest.constants.FUNCTIONAL_GROUPS`, and a calibration target has an HDRF.
 """
 
 from __future__ import annotations
@@ -36,11 +36,9 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from waveforest.constants import FUNCTIONAL_GROUPS
 from waveforest.errors import WaveforestError
-from waveforest.vegetation.params import slugs
-
-FUNCTIONAL_GROUPS = ("conifer", "broadleaf", "low_green", "low_barren_abiotic")
-"""The four functional groups of docs/method.md §(i4), in the paper's order."""
+from waveforest.species import species_slugs
 
 _DATASET_COLUMNS = {
     "dataset": "str", "year": "int",
@@ -214,7 +212,7 @@ def read_datasets(path: str | Path) -> pd.DataFrame:
 def read_fields(path: str | Path) -> pd.DataFrame:
     """Read and check ``fields.csv`` (one row per field sample; module docstring for the rules)."""
     df = _read(path, _FIELD_COLUMNS, _FIELD_OPTIONAL, "sample_id", "fields")
-    _check_names(df, "species", slugs(), "species", str(path))
+    _check_names(df, "species", species_slugs(), "species", str(path))
     _check_names(df, "functional_group", FUNCTIONAL_GROUPS, "functional group", str(path))
     return df
 

@@ -25,6 +25,7 @@ import pandas as pd
 
 from waveforest import RESOURCES
 from waveforest.errors import WaveforestError
+from waveforest.species import slug_of
 
 RES = RESOURCES / "vegetation"
 """Folder of the vegetation parameter files."""
@@ -152,15 +153,6 @@ def _read_csv(path: Path) -> pd.DataFrame:
         raise ParameterFileError(f"{path}: not a readable CSV ({exc})") from exc
 
 
-def _slug_of(name: str) -> str:
-    """Snake-case slug of a Table 1 name (``"Scots pine"`` -> ``"scots_pine"``)."""
-    special = {"Birches": "birch", "American red raspberry": "raspberry"}
-    if name in special:
-        return special[name]
-    s = "".join(c.lower() if c.isalnum() else " " for c in name.replace("'s", "s"))
-    return "_".join(s.split())
-
-
 @functools.lru_cache(maxsize=1)
 def _tables() -> tuple[pd.DataFrame, dict[str, SpeciesParams]]:
     t1 = _read_csv(RES / "table1_species.csv")
@@ -176,7 +168,7 @@ def _tables() -> tuple[pd.DataFrame, dict[str, SpeciesParams]]:
             raise ParameterFileError(f"{path_st}: column {col!r} missing")
     if list(sp["name"]) != list(t1["species"]):
         raise ParameterFileError(f"{path_sp}: names must list table1_species.csv in order")
-    slugs = [_slug_of(n) for n in t1["species"]]
+    slugs = [slug_of(n) for n in t1["species"]]
     if list(sp["slug"]) != slugs:
         raise ParameterFileError(f"{path_sp}: slugs must be {slugs}")
     if st["source"].isna().any():
