@@ -45,6 +45,7 @@ from __future__ import annotations
 import errno
 import os
 import shutil
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -98,6 +99,33 @@ MAX_DESCRIPTORS = 255
 COPY_BUFFER_BYTES = 16 << 20
 DEFAULT_CREATION = (1, 2014)
 """Creation day of year and year written when none is given (no clock is read)."""
+
+
+@dataclass(frozen=True)
+class _Chunk:
+    """One chunk of a pulse table as arrays: n pulses, m echoes (flat, pulse order)."""
+
+    n: int
+    pulse_id: np.ndarray  # (n,)
+    gps: np.ndarray  # (n,) s
+    direction: np.ndarray  # (n, 3) unit vectors
+    anchor: np.ndarray  # (n, 3) m
+    sampling_ns: np.ndarray  # (n,) ns
+    gain: np.ndarray  # (n,)
+    dig_offset: np.ndarray  # (n,)
+    scan: np.ndarray  # (n,) deg
+    agc: np.ndarray  # (n,)
+    samples: np.ndarray  # flat samples of every pulse
+    s_off: np.ndarray  # (n + 1,) offsets into samples
+    n_samples: np.ndarray  # (n,)
+    echo_xyz: np.ndarray  # (m, 3) m
+    et: np.ndarray  # (m,) echo time, ns
+    ei: np.ndarray  # (m,) echo intensity
+    e_off: np.ndarray  # (n + 1,) offsets into the echoes
+    n_echo: np.ndarray  # (n,)
+    has_wf: np.ndarray  # (n,) bool: the pulse has samples
+    pulse_of_echo: np.ndarray  # (m,) pulse row of each echo
+    wf_echo: np.ndarray  # (m,) bool: the echo's pulse has samples
 
 
 def _list_column(table: pa.Table, name: str) -> tuple[np.ndarray, np.ndarray]:
@@ -294,21 +322,48 @@ class WaveformLasWriter:
         raise LasWaveformError(f"{self.path}: cannot write pulse table: {message}")
 
     def _write(self, t: pa.Table) -> None:
-        n = t.num_rows
-        if n == 0:
+        """Check one chunk of a pulse table and append its points and packets.
+
+        Steps: :meth:`_chunk` (columns and per-echo consistency), :meth:`_check_geometry`,
+        :meth:`_check_digitizer`, :meth:`_descriptor_index`, :meth:`_point_records`; then the
+        records and the raw samples are appended to the temporary files. Any violation
+        raises :class:`LasWaveformError` before anything of the chunk is written.
+        """
+        if t.num_rows == 0:
             return
+        c = self._chunk(t)
+        self._check_geometry(c)
+        spacing_ps = self._check_digitizer(c)
+        desc_index = self._descriptor_index(c, spacing_ps)
+        packet_size = (c.n_samples * self._sample_dtype.itemsize).astype(np.int64)
+        base = WAVEFORM_HEADER_SIZE + self._wave_bytes  # offsets count from the record header
+        packet_offset = np.where(c.has_wf, base + np.concatenate([[0], np.cumsum(packet_size)[:-1]]), 0)
+        rec, q, return_number = self._point_records(c, desc_index, packet_offset, packet_size)
+
+        self._points_fh.write(rec.tobytes())
+        if c.samples.size:
+            raw = c.samples.astype(self._sample_dtype).tobytes()
+            self._wave_fh.write(raw)
+            self._wave_bytes += len(raw)
+        self._n_points += len(rec)
+        self._n_pulses += c.n
+        self._by_return += np.bincount(return_number, minlength=16)[:16]
+        self._imin = np.minimum(self._imin, q.min(axis=0))
+        self._imax = np.maximum(self._imax, q.max(axis=0))
+
+    def _chunk(self, t: pa.Table) -> _Chunk:
+        """The columns of a non-empty pulse table as arrays, with the per-pulse checks.
+
+        Raises :class:`LasWaveformError` when the echo lists of a pulse differ in length or
+        from ``n_echoes``, a pulse has no echo or more than the point format's return number
+        holds, ``gps_time`` is not finite or not unique, ``dir`` is not a unit vector (within
+        :data:`DIR_NORM_TOL`), or an echo position or time is not finite.
+        """
         col = lambda name: t.column(name).to_numpy().astype(np.float64)  # noqa: E731
         pulse_id = t.column("pulse_id").to_numpy()
         gps = col("gps_time")
         direction = np.stack([col("dir_x"), col("dir_y"), col("dir_z")], axis=1)
-        anchor = np.stack([col("anchor_x"), col("anchor_y"), col("anchor_z")], axis=1)
-        sampling_ns = col("sampling_ns")
-        gain = col("digitizer_gain")
-        dig_offset = col("digitizer_offset")
-        scan = col("scan_angle_deg")
-        agc = col("agc")
         samples, s_off = _list_column(t, "samples")
-        n_samples = np.diff(s_off)
         ex, e_off = _list_column(t, "echo_x")
         ey, ey_off = _list_column(t, "echo_y")
         ez, ez_off = _list_column(t, "echo_z")
@@ -340,122 +395,160 @@ class WaveformLasWriter:
         if not np.all(np.abs(norm - 1.0) <= DIR_NORM_TOL):
             bad = int(np.flatnonzero(~(np.abs(norm - 1.0) <= DIR_NORM_TOL))[0])
             self._fail(f"pulse_id {pulse_id[bad]}: dir is not a unit vector (|dir| = {norm[bad]})")
-        direction = direction / norm[:, None]
         echo_xyz = np.stack([ex, ey, ez], axis=1).astype(np.float64)
         if not np.all(np.isfinite(echo_xyz)) or not np.all(np.isfinite(et)):
             self._fail("echo_x/_y/_z and echo_time_ns must be finite")
+        n_samples = np.diff(s_off)
+        pulse_of_echo = np.repeat(np.arange(t.num_rows), n_echo)
+        return _Chunk(
+            n=t.num_rows,
+            pulse_id=pulse_id,
+            gps=gps,
+            direction=direction / norm[:, None],
+            anchor=np.stack([col("anchor_x"), col("anchor_y"), col("anchor_z")], axis=1),
+            sampling_ns=col("sampling_ns"),
+            gain=col("digitizer_gain"),
+            dig_offset=col("digitizer_offset"),
+            scan=col("scan_angle_deg"),
+            agc=col("agc"),
+            samples=samples,
+            s_off=s_off,
+            n_samples=n_samples,
+            echo_xyz=echo_xyz,
+            et=et,
+            ei=ei,
+            e_off=e_off,
+            n_echo=n_echo,
+            has_wf=n_samples > 0,
+            pulse_of_echo=pulse_of_echo,
+            wf_echo=(n_samples > 0)[pulse_of_echo],
+        )
 
-        has_wf = n_samples > 0
-        pulse_of_echo = np.repeat(np.arange(n), n_echo)
-        # the LAS geometry relation must hold for every echo of a pulse with a waveform
-        wf_echo = has_wf[pulse_of_echo]
-        if np.any(wf_echo):
-            pe = pulse_of_echo[wf_echo]
-            model = anchor[pe] + direction[pe] * (et[wf_echo] * RANGE_PER_NS)[:, None]
-            miss = np.linalg.norm(model - echo_xyz[wf_echo], axis=1)
-            if not np.all(miss <= GEOMETRY_TOL_M):
-                k = int(np.flatnonzero(~(miss <= GEOMETRY_TOL_M))[0])
-                self._fail(
-                    f"pulse_id {pulse_id[pe[k]]}: echo lies {miss[k]:.4f} m from anchor + dir * echo_time_ns * "
-                    f"RANGE_PER_NS (tolerance {GEOMETRY_TOL_M} m); LAS cannot store such an echo"
-                )
+    def _check_geometry(self, c: _Chunk) -> None:
+        """Every echo of a pulse with a waveform lies on its beam (the LAS relation).
 
-        # samples: whole numbers that fit the digitizer
+        ``|anchor + dir * echo_time_ns * RANGE_PER_NS - echo_xyz| <= GEOMETRY_TOL_M``, else
+        :class:`LasWaveformError`.
+        """
+        if not np.any(c.wf_echo):
+            return
+        pe = c.pulse_of_echo[c.wf_echo]
+        model = c.anchor[pe] + c.direction[pe] * (c.et[c.wf_echo] * RANGE_PER_NS)[:, None]
+        miss = np.linalg.norm(model - c.echo_xyz[c.wf_echo], axis=1)
+        if not np.all(miss <= GEOMETRY_TOL_M):
+            k = int(np.flatnonzero(~(miss <= GEOMETRY_TOL_M))[0])
+            self._fail(
+                f"pulse_id {c.pulse_id[pe[k]]}: echo lies {miss[k]:.4f} m from anchor + dir * echo_time_ns * "
+                f"RANGE_PER_NS (tolerance {GEOMETRY_TOL_M} m); LAS cannot store such an echo"
+            )
+
+    def _check_digitizer(self, c: _Chunk) -> np.ndarray:
+        """(n,) sampling interval of each pulse in whole picoseconds (float64).
+
+        Raises :class:`LasWaveformError` when a sample is not a whole number in
+        ``[0, 2**bits - 1]`` or a waveform's ``sampling_ns * 1000`` is not a whole number of
+        picoseconds in ``[1, 2**32)`` (within :data:`SPACING_TOL_PS`).
+        """
+        samples = c.samples
         if samples.size:
             ok = np.isfinite(samples) & (samples >= 0) & (samples <= self._max_dn) & (samples == np.round(samples))
             if not np.all(ok):
                 k = int(np.flatnonzero(~ok)[0])
-                p = int(np.searchsorted(s_off, k, side="right") - 1)
+                p = int(np.searchsorted(c.s_off, k, side="right") - 1)
                 self._fail(
-                    f"pulse_id {pulse_id[p]}: sample value {float(samples[k])!r} is not a whole number in "
+                    f"pulse_id {c.pulse_id[p]}: sample value {float(samples[k])!r} is not a whole number in "
                     f"[0, {int(self._max_dn)}] ({self.bits}-bit digitizer)"
                 )
-        spacing = sampling_ns * 1000.0
+        spacing = c.sampling_ns * 1000.0
         spacing_ps = np.round(spacing)
-        bad = has_wf & ~(np.isfinite(spacing) & (spacing_ps >= 1) & (spacing_ps < 2**32) & (np.abs(spacing - spacing_ps) <= SPACING_TOL_PS))
+        whole = np.isfinite(spacing) & (spacing_ps >= 1) & (spacing_ps < 2**32) & (np.abs(spacing - spacing_ps) <= SPACING_TOL_PS)
+        bad = c.has_wf & ~whole
         if np.any(bad):
             k = int(np.flatnonzero(bad)[0])
-            self._fail(f"pulse_id {pulse_id[k]}: sampling_ns = {float(sampling_ns[k])!r} is not a whole number of picoseconds")
+            self._fail(f"pulse_id {c.pulse_id[k]}: sampling_ns = {float(c.sampling_ns[k])!r} is not a whole number of picoseconds")
+        return spacing_ps
 
-        # descriptors: one per distinct (samples, spacing, gain, offset), first appearance first
-        desc_index = np.zeros(n, dtype=np.uint8)
-        if np.any(has_wf):
-            keys = np.zeros(n, dtype=[("n", "<i8"), ("sp", "<i8"), ("g", "<i8"), ("o", "<i8")])
-            keys["n"] = n_samples
-            keys["sp"] = np.where(has_wf, spacing_ps, 0).astype(np.int64)
-            keys["g"] = gain.view(np.int64)
-            keys["o"] = dig_offset.view(np.int64)
-            wf_rows = np.flatnonzero(has_wf)
-            uniq, first, inverse = np.unique(keys[wf_rows], return_index=True, return_inverse=True)
-            index_of_uniq = np.zeros(len(uniq), dtype=np.uint8)
-            for u in np.argsort(first, kind="stable"):
-                key = tuple(int(v) for v in uniq[u].tolist())
-                desc = self._descriptors.get(key)
-                if desc is None:
-                    if len(self._descriptors) >= MAX_DESCRIPTORS:
-                        self._fail(f"more than {MAX_DESCRIPTORS} distinct (samples, sampling, gain, offset) packet layouts")
-                    row = wf_rows[first[u]]
-                    desc = WavePacketDescriptor(
-                        index=len(self._descriptors) + 1,
-                        bits=self.bits,
-                        compression=0,
-                        n_samples=int(n_samples[row]),
-                        spacing_ps=int(spacing_ps[row]),
-                        gain=float(gain[row]),
-                        offset=float(dig_offset[row]),
-                    )
-                    self._descriptors[key] = desc
-                index_of_uniq[u] = desc.index
-            desc_index[wf_rows] = index_of_uniq[inverse.ravel()]
+    def _descriptor_index(self, c: _Chunk, spacing_ps: np.ndarray) -> np.ndarray:
+        """(n,) uint8 wave packet descriptor index of each pulse (0: no waveform).
 
-        # packets: contiguous, in pulse order
-        packet_size = (n_samples * self._sample_dtype.itemsize).astype(np.int64)
-        base = WAVEFORM_HEADER_SIZE + self._wave_bytes  # offsets count from the record header
-        packet_offset = np.where(has_wf, base + np.concatenate([[0], np.cumsum(packet_size)[:-1]]), 0)
+        One descriptor per distinct (samples, spacing, gain, offset), numbered in order of
+        first appearance over the whole file; new ones are added to ``self._descriptors``.
+        More than :data:`MAX_DESCRIPTORS` raise :class:`LasWaveformError`.
+        """
+        desc_index = np.zeros(c.n, dtype=np.uint8)
+        if not np.any(c.has_wf):
+            return desc_index
+        keys = np.zeros(c.n, dtype=[("n", "<i8"), ("sp", "<i8"), ("g", "<i8"), ("o", "<i8")])
+        keys["n"] = c.n_samples
+        keys["sp"] = np.where(c.has_wf, spacing_ps, 0).astype(np.int64)
+        keys["g"] = c.gain.view(np.int64)
+        keys["o"] = c.dig_offset.view(np.int64)
+        wf_rows = np.flatnonzero(c.has_wf)
+        uniq, first, inverse = np.unique(keys[wf_rows], return_index=True, return_inverse=True)
+        index_of_uniq = np.zeros(len(uniq), dtype=np.uint8)
+        for u in np.argsort(first, kind="stable"):
+            key = tuple(int(v) for v in uniq[u].tolist())
+            desc = self._descriptors.get(key)
+            if desc is None:
+                if len(self._descriptors) >= MAX_DESCRIPTORS:
+                    self._fail(f"more than {MAX_DESCRIPTORS} distinct (samples, sampling, gain, offset) packet layouts")
+                row = wf_rows[first[u]]
+                desc = WavePacketDescriptor(
+                    index=len(self._descriptors) + 1,
+                    bits=self.bits,
+                    compression=0,
+                    n_samples=int(c.n_samples[row]),
+                    spacing_ps=int(spacing_ps[row]),
+                    gain=float(c.gain[row]),
+                    offset=float(c.dig_offset[row]),
+                )
+                self._descriptors[key] = desc
+            index_of_uniq[u] = desc.index
+        desc_index[wf_rows] = index_of_uniq[inverse.ravel()]
+        return desc_index
 
-        # points
+    def _point_records(
+        self, c: _Chunk, desc_index: np.ndarray, packet_offset: np.ndarray, packet_size: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The chunk's LAS point records, one per echo (the mapping of the module docstring).
+
+        Returns ``(records, q, return_number)``: (m,) records of ``self.dtype``, (m, 3) int64
+        quantised coordinates and (m,) return numbers (1-based). Sets ``self.offsets`` from
+        the first chunk when none was given. Coordinates that do not fit int32 under the
+        header scales and offsets raise :class:`LasWaveformError`.
+        """
         if self.offsets is None:
-            self.offsets = np.floor(echo_xyz.min(axis=0) / 1000.0) * 1000.0
-        q = np.round((echo_xyz - self.offsets) / self.scales)
+            self.offsets = np.floor(c.echo_xyz.min(axis=0) / 1000.0) * 1000.0
+        q = np.round((c.echo_xyz - self.offsets) / self.scales)
         if np.any(q < np.iinfo(np.int32).min) or np.any(q > np.iinfo(np.int32).max):
             self._fail(f"echo coordinates do not fit the header scales {self.scales} and offsets {self.offsets}")
         q = q.astype(np.int64)
+        pulse_of_echo = c.pulse_of_echo
         m = len(pulse_of_echo)
-        first_echo = e_off[:-1]
-        return_number = np.arange(m) - np.repeat(first_echo, n_echo) + 1
+        return_number = np.arange(m) - np.repeat(c.e_off[:-1], c.n_echo) + 1
         rec = np.zeros(m, dtype=self.dtype)
         rec["X"], rec["Y"], rec["Z"] = q[:, 0], q[:, 1], q[:, 2]
-        inten = np.nan_to_num(np.round(ei.astype(np.float64)), nan=0.0)
+        inten = np.nan_to_num(np.round(c.ei.astype(np.float64)), nan=0.0)
         rec["intensity"] = np.clip(inten, 0, 65535).astype(np.uint16)
-        rec["bit_fields"] = pack_return_bits(self.point_format, return_number, n_echo[pulse_of_echo])
-        scan_deg = np.nan_to_num(scan, nan=0.0)
+        rec["bit_fields"] = pack_return_bits(self.point_format, return_number, c.n_echo[pulse_of_echo])
+        scan_deg = np.nan_to_num(c.scan, nan=0.0)
         if self.point_format in (4, 5):
             rec["scan_angle_rank"] = np.clip(np.round(scan_deg), -90, 90).astype(np.int8)[pulse_of_echo]
         else:
             units = np.clip(np.round(scan_deg / SCAN_ANGLE_UNIT_DEG), -30000, 30000).astype(np.int16)
             rec["scan_angle"] = units[pulse_of_echo]
         if self.agc_attribute == "user_data":
-            rec["user_data"] = np.clip(np.nan_to_num(np.round(agc), nan=0.0), 0, 255).astype(np.uint8)[pulse_of_echo]
+            rec["user_data"] = np.clip(np.nan_to_num(np.round(c.agc), nan=0.0), 0, 255).astype(np.uint8)[pulse_of_echo]
         elif self.agc_extra:
-            rec[self.agc_attribute] = agc[pulse_of_echo]
-        rec["gps_time"] = gps[pulse_of_echo]
+            rec[self.agc_attribute] = c.agc[pulse_of_echo]
+        rec["gps_time"] = c.gps[pulse_of_echo]
         rec["wavepacket_index"] = desc_index[pulse_of_echo]
         rec["wavepacket_offset"] = packet_offset[pulse_of_echo]
-        rec["wavepacket_size"] = np.where(has_wf, packet_size, 0)[pulse_of_echo]
-        rec["return_point_wave_location"] = np.where(wf_echo, et * 1000.0, 0.0).astype(np.float32)
-        dt = (-direction * (RANGE_PER_NS / 1000.0)).astype(np.float32)
+        rec["wavepacket_size"] = np.where(c.has_wf, packet_size, 0)[pulse_of_echo]
+        rec["return_point_wave_location"] = np.where(c.wf_echo, c.et * 1000.0, 0.0).astype(np.float32)
+        dt = (-c.direction * (RANGE_PER_NS / 1000.0)).astype(np.float32)
         rec["x_t"], rec["y_t"], rec["z_t"] = dt[pulse_of_echo, 0], dt[pulse_of_echo, 1], dt[pulse_of_echo, 2]
-
-        self._points_fh.write(rec.tobytes())
-        if samples.size:
-            raw = samples.astype(self._sample_dtype).tobytes()
-            self._wave_fh.write(raw)
-            self._wave_bytes += len(raw)
-        self._n_points += m
-        self._n_pulses += n
-        self._by_return += np.bincount(return_number, minlength=16)[:16]
-        self._imin = np.minimum(self._imin, q.min(axis=0))
-        self._imax = np.maximum(self._imax, q.max(axis=0))
+        return rec, q, return_number
 
     # -- closing ------------------------------------------------------------------------
 
