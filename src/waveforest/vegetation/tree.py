@@ -42,6 +42,7 @@ source, most of them marked ASSUMPTION (in particular the leaf-area allometry).
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 
@@ -102,41 +103,35 @@ def _along(p0, d1, d2, length, s):
     return np.where(s <= half, p0 + s * d1, p0 + half * d1 + (s - half) * d2)
 
 
-def build_tree(p: SpeciesParams, height: float, rng: np.random.Generator,
-               lad: LeafAngleDistribution, leaf_area: float, leaf_area_scale: float) -> Plant:
-    """One tree of species ``p`` at the origin.
+class _Branches(NamedTuple):
+    """Bent first-order branches, k of them: base ``b0``, bend ``b1``, tip ``b2`` (k, 3) m,
+    directions ``d1``, ``d2`` of the two halves (k, 3) and ``length`` (k,) m."""
 
-    Parameters
-    ----------
-    p : SpeciesParams
-        A ``tree`` species.
-    height : float, m
-    rng : numpy.random.Generator
-    lad : LeafAngleDistribution
-        Leaf (first shoot plane) inclinations.
-    leaf_area : float, m^2
-        Total one-sided leaf area to realise (the allometry times any jitter).
-    leaf_area_scale : float
-        Factor on every leaf's area after the structure is fixed (sensitivity sweeps).
+    b0: np.ndarray
+    b1: np.ndarray
+    b2: np.ndarray
+    d1: np.ndarray
+    d2: np.ndarray
+    length: np.ndarray
 
-    Returns
-    -------
-    Plant
-    """
-    h = float(height)
-    outline = load_outline(p.element)
-    needles = p.element == NEEDLE_SHOOT_ELEMENT
-    wf = outline.width_factor(p["leaf_length_width"])
 
-    # 1-2. stem and crown base
-    z_cb = p["crown_base_frac"] * h
-    crown = h - z_cb
+def _stem(p: SpeciesParams, h: float) -> np.ndarray:
+    """Steps 1-2: the stem from 0 to ``h`` as ``STEM_SEGMENTS`` tapered prisms (triangles)."""
     zs = np.linspace(0.0, h, STEM_SEGMENTS + 1)
     d_stem = np.linspace(max(p["stem_base_diameter_per_h"] * h, p["stem_top_diameter_m"]),
                          p["stem_top_diameter_m"], STEM_SEGMENTS + 1)
     stem_pts = np.stack([np.zeros_like(zs), np.zeros_like(zs), zs], axis=1)
-    wood = [prisms(stem_pts[:-1], stem_pts[1:], d_stem[:-1], d_stem[1:])]
+    return prisms(stem_pts[:-1], stem_pts[1:], d_stem[:-1], d_stem[1:])
 
+
+def _branches(p: SpeciesParams, h: float, crown: float, rng: np.random.Generator) -> _Branches:
+    """Steps 3-5: whorls, branch lengths from the crown profile, bent branches.
+
+    Branches are capped so that they stay below ``TOP_CLEARANCE`` of the height above them
+    and within the plot (``PLOT_HALF_M - REACH_MARGIN_M``); those shorter than
+    ``MIN_BRANCH_M`` are dropped. Draws from ``rng``: whorl phase, first azimuth, azimuth
+    jitter, length noise (in this order).
+    """
     # 3. whorls
     spacing = p["whorl_spacing_m"]
     phase = rng.random()  # the top whorl lies phase * spacing below the top
@@ -177,14 +172,34 @@ def build_tree(p: SpeciesParams, height: float, rng: np.random.Generator,
     b0 = np.stack([np.zeros_like(zb), np.zeros_like(zb), zb], axis=1)
     b1 = b0 + 0.5 * length[:, None] * d1
     b2 = b1 + 0.5 * length[:, None] * d2
-    dmin = p["branch_diameter_base_m"]
-    dbase = dmin + p["branch_diameter_per_length"] * length
-    dmid = dmin + p["branch_diameter_per_length"] * 0.5 * length
-    if length.size:
-        wood.append(prisms(np.concatenate([b0, b1]), np.concatenate([b1, b2]),
-                           np.concatenate([dbase, dmid]), np.concatenate([dmid, np.full_like(dmid, dmin)])))
+    return _Branches(b0, b1, b2, d1, d2, length)
 
-    # 6. sub-branches on the outer part of each branch
+
+def _branch_wood(p: SpeciesParams, br: _Branches) -> np.ndarray | None:
+    """Step 5: prisms of the two halves of every branch (None without branches).
+
+    Diameter ``dmin + branch_diameter_per_length * l`` at the base (``l``: branch length),
+    half of that excess at the bend, ``dmin = branch_diameter_base_m`` at the tip.
+    """
+    if not br.length.size:
+        return None
+    dmin = p["branch_diameter_base_m"]
+    dbase = dmin + p["branch_diameter_per_length"] * br.length
+    dmid = dmin + p["branch_diameter_per_length"] * 0.5 * br.length
+    return prisms(np.concatenate([br.b0, br.b1]), np.concatenate([br.b1, br.b2]),
+                  np.concatenate([dbase, dmid]), np.concatenate([dmid, np.full_like(dmid, dmin)]))
+
+
+def _sub_branches(p: SpeciesParams, h: float, br: _Branches,
+                  rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Step 6: sub-branches on the outer part of each branch.
+
+    Returns start points ``sp0``, end points ``sp1`` (k, 3) m and lengths ``sl`` (k,) m.
+    Sub-branches are shortened to stay within ``TOP_CLEARANCE`` of the top and above the
+    ground; shorter than ``MIN_BRANCH_M`` are dropped. Draws from ``rng``: positions along
+    the branch, then roll directions.
+    """
+    length = br.length
     start = p["shoot_start_frac"]
     sub_sp = p["sub_spacing_m"]
     n_sub = np.floor((1.0 - start) * length / sub_sp).astype(np.int64)
@@ -192,8 +207,8 @@ def build_tree(p: SpeciesParams, height: float, rng: np.random.Generator,
     idx = np.arange(owner.size) - np.repeat(np.cumsum(n_sub) - n_sub, n_sub)
     s = start * length[owner] + (idx + rng.random(owner.size)) * sub_sp
     s = np.minimum(s, length[owner])
-    sp0 = _along(b0[owner], d1[owner], d2[owner], length[owner], s)
-    par = np.where((s <= 0.5 * length[owner])[:, None], d1[owner], d2[owner])
+    sp0 = _along(br.b0[owner], br.d1[owner], br.d2[owner], length[owner], s)
+    par = np.where((s <= 0.5 * length[owner])[:, None], br.d1[owner], br.d2[owner])
     roll = isotropic(owner.size, rng)
     perp = roll - np.sum(roll * par, axis=1, keepdims=True) * par
     perp /= np.maximum(np.linalg.norm(perp, axis=1, keepdims=True), 1e-12)
@@ -207,18 +222,24 @@ def build_tree(p: SpeciesParams, height: float, rng: np.random.Generator,
     sl = sl * np.clip(np.minimum(up, down), 0.0, 1.0)
     ok = sl >= MIN_BRANCH_M
     sp0, sd, sl = sp0[ok], sd[ok], sl[ok]
-    sp1 = sp0 + sl[:, None] * sd
-    if sl.size:
-        wood.append(prisms(sp0, sp1, dmin + p["branch_diameter_per_length"] * sl, dmin))
+    return sp0, sp0 + sl[:, None] * sd, sl
 
-    # 7. foliage axes: upper stem, outer branch parts, sub-branches
-    inner = _along(b0, d1, d2, length, start * length)
-    first_outer = start < 0.5
-    ax0 = [np.array([[0.0, 0.0, z_cb]]), b1]
-    ax1 = [np.array([[0.0, 0.0, h]]), b2]
-    if first_outer:
+
+def _foliage_axes(p: SpeciesParams, h: float, z_cb: float, br: _Branches, sp0: np.ndarray,
+                  sp1: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Step 7: segments that carry shoots: the crown part of the stem, the outer branch
+    parts and the sub-branches.
+
+    Returns start points ``a0`` (k, 3), vectors ``seg`` (k, 3), lengths ``seg_len`` (k,) and
+    unit directions ``seg_dir`` (k, 3) of the non-degenerate segments, m.
+    """
+    start = p["shoot_start_frac"]
+    inner = _along(br.b0, br.d1, br.d2, br.length, start * br.length)
+    ax0 = [np.array([[0.0, 0.0, z_cb]]), br.b1]
+    ax1 = [np.array([[0.0, 0.0, h]]), br.b2]
+    if start < 0.5:  # the shoots start on the first half
         ax0.append(inner)
-        ax1.append(b1)
+        ax1.append(br.b1)
     ax0.append(sp0)
     ax1.append(sp1)
     a0, a1 = np.concatenate(ax0), np.concatenate(ax1)
@@ -226,9 +247,22 @@ def build_tree(p: SpeciesParams, height: float, rng: np.random.Generator,
     seg_len = np.linalg.norm(seg, axis=1)
     valid = seg_len > 0
     a0, seg, seg_len = a0[valid], seg[valid], seg_len[valid]
-    seg_dir = seg / seg_len[:, None]
+    return a0, seg, seg_len, seg / seg_len[:, None]
 
-    # 8. leaves
+
+def _tree_leaves(p: SpeciesParams, axes: tuple, lad: LeafAngleDistribution, leaf_area: float,
+                 leaf_area_scale: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Step 8: shoots placed along the foliage axes (by length), leaves on the shoots.
+
+    ``round(leaf_area / leaf_area_cm2)`` leaves with lognormal areas summing to
+    ``leaf_area`` (times ``leaf_area_scale``); needle shoots are two crossed planes per
+    shoot along its axis, broadleaves one per shoot and the rest at random on a petiole.
+    Returns the leaf triangles, the (n,) leaf areas, m^2, and the (n,) leaf lengths, m.
+    """
+    a0, seg, seg_len, seg_dir = axes
+    outline = load_outline(p.element)
+    needles = p.element == NEEDLE_SHOOT_ELEMENT
+    wf = outline.width_factor(p["leaf_length_width"])
     mean_area = p["leaf_area_cm2"] * 1e-4
     n_leaves = max(1, int(round(leaf_area / mean_area)))
     areas = lognormal_areas(n_leaves, leaf_area, p["leaf_area_cv"], rng) * leaf_area_scale
@@ -247,12 +281,49 @@ def build_tree(p: SpeciesParams, height: float, rng: np.random.Generator,
         ln = outline.length_for_area(0.5 * areas, wf)
         leaves = crossed_planes(outline, shoot_pos[leaf_shoot], normals, toward, ln, wf)
     else:
-        toward = iso
         base = shoot_pos[leaf_shoot] + p["petiole_m"] * iso
         ln = outline.length_for_area(areas, wf)
-        leaves = place_leaves(outline, base, normals, toward, ln, wf)
+        leaves = place_leaves(outline, base, normals, iso, ln, wf)
+    return leaves, areas, ln
 
-    width = float(ln.max()) * wf * outline.width
+
+def build_tree(p: SpeciesParams, height: float, rng: np.random.Generator,
+               lad: LeafAngleDistribution, leaf_area: float, leaf_area_scale: float) -> Plant:
+    """One tree of species ``p`` at the origin (steps 1-8 of the module docstring).
+
+    Parameters
+    ----------
+    p : SpeciesParams
+        A ``tree`` species.
+    height : float, m
+    rng : numpy.random.Generator
+    lad : LeafAngleDistribution
+        Leaf (first shoot plane) inclinations.
+    leaf_area : float, m^2
+        Total one-sided leaf area to realise (the allometry times any jitter).
+    leaf_area_scale : float
+        Factor on every leaf's area after the structure is fixed (sensitivity sweeps).
+
+    Returns
+    -------
+    Plant
+    """
+    h = float(height)
+    z_cb = p["crown_base_frac"] * h
+    wood = [_stem(p, h)]
+    br = _branches(p, h, h - z_cb, rng)
+    branch_wood = _branch_wood(p, br)
+    if branch_wood is not None:
+        wood.append(branch_wood)
+    sp0, sp1, sl = _sub_branches(p, h, br, rng)
+    if sl.size:
+        dmin = p["branch_diameter_base_m"]
+        wood.append(prisms(sp0, sp1, dmin + p["branch_diameter_per_length"] * sl, dmin))
+    axes = _foliage_axes(p, h, z_cb, br, sp0, sp1)
+    leaves, areas, ln = _tree_leaves(p, axes, lad, leaf_area, leaf_area_scale, rng)
+
+    outline = load_outline(p.element)
+    width = float(ln.max()) * outline.width_factor(p["leaf_length_width"]) * outline.width
     return Plant(
         leaves=leaves,
         leaf_area_m2=float(areas.sum()),
