@@ -246,12 +246,12 @@ def test_load_calibration(tmp_path):
     sw = gaussian_system_waveform(7.2, S_PEAK)
     sw.save(tmp_path / "s.parquet")
     (tmp_path / "s.json").write_text(json.dumps(dict(dataset="d", noise_mean=9.5, noise_sd=1.25)))
-    cal = load_calibration(tmp_path / "s.parquet", tmp_path / "s.json")
+    cal = load_calibration(tmp_path / "s.json", tmp_path / "s.parquet")
     assert (cal.noise_mean, cal.noise_sd, cal.range_correction) == (9.5, 1.25, None)
     assert cal.system.fwhm_ns == pytest.approx(7.2, rel=1e-3)
     (tmp_path / "bad.json").write_text(json.dumps(dict(dataset="d", noise_mean=9.5)))
     with pytest.raises(ValueError, match="noise_sd"):
-        load_calibration(tmp_path / "s.parquet", tmp_path / "bad.json")
+        load_calibration(tmp_path / "bad.json", tmp_path / "s.parquet")
 
 
 def test_cli_end_to_end_with_the_vegetation_models(tmp_path):

@@ -21,11 +21,11 @@ from waveforest.sensor import (
     load_system_waveform,
     noise_stats,
     range_correction_of,
+    read_calibration_json,
 )
 from waveforest.sensor import calibration as cal_mod
 from waveforest.stages import agc as agc_stage
 from waveforest.stages import calibrate as cal_stage
-from waveforest.stages.simulate import load_calibration as load_sim_calibration
 
 S_L2_TOL = 0.02  # "recovered S(t) within 2 % (L2, relative)"
 FWHM_PER_SD = 2.0 * math.sqrt(2.0 * math.log(2.0))
@@ -149,13 +149,13 @@ def test_calibration_stage_after_agc(tmp_path):
     assert set(res["n_per_target"]) == {"tarp14", "tarp21", "tarp41", "asphalt", "sand"}  # grass: AGC only
     chk = res["cfd_check_before"]
     assert chk["frac_within_0_10_m"] > 0.95 and abs(chk["bias_m"]) < 0.015  # the DR echoes are our own CFD's
-    loaded = load_calibration(tmp_path / "S.json")
+    loaded = read_calibration_json(tmp_path / "S.json")
     assert loaded["dataset"] == "2010_12_1" and loaded["system_waveform"] == "S.parquet"
     assert range_correction_of(loaded).is_identity or len(range_correction_of(loaded).apeak) >= 1
     # targets only: no echo wider than the pulse, so the configured CFD is kept, and it travels with the file
     assert not res["cfd_tuning"]["tuned"] and "width class" in res["cfd_tuning"]["reason"]
     assert cfd_of(loaded) == CFDParams(fraction=0.5, arming_sd=4.0).resolved(res["fwhm_ns"])
-    sim_cal = load_sim_calibration(tmp_path / "S.parquet", tmp_path / "S.json")
+    sim_cal = load_calibration(tmp_path / "S.json", tmp_path / "S.parquet")
     assert sim_cal.cfd == cfd_of(loaded)
     assert (tmp_path / "S.png").stat().st_size > 1000
     assert est.s_sd is not None and est.meta["dataset"] == "2010_12_1"

@@ -37,7 +37,7 @@ from scipy.signal import lfilter
 
 from waveforest.campaign.layout import Frame
 from waveforest.campaign.params import azimuths
-from waveforest.rng import generator
+from waveforest.rng import stream_generator
 
 
 def mean_secant(max_zenith_deg: float) -> float:
@@ -177,7 +177,7 @@ def plan_flight(row: pd.Series, frame: Frame, layout: dict, density_scale: float
     if density_scale <= 0:
         raise ValueError("density_scale must be > 0")
     fl, area = layout["flight"], layout["area"]
-    rng = generator(seed, "flight", str(row["dataset"]))
+    rng = stream_generator(seed, "flight", str(row["dataset"]))
     theta = float(row["max_scan_zenith_deg"])
     height = float(row["mean_range_m"]) / mean_secant(theta)
     half = height * np.tan(np.radians(theta))
@@ -247,7 +247,7 @@ def site_pulses(plan: FlightPlan, sites: pd.DataFrame, layout: dict, seed: int,
             cs, cw, gz, r = float(site["s"]), float(site["w"]), float(site["ground_z"]), float(site["disc_m"])
             if abs(cw - st.w_line) > (st.z_fly - gz) * tan_max - st.sway_amp - margin - r:
                 continue
-            rng = generator(seed, "scan", plan.dataset, st.index, str(site["site"]))
+            rng = stream_generator(seed, "scan", plan.dataset, st.index, str(site["site"]))
             j = np.arange(np.ceil((cs - r - st.scan_phase) / delta), np.floor((cs + r - st.scan_phase) / delta) + 1)
             if j.size == 0:
                 continue
@@ -275,7 +275,7 @@ def site_pulses(plan: FlightPlan, sites: pd.DataFrame, layout: dict, seed: int,
         return pd.DataFrame({c: [] for c in PULSE_COLUMNS})
     df = pd.concat(frames, ignore_index=True)
     if max_per_site is not None:
-        rng = generator(seed, "cap", plan.dataset)
+        rng = stream_generator(seed, "cap", plan.dataset)
         u = rng.random(len(df))
         rank = pd.Series(u).groupby(df["site"].to_numpy()).rank(method="first").to_numpy()
         df = df[rank <= max_per_site].reset_index(drop=True)

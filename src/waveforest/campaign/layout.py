@@ -38,7 +38,7 @@ import numpy as np
 import pandas as pd
 
 from waveforest.campaign.params import CampaignParamsError, load_design_counts, load_layout, load_targets
-from waveforest.rng import generator
+from waveforest.rng import stream_generator
 
 YEARS = (2010, 2012)
 """Campaign years (docs/method.md §(a))."""
@@ -218,7 +218,7 @@ def build_layout(species: pd.DataFrame, samples_per_species: int, seed: int) -> 
         raise CampaignParamsError("campaign.samples_per_species: expected >= 1")
     lay = load_layout()
     frame = area_frame(lay)
-    rng = generator(seed, "layout")
+    rng = stream_generator(seed, "layout")
     sp = _merge_species(species)
     area, st, smp = lay["area"], lay["stands"], lay["samples"]
     half_s = float(area["along_m"]) / 2 - float(st["edge_margin_m"])

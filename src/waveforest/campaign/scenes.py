@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from waveforest.rng import int_seed
+from waveforest.rng import stream_seed31
 from waveforest.scene import Scene
 from waveforest.vegetation import build_scene
 
@@ -83,5 +83,5 @@ def sample_scene(species: str, height_m: float, seed: int, sample_id: str, *, gr
         ``understory``, ``clumping``, ``lad_shift``, ``leaf_albedo`` (missing = off).
     """
 
-    return build_scene(species, float(height_m), int_seed(seed, "scene", sample_id), ground_rho=ground_rho,
+    return build_scene(species, float(height_m), stream_seed31(seed, "scene", sample_id), ground_rho=ground_rho,
                        lai_jitter=lai_jitter, **vegetation_effects)

@@ -31,7 +31,7 @@ from waveforest.campaign.scenes import TARGET_RAYS, sample_scene, target_scene
 from waveforest.campaign.truth_sensor import TruthSensor, unit_gain_peaks
 from waveforest.constants import BIN_NS
 from waveforest.mcrt import Beams, prepare, trace
-from waveforest.rng import int_seed
+from waveforest.rng import stream_seed31
 
 SIGMA_TRIM_REL = 1e-6
 """sigma(t) bins at the ends of a site's batch below this fraction of its largest bin are not kept."""
@@ -162,7 +162,7 @@ def trace_site(job: SiteJob, st: TraceSettings, threads: int | None = None) -> S
     t_trace = time.perf_counter()
     beams = Beams.from_divergence(job.origin, job.direction, job.divergence_mrad, job.range_m)
     res = trace(prepared, beams, n_rays=n_rays, max_order=st.max_order, bin_ns=BIN_NS,
-                viewed_diameter_m=st.viewed_diameter_m, seed=int_seed(st.seed, "trace", job.site),
+                viewed_diameter_m=st.viewed_diameter_m, seed=stream_seed31(st.seed, "trace", job.site),
                 specular=st.specular, hotspot=st.hotspot, threads=threads)
     cover = None
     if job.kind == "sample":

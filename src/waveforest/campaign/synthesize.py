@@ -59,7 +59,7 @@ from waveforest.effects import CATALOGUE, active, parse_effects
 from waveforest.errors import WaveforestError
 from waveforest.io.las.write import write_waveform_las
 from waveforest.io.pulses import PULSE_SCHEMA, padded_to_list, write_table
-from waveforest.rng import generator
+from waveforest.rng import stream_generator
 from waveforest.vegetation import species_table
 
 VEGETATION_EFFECTS = ("understory", "clumping", "lad_shift", "leaf_albedo")
@@ -229,7 +229,7 @@ def run(cfg: dict, out_dir: str | os.PathLike, effects=None, seed: int | None = 
 
     # canopy cover (visual estimate) for the marked S12 samples
     smp = lay["samples"]
-    crng = generator(seed, "cover")
+    crng = stream_generator(seed, "cover")
     noise = crng.normal(0.0, float(smp["canopy_cover_sd_pct"]), len(layout.fields))
     est = layout.fields["sample_id"].map(cover_true).to_numpy(dtype=float) * 100.0 + noise
     step = float(smp["canopy_cover_step_pct"])
@@ -379,7 +379,7 @@ def _record_dataset(row, sensor: TruthSensor, plan, p: pd.DataFrame, a0: np.ndar
     ds = row["dataset"]
     n = len(p)
     agc, gain, observed = agc_sequence(p["gps_time"].to_numpy(), a0, p["strip"].to_numpy(), sensor.agc,
-                                       generator(seed, "agc", ds), saturation_dn=eff["nonlinearity"])
+                                       stream_generator(seed, "agc", ds), saturation_dn=eff["nonlinearity"])
     n_s = sensor.n_samples
     samples = np.zeros((n, n_s), dtype=np.uint8)
     first = np.full(n, np.nan)
@@ -389,20 +389,20 @@ def _record_dataset(row, sensor: TruthSensor, plan, p: pd.DataFrame, a0: np.ndar
     n_echo = np.zeros(n, dtype=np.int64)
     walk = np.full((n, MAX_ECHOES), np.nan)
     for site, rows, sig, t0, rg in batches:
-        rec = record(sensor, sig, t0, rg, gain[rows], generator(seed, "sensor", ds, site),
+        rec = record(sensor, sig, t0, rg, gain[rows], stream_generator(seed, "sensor", ds, site),
                      noise_autocorr=eff["noise_autocorr"], nonlinearity=eff["nonlinearity"],
                      trigger_loss=eff["trigger_loss"])
         samples[rows], first[rows], echo_ns[rows] = rec.samples, rec.first_sample_ns, rec.echo_ns
         echo_amp[rows], inten[rows], n_echo[rows], walk[rows] = rec.echo_amp_dn, rec.intensity, rec.n_echoes, rec.walk_m
 
     # geometry: true positions, then the recording errors
-    srng = generator(seed, "strip_error", ds)
+    srng = stream_generator(seed, "strip_error", ds)
     n_strips = len(plan.strips)
     strip_off = np.column_stack([srng.normal(0, sensor.strip_xy_sd_m, (n_strips, 2)),
                                  srng.normal(0, sensor.strip_z_sd_m, n_strips)])
     traj = plan.trajectory(float(lay["flight"]["trajectory_hz"]))
     traj_xy, xy = georeferencing_error(traj, p["strip"].to_numpy(), p["gps_time"].to_numpy(), eff["xy_error"],
-                                       float(lay["flight"]["georef_tau_s"]), generator(seed, "xy_error", ds))
+                                       float(lay["flight"]["georef_tau_s"]), stream_generator(seed, "xy_error", ds))
     sensor_true = p[["sensor_x", "sensor_y", "sensor_z"]].to_numpy()
     d = p[["dir_x", "dir_y", "dir_z"]].to_numpy()
     shift = strip_off[p["strip"].to_numpy()] + np.column_stack([xy, np.zeros(n)])

@@ -11,7 +11,6 @@ sampling, rounding; then the CFD and the features exactly as for real waveforms.
 
 from __future__ import annotations
 
-import zlib
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -25,47 +24,6 @@ from waveforest.sensor.agc import divide_gain
 
 MAX_ECHOES = 4
 """DR echoes per pulse (ALS60, docs/method.md §(a))."""
-
-
-def stable_hash(*parts) -> int:
-    """A 32-bit hash of ints and strings that is the same in every process and platform."""
-    text = "\x1f".join(str(p) for p in parts)
-    return zlib.crc32(text.encode("utf-8"))
-
-
-_M64 = np.uint64(0xFFFFFFFFFFFFFFFF)
-
-
-def hash_ids(key: int, ids) -> np.ndarray:
-    """Vectorised 64-bit mix (splitmix64 finaliser) of integer ids under a key.
-
-    Parameters
-    ----------
-    key : int
-        E.g. :func:`stable_hash` of the seed, dataset and purpose.
-    ids : (n,) int
-
-    Returns
-    -------
-    (n,) uint64, uniformly scrambled; the same in every process.
-    """
-    with np.errstate(over="ignore"):
-        z = np.asarray(ids, dtype=np.int64).astype(np.uint64) ^ np.uint64(int(key) & 0xFFFFFFFFFFFFFFFF)
-        z = z + np.uint64(0x9E3779B97F4A7C15)
-        z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
-        z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
-        return z ^ (z >> np.uint64(31))
-
-
-def seed_sequence(*parts) -> np.random.SeedSequence:
-    """A SeedSequence from ints and strings (strings enter through :func:`stable_hash`)."""
-    entropy = [int(p) if isinstance(p, (int, np.integer)) else stable_hash(p) for p in parts]
-    return np.random.SeedSequence(entropy)
-
-
-def int_seed(*parts) -> int:
-    """A non-negative 63-bit integer seed derived from ``parts``."""
-    return int(seed_sequence(*parts).generate_state(1, dtype=np.uint64)[0] >> np.uint64(1))
 
 
 def split_effects(effects: dict | None) -> tuple[dict, dict, dict, float]:

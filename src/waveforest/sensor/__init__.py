@@ -23,7 +23,14 @@ from waveforest.sensor.agc import (
     normalise_waveforms,
     peak_amplitudes,
 )
-from waveforest.sensor.calibration import calibrate_system_waveform, cfd_of, load_calibration, range_correction_of
+from waveforest.sensor.calibration import (
+    Calibration,
+    calibrate_system_waveform,
+    cfd_of,
+    load_calibration,
+    range_correction_of,
+    read_calibration_json,
+)
 from waveforest.sensor.cfd import (
     Echoes,
     RangeCorrection,
@@ -47,7 +54,8 @@ __all__ = [
     "FeatureParams", "FEATURE_NAMES", "first_echo_features", "feature_table",
     "agc_gain", "normalise_intensity", "normalise_waveforms", "normalise_pulses", "peak_amplitudes",
     "nested_cv", "fit_b",
-    "calibrate_system_waveform", "cfd_of", "load_calibration", "range_correction_of",
+    "Calibration", "calibrate_system_waveform", "load_calibration", "read_calibration_json", "cfd_of",
+    "range_correction_of",
     "NoiseStats", "noise_stats", "ar1",
     "target_membership", "pulse_targets",
 ]

@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -47,7 +48,7 @@ import waveforest.sensor._checks as _checks
 from waveforest.errors import WaveforestError
 from waveforest.sensor.cfd import RangeCorrection
 from waveforest.sensor.params import CFD_CHECK_M, FINE_NS, RANGE_GATE_M, CFDParams
-from waveforest.sensor.system_waveform import SystemWaveform
+from waveforest.sensor.system_waveform import SystemWaveform, load_system_waveform
 
 _CHUNK = 2048
 """Pulses per block of the vectorised resampling (bounds memory to ~CHUNK x window samples)."""
@@ -179,16 +180,6 @@ def cfd_check(dr_minus_cfd_m) -> dict:
             "bias_m": float(d.mean()), "sd_m": float(d.std(ddof=1)) if d.size > 1 else 0.0}
 
 
-
-
-
-
-
-
-
-
-
-
 CALIBRATION_EFFECTS = ("nonlinearity", "trigger_loss")
 """Sensor effects that also shape the calibration targets' waveforms (:func:`linearise`)."""
 
@@ -204,12 +195,61 @@ def model_sensor_effects(cfg: dict) -> dict:
     return calibration_effects(cfg["simulate"]["effects"])
 
 
+def cfd_of(meta: dict) -> CFDParams | None:
+    """The CFD a calibration JSON dict's range correction was fitted with (None if absent: older files)."""
+    c = meta.get("cfd")
+    return CFDParams.from_dict(c) if c else None
 
 
+def range_correction_of(meta: dict) -> RangeCorrection:
+    """The range correction stored in a calibration JSON dict (identity if absent)."""
+    return RangeCorrection.from_dict(meta.get("range_correction"))
 
 
-def load_calibration(path) -> dict:
-    """A calibration JSON written by the ``calibrate`` stage (checked for the noise keys)."""
+@dataclass(frozen=True)
+class Calibration:
+    """A dataset's calibration, as the ``calibrate`` stage wrote it (docs/method.md §(e), §(f)).
+
+    Attributes
+    ----------
+    system : SystemWaveform or None
+        S(t), DN m^2 per unit sigma (Eq. 8); None when loaded without its Parquet file.
+    noise_mean, noise_sd : float
+        c-bar and the noise SD, DN.
+    range_correction : RangeCorrection or None
+        dR(Apeak) of the CFD; None = identity (none fitted, or absent from the file).
+    cfd : CFDParams or None
+        The CFD the range correction was fitted with; None = the config's ``sensor.cfd``.
+    meta : dict
+        The whole calibration JSON (dataset, fwhm_ns, AGC fit, CFD check, ...); empty when
+        built in memory.
+    """
+
+    system: SystemWaveform | None
+    noise_mean: float
+    noise_sd: float
+    range_correction: RangeCorrection | None = None
+    cfd: CFDParams | None = None
+    meta: dict = field(default_factory=dict, compare=False)
+
+    @property
+    def dataset(self) -> str | None:
+        """The dataset the calibration belongs to (None when built in memory)."""
+        return self.meta.get("dataset")
+
+    def range_correction_or_identity(self) -> RangeCorrection:
+        """:attr:`range_correction`, the identity when None."""
+        return self.range_correction if self.range_correction is not None else RangeCorrection.identity()
+
+
+def read_calibration_json(path) -> dict:
+    """The calibration JSON written by the ``calibrate`` stage, checked for its required keys.
+
+    Raises
+    ------
+    WaveforestError
+        The file is missing, not valid JSON, or lacks ``dataset``, ``noise_mean`` or ``noise_sd``.
+    """
     path = Path(path)
     if not path.exists():
         raise WaveforestError(f"{path}: no such calibration file")
@@ -223,12 +263,23 @@ def load_calibration(path) -> dict:
     return d
 
 
-def cfd_of(calibration: dict) -> CFDParams | None:
-    """The CFD a calibration JSON's range correction was fitted with (None if absent: older files)."""
-    c = calibration.get("cfd")
-    return CFDParams.from_dict(c) if c else None
+def load_calibration(json_path, system_path=None) -> Calibration:
+    """A dataset's :class:`Calibration` from ``calibration/{dataset}.json`` [and ``.parquet``].
 
+    Parameters
+    ----------
+    json_path : path
+        The calibration JSON (noise, CFD, range correction; :func:`read_calibration_json`).
+    system_path : path, optional
+        The calibrated S(t) (Parquet, :func:`load_system_waveform`); None: ``system`` is None.
 
-def range_correction_of(calibration: dict) -> RangeCorrection:
-    """The range correction stored in a calibration JSON (identity if absent)."""
-    return RangeCorrection.from_dict(calibration.get("range_correction"))
+    Raises
+    ------
+    WaveforestError
+        As :func:`read_calibration_json` and :func:`load_system_waveform`.
+    """
+    meta = read_calibration_json(json_path)
+    rc = range_correction_of(meta)
+    system = None if system_path is None else load_system_waveform(system_path)
+    return Calibration(system, float(meta["noise_mean"]), float(meta["noise_sd"]),
+                       None if rc.is_identity else rc, cfd_of(meta), meta)

@@ -14,7 +14,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from waveforest.errors import WaveforestError
-from waveforest.sensor import gaussian_system_waveform, load_calibration, load_system_waveform
+from waveforest.sensor.calibration import load_calibration
+from waveforest.sensor.system_waveform import gaussian_system_waveform, load_system_waveform
 
 
 @dataclass(frozen=True)
@@ -50,9 +51,8 @@ def reference_sensor(cfg: dict, system_path=None, calibration_path=None, range_m
         system = load_system_waveform(system_path)
         cal = Path(calibration_path) if calibration_path else system_path.with_suffix(".json")
         if cal.exists():
-
-            meta = load_calibration(cal)
-            return ReferenceSensor(system, float(meta["noise_mean"]), float(meta["noise_sd"]),
+            c = load_calibration(cal)
+            return ReferenceSensor(system, c.noise_mean, c.noise_sd,
                                    f"calibrated S(t) {system_path.name}, noise {cal.name}")
         return ReferenceSensor(system, float(ref["noise_mean"]), float(ref["noise_sd"]),
                                f"calibrated S(t) {system_path.name}, configured noise")

@@ -16,7 +16,7 @@ from waveforest.cliutil import (
 )
 from waveforest.errors import WaveforestError
 from waveforest.io.pulses import check_pulses, iter_pulses, write_table
-from waveforest.sensor.calibration import cfd_of, load_calibration, range_correction_of
+from waveforest.sensor.calibration import load_calibration
 from waveforest.sensor.features import FEATURE_NAMES, feature_table
 from waveforest.sensor.params import CFDParams, FeatureParams
 
@@ -38,15 +38,14 @@ def run(pulse_paths, calibration_paths, out_path, cfg: dict, *, batch_rows: int 
 
     from tqdm import tqdm
 
-
     noise, corrections, cfd = {}, {}, {}
     use_rc = bool(cfg["sensor"]["cfd"]["range_correction"])
     for p in calibration_paths:
-        c = load_calibration(p)
-        noise[c["dataset"]] = c
-        cfd[c["dataset"]] = cfd_of(c) or CFDParams.from_config(cfg)
+        cal = load_calibration(p)
+        noise[cal.dataset] = cal.meta
+        cfd[cal.dataset] = cal.cfd or CFDParams.from_config(cfg)
         if use_rc:
-            corrections[c["dataset"]] = range_correction_of(c)
+            corrections[cal.dataset] = cal.range_correction_or_identity()
     params = FeatureParams.from_config(cfg)
     parts = []
     for path in pulse_paths:

@@ -34,8 +34,9 @@ from waveforest.cliutil import (
 from waveforest.constants import RANGE_PER_NS
 from waveforest.io.pulses import write_table
 from waveforest.mcrt import Beams
-from waveforest.model.forward import MCRTSetup, SensorSetup, int_seed, seed_sequence, trace_and_render
+from waveforest.model.forward import MCRTSetup, SensorSetup, trace_and_render
 from waveforest.report import plots
+from waveforest.rng import hashed_seed63, hashed_sequence
 from waveforest.sensor.reference import reference_sensor
 from waveforest.vegetation import build_scene
 
@@ -70,7 +71,7 @@ def geometry(cfg: dict) -> Geometry:
     """The pulses' beams (the same in every setting)."""
     s = cfg["sensitivity"]
     n, k = int(s["pulses"]), int(s["instances"])
-    rng = np.random.default_rng(seed_sequence(int(cfg["seed"]), "sensitivity", "geometry"))
+    rng = np.random.default_rng(hashed_sequence(int(cfg["seed"]), "sensitivity", "geometry"))
     jitter = rng.uniform(-float(s["xy_jitter_m"]), float(s["xy_jitter_m"]), (n, 2))
     r = float(s["range_m"])
     origin = np.column_stack([jitter, np.full(n, r)])
@@ -93,11 +94,11 @@ def simulate_setting(build_kwargs: dict, geom: Geometry, setup: SensorSetup, mcr
     frames = []
     for k in np.unique(geom.instance):
         idx = np.flatnonzero(geom.instance == k)
-        scene = scene_builder("birch", float(s["height_m"]), int_seed(seed, "sensitivity", "scene", int(k)),
+        scene = scene_builder("birch", float(s["height_m"]), hashed_seed63(seed, "sensitivity", "scene", int(k)),
                             ground=False, lai_jitter=float(cfg["vegetation"]["lai_jitter"]), **build_kwargs)
         beams = Beams.from_divergence(geom.origin[idx], geom.direction[idx], float(s["divergence_mrad"]),
                                       geom.range_m[idx])
-        ss = seed_sequence(seed, "sensitivity", "pulses", int(k))
+        ss = hashed_sequence(seed, "sensitivity", "pulses", int(k))
         trace_seed = int(ss.generate_state(1, dtype=np.uint64)[0] >> np.uint64(1))
         sim, _ = trace_and_render(scene, beams, geom.range_m[idx], mcrt, setup, trace_seed,
                                   np.random.default_rng(ss), threads)

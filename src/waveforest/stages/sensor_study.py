@@ -40,8 +40,9 @@ from waveforest.cliutil import (
 )
 from waveforest.constants import RANGE_PER_NS
 from waveforest.mcrt import Beams, prepare, trace
-from waveforest.model.forward import MCRTSetup, SensorSetup, int_seed, render_sigma, seed_sequence, stable_hash
+from waveforest.model.forward import MCRTSetup, SensorSetup, render_sigma
 from waveforest.report import plots
+from waveforest.rng import hashed_seed63, hashed_sequence, stable_hash
 from waveforest.sensor.reference import reference_sensor
 from waveforest.stats import lda
 from waveforest.vegetation import build_scene
@@ -88,7 +89,7 @@ def species_pulses(cfg: dict, species: str) -> SpeciesPulses:
     lo, hi = (float(v) for v in s["heights_m"][species])
     n = int(s["pulses"])
     k = instances_of(cfg)
-    rng = np.random.default_rng(seed_sequence(seed, "sensor_study", species, "geometry"))
+    rng = np.random.default_rng(hashed_sequence(seed, "sensor_study", species, "geometry"))
     heights = rng.uniform(lo, hi, k)
     instance = np.sort(np.arange(n) % k)
     zen = np.radians(rng.uniform(0.0, float(s["max_scan_zenith_deg"]), n))
@@ -125,13 +126,13 @@ def trace_species(sp: SpeciesPulses, divergences, mcrt: MCRTSetup, cfg: dict, th
     out: dict = {}
     for k in np.unique(sp.instance):
         idx = np.flatnonzero(sp.instance == k)
-        scene_seed = int_seed(seed, "sensor_study", sp.species, "scene", int(k))
+        scene_seed = hashed_seed63(seed, "sensor_study", sp.species, "scene", int(k))
         scene = scene_builder(sp.species, float(sp.heights[k]), scene_seed,
                               ground_rho=float(veg["ground_rho"]), lai_jitter=float(veg["lai_jitter"]))
         prepared = prepare(scene)
         for div in divergences:
             beams = Beams.from_divergence(sp.origin[idx], sp.direction[idx], float(div), sp.range_m[idx])
-            res = trace(prepared, beams, seed=int_seed(seed, "sensor_study", sp.species, "mcrt", int(k)),
+            res = trace(prepared, beams, seed=hashed_seed63(seed, "sensor_study", sp.species, "mcrt", int(k)),
                         threads=threads, **mcrt.kwargs())
             if div not in out:
                 out[div] = (np.zeros((n, res.sigma.shape[1])), np.zeros(n), np.zeros(n))
@@ -235,7 +236,7 @@ def run(out_dir, cfg: dict, system_path=None, calibration_path=None, progress: b
             setup = replace(base, sampling_ns=value)
         frames = []
         for sp in species:
-            rng = np.random.default_rng(seed_sequence(seed, "sensor_study", "render", param,
+            rng = np.random.default_rng(hashed_sequence(seed, "sensor_study", "render", param,
                                                       stable_hash(repr(value)), sp))
             sigma, t0, total = sigmas[(div, sp)]
             frames.append(features_of(pulses[sp], sigma, t0, total, setup, rng, min_h.get(sp)))

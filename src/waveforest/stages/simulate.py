@@ -65,20 +65,11 @@ from waveforest.errors import WaveforestError
 from waveforest.io.pulses import PULSE_SCHEMA, padded_to_list, read_pulses, write_pulses
 from waveforest.io.tables import dataset_row, divergence_mrad, read_datasets, read_fields
 from waveforest.mcrt import Beams
-from waveforest.model.forward import (
-    MCRTSetup,
-    SensorSetup,
-    hash_ids,
-    int_seed,
-    seed_sequence,
-    split_effects,
-    stable_hash,
-    trace_and_render,
-)
-from waveforest.sensor import cfd_of, load_system_waveform, range_correction_of
-from waveforest.sensor import load_calibration as load_json
+from waveforest.model.forward import MCRTSetup, SensorSetup, split_effects, trace_and_render
+from waveforest.rng import hash_ids, hashed_seed63, hashed_sequence, stable_hash
 from waveforest.sensor._checks import gain_or_one
 from waveforest.sensor.agc import GAIN_COLUMN
+from waveforest.sensor.calibration import Calibration, load_calibration
 from waveforest.stages.select import dataset_of
 from waveforest.vegetation import build_scene
 
@@ -91,26 +82,6 @@ _CARRY = ("sample_id", "species", "functional_group", "ground_z", "sample_x", "s
 
 _SCALARS = ["dataset", "pulse_id", "gps_time", "sensor_x", "sensor_y", "sensor_z", "dir_x", "dir_y", "dir_z",
             "anchor_x", "anchor_y", "anchor_z", "range_m", "scan_angle_deg", "n_echoes"]
-
-
-@dataclass(frozen=True)
-class Calibration:
-    """A dataset's calibration: S(t), noise, the CFD and its range correction (None: identity / from the config)."""
-
-    system: object
-    noise_mean: float
-    noise_sd: float
-    range_correction: object = None
-    cfd: object = None
-
-
-def load_calibration(system_path, json_path) -> Calibration:
-    """Read ``calibration/{dataset}.parquet`` (S(t)) and ``.json`` (noise, the CFD and its range correction)."""
-
-    meta = load_json(json_path)
-    rc = range_correction_of(meta)
-    return Calibration(load_system_waveform(system_path), float(meta["noise_mean"]), float(meta["noise_sd"]),
-                       None if rc.is_identity else rc, cfd_of(meta))
 
 
 def plan(selected: pd.DataFrame, cfg: dict, dataset: str) -> pd.DataFrame:
@@ -253,14 +224,14 @@ def simulate_pulses(selected: pa.Table, dataset_info: pd.Series, calibration: Ca
         first = d.iloc[0]
         sample_id, inst = str(first["sample_id"]), int(g["instance"].iloc[0])
         scene = scene_builder(str(first["species"]), float(first["height_m"]),
-                            int_seed(seed, "scene", sample_id, inst),
+                            hashed_seed63(seed, "scene", sample_id, inst),
                             ground_rho=float(veg["ground_rho"]), lai_jitter=float(veg["lai_jitter"]), **veg_fx)
         sensor, direction, r = beam_geometry(d)
         ok = np.all(np.isfinite(sensor), axis=1) & np.isfinite(r) & (r > 0)
         n_no_echo += int((~ok).sum())
         if ok.any():
             rows, sensor, direction, r, d = rows[ok], sensor[ok], direction[ok], r[ok], d[ok]
-            ss = seed_sequence(seed, dataset, "pulses", sample_id, inst, *((int(stream),) if stream else ()))
+            ss = hashed_sequence(seed, dataset, "pulses", sample_id, inst, *((int(stream),) if stream else ()))
             trace_seed = int(ss.spawn(1)[0].generate_state(1, dtype=np.uint64)[0] >> np.uint64(1))
             rng = np.random.default_rng(ss)
             offset = np.zeros_like(sensor)
@@ -367,7 +338,7 @@ def run(selected_path, datasets_path, system_path, calibration_path, out_path, c
     else:
         name = Path(selected_path).stem
     info = dataset_row(datasets, name, datasets_path)
-    cal = load_calibration(system_path, calibration_path)
+    cal = load_calibration(calibration_path, system_path)
     table, summary = simulate_pulses(selected, info, cal, cfg, chunk=chunk, chunks=chunks, effects=effects)
     write_pulses(table, out_path)
     return summary
