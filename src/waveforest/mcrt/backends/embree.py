@@ -74,6 +74,8 @@ _INVALID_ID = 0xFFFFFFFF
 # RTCRayHit field offsets in float32 / uint32 units
 _ORG, _TNEAR, _DIR, _TIME, _TFAR, _MASK, _ID, _FLAGS = 0, 3, 4, 7, 8, 9, 10, 11
 _PRIM, _GEOM, _INST = 17, 18, 19
+_NO_PRIM = np.empty(0, np.int32)
+"""The ``prim`` argument of an occlusion query (not written)."""
 
 _LIB = None
 _DEVICE = None
@@ -162,7 +164,14 @@ def _set_ray(f, u, org, dirs, i, tfar):
 
 
 @njit(cache=True, parallel=True, nogil=True)
-def _intersect_kernel(scene, org, dirs, tfar, prim, slot_f, slot_u):
+def _query_kernel(scene, org, dirs, t, prim, occlusion, slot_f, slot_u):
+    """Trace ray ``i`` from ``t = 0`` to ``t[i]`` for every ``i``, in blocks of ``BLOCK_RAYS``.
+
+    Nearest hit (``occlusion`` False): ``t[i]`` becomes the hit distance (``inf`` on a miss)
+    and ``prim[i]`` the triangle (-1 on a miss). Occlusion (True): ``t[i]`` becomes ``-inf``
+    where something lies on the ray (Embree's convention) and ``prim`` is not touched.
+    ``org``, ``dirs`` (m, 3) float32; ``t`` (m,) float32; ``prim`` (m,) int32.
+    """
     m = org.shape[0]
     n_blocks = (m + BLOCK_RAYS - 1) // BLOCK_RAYS
     for c in prange(n_blocks):
@@ -170,29 +179,19 @@ def _intersect_kernel(scene, org, dirs, tfar, prim, slot_f, slot_u):
         u = slot_u[c]
         addr = f.ctypes.data
         for i in range(c * BLOCK_RAYS, min(m, (c + 1) * BLOCK_RAYS)):
-            _set_ray(f, u, org, dirs, i, np.inf)
+            _set_ray(f, u, org, dirs, i, t[i])
+            if occlusion:
+                _rtc_occluded1(scene, addr, 0)
+                t[i] = f[_TFAR]
+                continue
             u[_PRIM], u[_GEOM], u[_INST] = _INVALID_ID, _INVALID_ID, _INVALID_ID
             _rtc_intersect1(scene, addr, 0)
             if u[_GEOM] == _INVALID_ID:
-                tfar[i] = np.inf
+                t[i] = np.inf
                 prim[i] = -1
             else:
-                tfar[i] = f[_TFAR]
+                t[i] = f[_TFAR]
                 prim[i] = np.int32(u[_PRIM])
-
-
-@njit(cache=True, parallel=True, nogil=True)
-def _occluded_kernel(scene, org, dirs, tmax, out, slot_f, slot_u):
-    m = org.shape[0]
-    n_blocks = (m + BLOCK_RAYS - 1) // BLOCK_RAYS
-    for c in prange(n_blocks):
-        f = slot_f[c]
-        u = slot_u[c]
-        addr = f.ctypes.data
-        for i in range(c * BLOCK_RAYS, min(m, (c + 1) * BLOCK_RAYS)):
-            _set_ray(f, u, org, dirs, i, tmax[i])
-            _rtc_occluded1(scene, addr, 0)
-            out[i] = f[_TFAR] == -np.inf  # Embree sets tfar = -inf on an occluded ray
 
 
 @njit(cache=True, nogil=True)
@@ -307,14 +306,14 @@ class DirectEmbreeIntersector(RayQueries):
 
     def _intersect(self, o, d, tfar, prim, threads):
         order = coherent_order(o, CELL_BITS)
-        ts, ps = np.empty_like(tfar), np.empty_like(prim)
+        ts, ps = np.full_like(tfar, np.inf), np.empty_like(prim)
         with NumbaThreads(1 if len(o) < MIN_PARALLEL_RAYS else threads):
-            _intersect_kernel(self._scene, *take_rays(o, d, order), ts, ps, *_slots(len(o)))
+            _query_kernel(self._scene, *take_rays(o, d, order), ts, ps, False, *_slots(len(o)))
         tfar[order], prim[order] = ts, ps
 
     def _occluded(self, o, d, tmax, out, threads):
         order = coherent_order(o, CELL_BITS)
-        hit = np.empty_like(out)
+        t = tmax[order]
         with NumbaThreads(1 if len(o) < MIN_PARALLEL_RAYS else threads):
-            _occluded_kernel(self._scene, *take_rays(o, d, order), tmax[order], hit, *_slots(len(o)))
-        out[order] = hit
+            _query_kernel(self._scene, *take_rays(o, d, order), t, _NO_PRIM, True, *_slots(len(o)))
+        out[order] = t == -np.inf  # Embree sets tfar = -inf on an occluded ray
