@@ -50,6 +50,37 @@ def stage_options(func):
     return wrapper
 
 
+def dataset_pulses_options(func):
+    """Add the inputs of a stage on one dataset's pulse table: the ``PULSES`` argument and
+    ``--targets`` / ``--datasets`` (the campaign's targets.csv and datasets.csv), passed as
+    ``pulses``, ``targets_csv`` and ``datasets_csv``."""
+    func = click.option("--datasets", "datasets_csv", type=EXISTING_FILE, required=True,
+                        help="datasets.csv of the campaign.")(func)
+    func = click.option("--targets", "targets_csv", type=EXISTING_FILE, required=True,
+                        help="targets.csv of the campaign.")(func)
+    return click.argument("pulses", type=EXISTING_FILE)(func)
+
+
+def reference_sensor_options(outputs: str):
+    """Add the options of a study on the reference sensor (docs/method.md §(i2), §(i3)).
+
+    ``--system`` (S(t) Parquet, optional), ``--calibration`` (its JSON, optional) and ``--out``
+    (a folder; ``outputs`` names what it receives, for the help text), passed as ``system``,
+    ``calibration`` and ``out``; then :func:`stage_options`.
+    """
+
+    def decorate(func):
+        func = stage_options(func)
+        func = click.option("--out", type=OUT_DIR, required=True, help=f"Output folder ({outputs}).")(func)
+        func = click.option("--calibration", type=click.Path(dir_okay=False, path_type=Path), default=None,
+                            help="Calibration JSON with noise_mean/noise_sd (default: beside --system).")(func)
+        return click.option("--system", type=click.Path(dir_okay=False, path_type=Path), default=None,
+                            help="S(t) of 2010_12_1 (Parquet); omitted = Gaussian of "
+                                 "sensitivity.reference_system.fwhm_ns.")(func)
+
+    return decorate
+
+
 class MultiValueOption(click.Option):
     """An option that takes one or more values after a single flag (and may also repeat)."""
 

@@ -1,4 +1,12 @@
-"""Figures of the analyses (Figs. 6-9 analogues), written as PNG with matplotlib (Agg)."""
+"""Every figure of the stages, written as PNG with matplotlib (Agg), atomically.
+
+- :func:`plot_cv_curve` -- the AGC fit, nested CV against b (Eq. 1, docs/method.md §(b));
+- :func:`plot_system_waveform` -- the calibrated S(t) and the CFD tuning (§(e), §(f));
+- :func:`fig6_heights`, :func:`fig7_waveforms` -- real vs simulated (Figs. 6-7 analogues, §(i1));
+- :func:`fig8_sensitivity`, :func:`fig9_sensor` -- the studies (Figs. 8-9 analogues, §(i2), §(i3)).
+
+:func:`pyplot` and :func:`save_png` are the one way of getting pyplot and writing a figure.
+"""
 
 from __future__ import annotations
 
@@ -24,7 +32,8 @@ PARAMETER_LABELS = {
 }
 
 
-def _pyplot():
+def pyplot():
+    """``matplotlib.pyplot`` on the non-interactive Agg backend (imported on first use: matplotlib is heavy)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -33,17 +42,73 @@ def _pyplot():
     return plt
 
 
-def _save(fig, path: str | Path) -> Path:
+def save_png(fig, path: str | Path, **savefig_kwargs) -> Path:
+    """Write ``fig`` as PNG to ``path`` atomically (``fig.savefig(..., **savefig_kwargs)``), close it; return the path."""
     path = Path(path)
     with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=110, bbox_inches="tight")
-    _pyplot().close(fig)
+        fig.savefig(tmp, format="png", **savefig_kwargs)
+    pyplot().close(fig)
     return path
+
+
+def _save(fig, path: str | Path) -> Path:
+    """:func:`save_png` at the analysis figures' resolution (110 dpi, tight box)."""
+    return save_png(fig, path, dpi=110, bbox_inches="tight")
 
 
 def _legend(ax) -> None:
     if ax.get_legend_handles_labels()[0]:
         ax.legend(fontsize=7)
+
+
+def plot_system_waveform(system, path, title: str = "System waveform S(t)", tuning=None) -> Path:
+    """S(t) (line) with +-1 SD over the calibration pulses (band), FWHM in the legend; with a
+    tuned CFD (``tuning``, a :class:`~waveforest.sensor.cfd_tuning.CFDTuning`), a second panel
+    maps its score (largest |bias| over echo-width classes) over (f, delay)."""
+    plt = pyplot()
+    panels = 2 if tuning is not None and tuning.tuned else 1
+    fig, axes = plt.subplots(1, panels, figsize=(6.4 * panels, 4.0), dpi=120, squeeze=False)
+    ax = axes[0, 0]
+    t, s = system.t_ns, system.s
+    if system.s_sd is not None:
+        ax.fill_between(t, s - system.s_sd, s + system.s_sd, color="tab:blue", alpha=0.25, lw=0, label="±1 SD over pulses")
+    ax.plot(t, s, color="tab:blue", lw=1.5, label=f"S(t), FWHM {system.fwhm_ns:.2f} ns")
+    ax.axvline(0.0, color="k", lw=0.8, ls=":", label="t = 0 (echo time)")
+    ax.set_xlabel("time from the echo, ns")
+    ax.set_ylabel("S(t), DN m² per unit σ")
+    ax.set_title(title)
+    ax.legend(frameon=False, fontsize=8)
+    if panels == 2:
+        cfd, grid = tuning.cfd, tuning.grid
+        ax = axes[0, 1]
+        piv = grid.pivot(index="delay_ns", columns="fraction", values="score_m")
+        f, d = piv.columns.to_numpy(float), piv.index.to_numpy(float)
+        im = ax.pcolormesh(f, d, 100 * piv.to_numpy(float), shading="nearest", cmap="viridis_r", vmax=20)
+        fig.colorbar(im, ax=ax, label="largest |median dR| of a width class, cm")
+        ax.plot([cfd.fraction], [cfd.delay_ns], marker="*", ms=14, color="tab:red", ls="none",
+                label=f"tuned: f = {cfd.fraction:.2f}, delay = {cfd.delay_ns:.2f} ns")
+        ax.set_xlabel("CFD fraction f")
+        ax.set_ylabel("CFD delay, ns")
+        ax.set_title("CFD tuning against the DR ranges (docs/method.md §(f))")
+        ax.legend(fontsize=8, loc="lower left", framealpha=0.8)
+    fig.tight_layout()
+    return save_png(fig, path)
+
+
+def plot_cv_curve(fit, path) -> Path:
+    """Nested CV of target echo amplitudes (``agc.statistic``) against b (Eq. 1), the fitted b marked."""
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=(6.0, 3.8), dpi=120)
+    b, cv = np.asarray(fit.b_grid), np.asarray(fit.cv_grid)
+    ax.plot(b, 100 * cv, color="tab:blue")
+    ax.axvline(fit.b, color="tab:red", lw=1, ls="--", label=f"b = {fit.b:.5f}, CV = {100 * fit.cv_after:.2f} %")
+    ax.axhline(100 * fit.cv_before, color="grey", lw=0.8, ls=":", label=f"b = 0: CV = {100 * fit.cv_before:.2f} %")
+    ax.set_xlabel("b (relative gain per AGC unit)")
+    ax.set_ylabel(f"nested CV of echo {fit.statistic}, %")
+    ax.set_title(f"AGC fit of {fit.dataset} (a = {fit.a:.2f}, {fit.n_fit_pulses} target pulses)")
+    ax.legend(frameon=False, fontsize=8)
+    fig.tight_layout()
+    return save_png(fig, path)
 
 
 def fig6_heights(real: dict, sim: dict, dataset: str, path: str | Path) -> Path:
@@ -54,7 +119,7 @@ def fig6_heights(real: dict, sim: dict, dataset: str, path: str | Path) -> Path:
     real, sim : dict species -> (n,) float, m
         First-echo heights above the sample's ground.
     """
-    plt = _pyplot()
+    plt = pyplot()
     species = [s for s in real if s in sim] or list(real) or list(sim) or ["(none)"]
     fig, axes = plt.subplots(1, len(species), figsize=(4.2 * len(species), 3.4), squeeze=False)
     for ax, sp in zip(axes[0], species):
@@ -83,7 +148,7 @@ def fig7_waveforms(aligned: dict, grid_ns: np.ndarray, dataset: str, path: str |
     aligned : dict species -> (real (n, g), sim (m, g)) DN
     grid_ns : (g,) ns relative to the first echo
     """
-    plt = _pyplot()
+    plt = pyplot()
     species = list(aligned) or ["(none)"]
     fig, axes = plt.subplots(1, len(species), figsize=(4.2 * len(species), 3.4), squeeze=False)
     for ax, sp in zip(axes[0], species):
@@ -110,7 +175,7 @@ def fig8_sensitivity(table: pd.DataFrame, path: str | Path, source: str = "") ->
     ``table`` columns: parameter, value, mean_apeak, se_apeak; a row with parameter
     ``baseline`` (the species model as is) is drawn as a dashed line in every panel.
     """
-    plt = _pyplot()
+    plt = pyplot()
     base = table[table["parameter"] == "baseline"]
     table = table[table["parameter"] != "baseline"]
     params = list(dict.fromkeys(table["parameter"])) or ["(none)"]
@@ -139,7 +204,7 @@ def fig9_sensor(table: pd.DataFrame, path: str | Path) -> Path:
     ``table`` columns: parameter, value, level (1-pulse / 5-pulse), scheme
     (resubstitution / cross_validated), accuracy.
     """
-    plt = _pyplot()
+    plt = pyplot()
     params = list(dict.fromkeys(table["parameter"])) or ["(none)"]
     fig, axes = plt.subplots(1, len(params), figsize=(4.4 * len(params), 3.5), squeeze=False)
     styles = {("resubstitution", 0): "o-", ("cross_validated", 0): "o--",

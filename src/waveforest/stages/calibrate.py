@@ -15,21 +15,17 @@ import pyarrow.parquet as pq
 
 import waveforest.sensor._checks as _checks
 from waveforest.atomic import write_json
-from waveforest.cliutil import (
-    EXISTING_FILE,
-    OUT_FILE,
-    stage_options,
-)
+from waveforest.cliutil import EXISTING_FILE, OUT_FILE, dataset_pulses_options, stage_options
 from waveforest.errors import WaveforestError, WaveforestWarning
 from waveforest.io.pulses import iter_pulses, list_to_padded
 from waveforest.io.tables import dataset_year, read_datasets, read_targets
+from waveforest.report.plots import plot_system_waveform
 from waveforest.sensor.agc import GAIN_COLUMN
 from waveforest.sensor.calibration import calibrate_system_waveform, cfd_check, model_sensor_effects
 from waveforest.sensor.cfd_tuning import WIDTH_EDGES, tune_cfd
 from waveforest.sensor.features import first_echo_features
 from waveforest.sensor.noise import noise_stats
 from waveforest.sensor.params import CFDParams, FeatureParams
-from waveforest.sensor.plots import plot_system_waveform
 from waveforest.sensor.signal import saturation_levels
 from waveforest.sensor.system_waveform import SystemWaveform
 from waveforest.sensor.targets import pulse_targets
@@ -272,9 +268,7 @@ def run(pulses_path, targets, datasets, out_path, json_path, cfg: dict, *, plot_
 
 
 @click.command()
-@click.argument("pulses", type=EXISTING_FILE)
-@click.option("--targets", "targets_csv", type=EXISTING_FILE, required=True, help="targets.csv of the campaign.")
-@click.option("--datasets", "datasets_csv", type=EXISTING_FILE, required=True, help="datasets.csv of the campaign.")
+@dataset_pulses_options
 @click.option("--out", "out", type=OUT_FILE, required=True, help="System waveform S(t) (Parquet: t_ns, s, s_sd).")
 @click.option("--json", "json_out", type=OUT_FILE, required=True, help="Calibration JSON (noise, FWHM, counts, a, b, CFD check).")
 @click.option("--plot", "plot", type=OUT_FILE, default=None, help="Optional PNG of S(t) with its spread.")

@@ -27,10 +27,7 @@ import pandas as pd
 import pyarrow as pa
 
 from waveforest.atomic import atomic_path
-from waveforest.cliutil import (
-    OUT_DIR,
-    stage_options,
-)
+from waveforest.cliutil import reference_sensor_options
 from waveforest.constants import RANGE_PER_NS
 from waveforest.io.pulses import write_table
 from waveforest.mcrt import Beams
@@ -182,13 +179,7 @@ def run(out_dir, cfg: dict, system_path=None, calibration_path=None, progress: b
 
 
 @click.command("sensitivity")
-@click.option("--system", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="S(t) of 2010_12_1 (Parquet); omitted = Gaussian of "
-                   "sensitivity.reference_system.fwhm_ns.")
-@click.option("--calibration", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="Calibration JSON with noise_mean/noise_sd (default: beside --system).")
-@click.option("--out", type=OUT_DIR, required=True, help="Output folder (sensitivity.csv, fig8.png).")
-@stage_options
+@reference_sensor_options("sensitivity.csv, fig8.png")
 def sensitivity(system, calibration, out, cfg):
     """Sensitivity of simulated birch Apeak to leaf angle, rho, tau and leaf area (docs/method.md §(i2))."""
 

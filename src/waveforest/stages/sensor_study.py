@@ -34,10 +34,7 @@ import numpy as np
 import pandas as pd
 
 from waveforest.atomic import atomic_path
-from waveforest.cliutil import (
-    OUT_DIR,
-    stage_options,
-)
+from waveforest.cliutil import reference_sensor_options
 from waveforest.constants import RANGE_PER_NS
 from waveforest.mcrt import Beams, prepare, trace
 from waveforest.model.forward import MCRTSetup, SensorSetup, render_sigma
@@ -270,13 +267,7 @@ def run(out_dir, cfg: dict, system_path=None, calibration_path=None, progress: b
 
 
 @click.command("sensor-study")
-@click.option("--system", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="S(t) of 2010_12_1 (Parquet); omitted = Gaussian of "
-                   "sensitivity.reference_system.fwhm_ns.")
-@click.option("--calibration", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="Calibration JSON with noise_mean/noise_sd (default: beside --system).")
-@click.option("--out", type=OUT_DIR, required=True, help="Output folder (sensor_study.csv, fig9.png).")
-@stage_options
+@reference_sensor_options("sensor_study.csv, fig9.png")
 def sensor_study(system, calibration, out, cfg):
     """Divergence, pulse width and sampling vs three-species LDA accuracy (docs/method.md §(i3))."""
 

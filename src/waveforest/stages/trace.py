@@ -25,6 +25,7 @@ from waveforest.io.pulses import write_table
 from waveforest.mcrt.beams import Beams
 from waveforest.mcrt.tracer import DEFAULT_WINDOW_NS, TraceResult
 from waveforest.mcrt.tracer import trace as trace_pulses
+from waveforest.report.plots import pyplot, save_png
 from waveforest.scene import Scene, read_ply
 from waveforest.vegetation import build_scene
 
@@ -80,12 +81,7 @@ def write_sigma(result: TraceResult, path: str | Path, i: int = 0, metadata: dic
 
 def plot_sigma(result: TraceResult, path: str | Path, i: int = 0, title: str = "") -> Path:
     """PNG of sigma(t) of pulse ``i``, total and per scattering order, against range."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    path = Path(path)
+    plt = pyplot()
     sigma = result.sigma[i]
     nz = np.flatnonzero(sigma)
     if nz.size:  # from the first return to 99.9 % of the binned sigma
@@ -108,10 +104,7 @@ def plot_sigma(result: TraceResult, path: str | Path, i: int = 0, title: str = "
     ax.set_title(title or f"sigma(t): total {result.total[i]:.4g}, {result.n_rays} rays")
     ax.legend(fontsize=7, ncol=2)
     fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=120, format="png")
-    plt.close(fig)
-    return path
+    return save_png(fig, path, dpi=120)
 
 
 def run(scene_path: str | Path | None, out: str | Path, *, species: str | None = None,
