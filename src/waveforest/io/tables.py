@@ -38,6 +38,7 @@ import pandas as pd
 
 from waveforest.constants import FUNCTIONAL_GROUPS
 from waveforest.errors import WaveforestError
+from waveforest.io.csvfile import read_csv_file
 from waveforest.species import species_slugs
 
 _DATASET_COLUMNS = {
@@ -177,13 +178,7 @@ def _check_names(df: pd.DataFrame, name: str, known, what: str, source: str) -> 
 
 def _read(path: str | Path, required: dict, optional: dict, key: str, table: str) -> pd.DataFrame:
     path = Path(path)
-    if not path.exists():
-        raise CampaignTableError(f"{path}: no such file")
-    try:
-        df = pd.read_csv(path, dtype=str, keep_default_na=True)
-    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
-        raise CampaignTableError(f"{path}: not a readable CSV table ({exc})") from None
-    df.columns = [str(c).strip() for c in df.columns]
+    df = read_csv_file(path, CampaignTableError, dtype=str, keep_default_na=True)
     missing = [c for c in required if c not in df.columns]
     if missing:
         raise CampaignTableError(

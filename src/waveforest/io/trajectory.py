@@ -16,6 +16,7 @@ import numpy as np
 import pandas as pd
 
 from waveforest.errors import WaveforestError
+from waveforest.io.csvfile import read_csv_file
 
 TRAJECTORY_COLUMNS = ("gps_time", "x", "y", "z")
 
@@ -96,13 +97,7 @@ def read_trajectory(path: str | os.PathLike) -> Trajectory:
     """Read a trajectory CSV (``gps_time, x, y, z``); rows may come in any time order."""
 
     path = Path(path)
-    if not path.is_file():
-        raise TrajectoryError(f"{path}: no such trajectory file")
-    try:
-        df = pd.read_csv(path)
-    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
-        raise TrajectoryError(f"{path}: not a readable CSV file ({exc})") from None
-    df.columns = [str(c).strip() for c in df.columns]
+    df = read_csv_file(path, TrajectoryError, what="trajectory file")
     missing = [c for c in TRAJECTORY_COLUMNS if c not in df.columns]
     if missing:
         raise TrajectoryError(
