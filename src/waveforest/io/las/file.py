@@ -304,6 +304,18 @@ def open_waveform_las(path: str | os.PathLike) -> LasWaveformFile:
     )
 
 
+def _check_record_count(path: Path, what: str, n: int, header_bytes: int, space: int, after: str, before: str) -> None:
+    """Raise :class:`LasWaveformError` if ``n`` record headers of ``header_bytes`` cannot fit
+    in the ``space`` bytes between ``after`` and ``before`` (a corrupt count field)."""
+    room = space // header_bytes
+    if n > room:
+        raise fail(
+            path,
+            f"number of {what}s is {n}, but at most {room} {what} headers ({header_bytes} bytes each) fit between "
+            f"{after} and {before}; the header field is corrupt",
+        )
+
+
 def _read_vlrs(path: Path, hdr: np.void, version: str, file_size: int) -> tuple[bytes, list[tuple[int, np.void]]]:
     """The bytes before the point data and the VLR headers in them (position, header).
 
@@ -320,13 +332,8 @@ def _read_vlrs(path: Path, hdr: np.void, version: str, file_size: int) -> tuple[
         raise fail(path, f"offset to point data ({offset}) lies inside the {header_size}-byte header")
     if offset > file_size:
         raise fail(path, f"truncated file: offset to point data is byte {offset}, but the file has {file_size} bytes")
-    room = (offset - header_size) // VLR_HEADER.itemsize
-    if n_vlrs > room:
-        raise fail(
-            path,
-            f"number of VLRs is {n_vlrs}, but at most {room} VLR headers ({VLR_HEADER.itemsize} bytes each) fit between "
-            f"the end of the header (byte {header_size}) and the point data (byte {offset}); the header field is corrupt",
-        )
+    _check_record_count(path, "VLR", n_vlrs, VLR_HEADER.itemsize, offset - header_size,
+                        f"the end of the header (byte {header_size})", f"the point data (byte {offset})")
     prefix = _read_at(path, 0, offset)
     vlrs, pos = [], header_size
     for k in range(n_vlrs):
@@ -476,13 +483,8 @@ def _evlr_headers(path: Path, hdr: np.void, file_size: int, end_of_points: int) 
             f"point records (byte {end_of_points}) and byte {file_size - EVLR_HEADER.itemsize} (60-byte EVLR header, "
             f"file of {file_size} bytes); the header's EVLR fields are corrupt",
         )
-    room = (file_size - start) // EVLR_HEADER.itemsize
-    if n > room:
-        raise fail(
-            path,
-            f"number of EVLRs is {n}, but at most {room} EVLR headers ({EVLR_HEADER.itemsize} bytes each) fit between "
-            f"the first EVLR (byte {start}) and the end of the file ({file_size} bytes); the header field is corrupt",
-        )
+    _check_record_count(path, "EVLR", n, EVLR_HEADER.itemsize, file_size - start,
+                        f"the first EVLR (byte {start})", f"the end of the file ({file_size} bytes)")
     out, pos = [], start
     for k in range(n):
         h = _record_header(path, pos, file_size)
