@@ -172,7 +172,8 @@ def open_waveform_las(path: str | os.PathLike) -> LasWaveformFile:
     fits in the file), no point records hidden behind a header count of 0, and the waveform
     data present (external ``.wdp`` or internal record, as the global encoding says). Text
     fields that are not UTF-8 (VLR user ids and descriptions, extra-bytes names) are read
-    on with '?' in place of the bad bytes and a :class:`.las_format.LasWaveformWarning`.
+    on with '?' in place of the bad bytes and a
+    :class:`waveforest.io.las.format.LasWaveformWarning`.
     Per-point checks (descriptor index, packet bounds) happen while reading points. Header
     bounds and return counts are not checked: real files often carry those of a whole
     flight line.
@@ -181,46 +182,9 @@ def open_waveform_las(path: str | os.PathLike) -> LasWaveformFile:
     if not path.is_file():
         raise fail(path, "no such file")
     file_size = path.stat().st_size
-    raw = _read_at(path, 0, HEADER_14.itemsize)
-    if len(raw) < 4 or raw[:4] != LAS_SIGNATURE:
-        raise fail(path, "not a LAS file (no 'LASF' signature)")
-    if len(raw) < HEADER_13.itemsize:
-        raise fail(path, f"truncated LAS header ({len(raw)} bytes)")
-    major, minor = raw[24], raw[25]
-    version = f"{major}.{minor}"
-    if major != 1 or minor not in (3, 4):
-        raise fail(path, f"LAS {version} has no waveform packets (LAS 1.3 or 1.4 expected)")
-    if minor == 4 and len(raw) < HEADER_14.itemsize:
-        raise fail(path, f"truncated LAS 1.4 header ({len(raw)} bytes)")
-    hdr = np.frombuffer(raw[: (HEADER_14 if minor == 4 else HEADER_13).itemsize], HEADER_14 if minor == 4 else HEADER_13)[0]
-    fmt_byte = int(hdr["point_format"])
-    if fmt_byte & 0xC0:
-        raise fail(path, f"point data are LAZ-compressed (format byte {fmt_byte}); decompress to LAS first (e.g. laszip)")
-    point_format = fmt_byte & 0x3F
-    if point_format not in WAVEFORM_POINT_FORMATS:
-        raise fail(
-            path,
-            f"point format {point_format} carries no waveform packets (formats 4, 5, 9 and 10 do); "
-            "this is not a waveform LAS file",
-        )
-    record_length = int(hdr["point_record_length"])
-    core_length = point_dtype(point_format).itemsize
-    if record_length < core_length:
-        raise fail(path, f"point record length {record_length} is shorter than point format {point_format} ({core_length} bytes)")
-    scales = np.asarray(hdr["scale"], dtype=np.float64).copy()
-    offsets = np.asarray(hdr["offset"], dtype=np.float64).copy()
-    if not np.all(np.isfinite(scales) & (scales != 0)):
-        raise fail(path, f"header scale factors (x, y, z) are {scales.tolist()}; finite non-zero numbers expected")
-    if not np.all(np.isfinite(offsets)):
-        raise fail(path, f"header offsets (x, y, z) are {offsets.tolist()}; finite numbers expected")
-    with np.errstate(over="ignore"):
-        reach = 2.0**31 * np.abs(scales) + np.abs(offsets)  # largest |coordinate| an int32 record can give
-    if not np.all(np.isfinite(reach)):
-        raise fail(
-            path,
-            f"header scale factors {scales.tolist()} and offsets {offsets.tolist()} give coordinates beyond the "
-            "float64 range; the header is corrupt",
-        )
+    hdr, version = _read_header(path)
+    point_format, record_length, core_length = _point_layout(path, hdr)
+    scales, offsets = _scales_offsets(path, hdr)
     offset_to_points = int(hdr["offset_to_point_data"])
     prefix, vlrs = _read_vlrs(path, hdr, version, file_size)
     prefix, fixed = _utf8_text_fields(prefix, vlrs)
@@ -228,23 +192,12 @@ def open_waveform_las(path: str | os.PathLike) -> LasWaveformFile:
         warn(f"{path}: non-UTF-8 bytes in {', '.join(fixed)} replaced by '?'; reading on")
     _check_extra_bytes(path, prefix, vlrs, point_format, record_length - core_length)
 
-    legacy = int(hdr["legacy_point_count"])
-    n_points = legacy
+    n_points = int(hdr["legacy_point_count"])
     by_return = np.asarray(hdr["legacy_points_by_return"], dtype=np.int64)
-    if minor == 4:
-        n_points = int(hdr["point_count"]) or legacy
+    if version == "1.4":
+        n_points = int(hdr["point_count"]) or n_points
         by_return = np.asarray(hdr["points_by_return"], dtype=np.int64)
-
-    try:
-        with _laspy_logs_as_warnings(path), laspy.open(io.BytesIO(prefix), read_evlrs=False) as reader:
-            pf = reader.header.point_format
-            dim_names = tuple(pf.dimension_names)
-            extra_names = tuple(pf.extra_dimension_names)
-            pf_size = pf.size
-    except Exception as exc:  # laspy raises many types for a broken header or VLRs
-        raise fail(path, f"cannot read the LAS header and VLRs ({type(exc).__name__}: {exc})") from exc
-    if pf_size != record_length:
-        raise fail(path, f"point record length {record_length} does not match point format {point_format} ({pf_size} bytes)")
+    dim_names, extra_names = _laspy_dimensions(path, prefix, point_format, record_length)
 
     end_of_points = offset_to_points + n_points * record_length
     if end_of_points > file_size:
@@ -254,29 +207,9 @@ def open_waveform_las(path: str | os.PathLike) -> LasWaveformFile:
             f"truncated file: the header announces {n_points} points of {record_length} bytes from byte "
             f"{offset_to_points}, but the file has {file_size} bytes (room for {have} points)",
         )
-    evlrs = _evlr_headers(path, hdr, file_size, end_of_points) if minor == 4 else []
+    evlrs = _evlr_headers(path, hdr, file_size, end_of_points) if version == "1.4" else []
     _check_point_count(path, hdr, n_points, record_length, file_size, evlrs)
-
-    descriptors: dict[int, WavePacketDescriptor] = {}
-    for pos, h in vlrs:
-        rid = int(h["record_id"])
-        if bytes(h["user_id"]).rstrip(b"\0") == LASF_SPEC and WPD_FIRST_RECORD_ID <= rid <= WPD_LAST_RECORD_ID:
-            if int(h["record_length"]) < WPD_BODY.itemsize:
-                raise fail(path, f"waveform packet descriptor VLR {rid} has {int(h['record_length'])} bytes, 26 expected")
-            body = prefix[pos + VLR_HEADER.itemsize : pos + VLR_HEADER.itemsize + WPD_BODY.itemsize]
-            descriptors[rid - WPD_INDEX_OFFSET] = WavePacketDescriptor.from_body(rid - WPD_INDEX_OFFSET, body)
-
-    # LAS 1.4: descriptors may be EVLRs; the waveform record may be one
-    evlr_waveform = None
-    for pos, h in evlrs:
-        rid = int(h["record_id"])
-        is_spec = bytes(h["user_id"]).rstrip(b"\0") == LASF_SPEC
-        if is_spec and rid == WAVEFORM_RECORD_ID:
-            evlr_waveform = pos
-        elif is_spec and WPD_FIRST_RECORD_ID <= rid <= WPD_LAST_RECORD_ID:
-            body = _read_at(path, pos + EVLR_HEADER.itemsize, WPD_BODY.itemsize)
-            if len(body) == WPD_BODY.itemsize:
-                descriptors[rid - WPD_INDEX_OFFSET] = WavePacketDescriptor.from_body(rid - WPD_INDEX_OFFSET, body)
+    descriptors, evlr_waveform = _descriptors(path, prefix, vlrs, evlrs)
 
     waveform = _locate_waveform_data(path, file_size, int(hdr["global_encoding"]), int(hdr["start_of_waveform_data"]), evlr_waveform, end_of_points)
     return LasWaveformFile(
@@ -302,6 +235,112 @@ def open_waveform_las(path: str | os.PathLike) -> LasWaveformFile:
         extra_dimension_names=extra_names,
         header_bytes=prefix if fixed else None,
     )
+
+
+def _read_header(path: Path) -> tuple[np.void, str]:
+    """The public header block (a :data:`HEADER_13` or :data:`HEADER_14` record) and the
+    version ``"1.3"`` or ``"1.4"``; raises :class:`LasWaveformError` for a file without the
+    ``LASF`` signature, another version or a truncated header."""
+    raw = _read_at(path, 0, HEADER_14.itemsize)
+    if len(raw) < 4 or raw[:4] != LAS_SIGNATURE:
+        raise fail(path, "not a LAS file (no 'LASF' signature)")
+    if len(raw) < HEADER_13.itemsize:
+        raise fail(path, f"truncated LAS header ({len(raw)} bytes)")
+    major, minor = raw[24], raw[25]
+    version = f"{major}.{minor}"
+    if major != 1 or minor not in (3, 4):
+        raise fail(path, f"LAS {version} has no waveform packets (LAS 1.3 or 1.4 expected)")
+    if minor == 4 and len(raw) < HEADER_14.itemsize:
+        raise fail(path, f"truncated LAS 1.4 header ({len(raw)} bytes)")
+    dtype = HEADER_14 if minor == 4 else HEADER_13
+    return np.frombuffer(raw[: dtype.itemsize], dtype)[0], version
+
+
+def _point_layout(path: Path, hdr: np.void) -> tuple[int, int, int]:
+    """``(point_format, record_length, core_length)``: the waveform point format, the
+    header's record length and the format's own length, bytes (the rest is extra bytes).
+    Raises :class:`LasWaveformError` for LAZ, a format without waveform packets, or a
+    record shorter than its format."""
+    fmt_byte = int(hdr["point_format"])
+    if fmt_byte & 0xC0:
+        raise fail(path, f"point data are LAZ-compressed (format byte {fmt_byte}); decompress to LAS first (e.g. laszip)")
+    point_format = fmt_byte & 0x3F
+    if point_format not in WAVEFORM_POINT_FORMATS:
+        raise fail(
+            path,
+            f"point format {point_format} carries no waveform packets (formats 4, 5, 9 and 10 do); "
+            "this is not a waveform LAS file",
+        )
+    record_length = int(hdr["point_record_length"])
+    core_length = point_dtype(point_format).itemsize
+    if record_length < core_length:
+        raise fail(path, f"point record length {record_length} is shorter than point format {point_format} ({core_length} bytes)")
+    return point_format, record_length, core_length
+
+
+def _scales_offsets(path: Path, hdr: np.void) -> tuple[np.ndarray, np.ndarray]:
+    """(3,) float64 coordinate scales and offsets of the header, m; raises
+    :class:`LasWaveformError` unless the scales are finite and non-zero, the offsets finite,
+    and every int32 coordinate maps to a finite float64."""
+    scales = np.asarray(hdr["scale"], dtype=np.float64).copy()
+    offsets = np.asarray(hdr["offset"], dtype=np.float64).copy()
+    if not np.all(np.isfinite(scales) & (scales != 0)):
+        raise fail(path, f"header scale factors (x, y, z) are {scales.tolist()}; finite non-zero numbers expected")
+    if not np.all(np.isfinite(offsets)):
+        raise fail(path, f"header offsets (x, y, z) are {offsets.tolist()}; finite numbers expected")
+    with np.errstate(over="ignore"):
+        reach = 2.0**31 * np.abs(scales) + np.abs(offsets)  # largest |coordinate| an int32 record can give
+    if not np.all(np.isfinite(reach)):
+        raise fail(
+            path,
+            f"header scale factors {scales.tolist()} and offsets {offsets.tolist()} give coordinates beyond the "
+            "float64 range; the header is corrupt",
+        )
+    return scales, offsets
+
+
+def _laspy_dimensions(path: Path, prefix: bytes, point_format: int, record_length: int) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """Point dimension names and extra-bytes dimension names as laspy reads them from the
+    header and VLRs in ``prefix``; raises :class:`LasWaveformError` if laspy cannot, or if
+    its record size differs from the header's ``record_length``."""
+    try:
+        with _laspy_logs_as_warnings(path), laspy.open(io.BytesIO(prefix), read_evlrs=False) as reader:
+            pf = reader.header.point_format
+            dim_names = tuple(pf.dimension_names)
+            extra_names = tuple(pf.extra_dimension_names)
+            pf_size = pf.size
+    except Exception as exc:  # laspy raises many types for a broken header or VLRs
+        raise fail(path, f"cannot read the LAS header and VLRs ({type(exc).__name__}: {exc})") from exc
+    if pf_size != record_length:
+        raise fail(path, f"point record length {record_length} does not match point format {point_format} ({pf_size} bytes)")
+    return dim_names, extra_names
+
+
+def _descriptors(path: Path, prefix: bytes, vlrs, evlrs) -> tuple[dict[int, WavePacketDescriptor], int | None]:
+    """The wave packet descriptors (VLRs, and on LAS 1.4 EVLRs) by index, and the position of
+    an EVLR waveform data record (None without). A descriptor VLR shorter than 26 bytes
+    raises :class:`LasWaveformError`; a truncated descriptor EVLR is skipped."""
+    descriptors: dict[int, WavePacketDescriptor] = {}
+    for pos, h in vlrs:
+        rid = int(h["record_id"])
+        if bytes(h["user_id"]).rstrip(b"\0") == LASF_SPEC and WPD_FIRST_RECORD_ID <= rid <= WPD_LAST_RECORD_ID:
+            if int(h["record_length"]) < WPD_BODY.itemsize:
+                raise fail(path, f"waveform packet descriptor VLR {rid} has {int(h['record_length'])} bytes, 26 expected")
+            body = prefix[pos + VLR_HEADER.itemsize : pos + VLR_HEADER.itemsize + WPD_BODY.itemsize]
+            descriptors[rid - WPD_INDEX_OFFSET] = WavePacketDescriptor.from_body(rid - WPD_INDEX_OFFSET, body)
+
+    # LAS 1.4: descriptors may be EVLRs; the waveform record may be one
+    evlr_waveform = None
+    for pos, h in evlrs:
+        rid = int(h["record_id"])
+        is_spec = bytes(h["user_id"]).rstrip(b"\0") == LASF_SPEC
+        if is_spec and rid == WAVEFORM_RECORD_ID:
+            evlr_waveform = pos
+        elif is_spec and WPD_FIRST_RECORD_ID <= rid <= WPD_LAST_RECORD_ID:
+            body = _read_at(path, pos + EVLR_HEADER.itemsize, WPD_BODY.itemsize)
+            if len(body) == WPD_BODY.itemsize:
+                descriptors[rid - WPD_INDEX_OFFSET] = WavePacketDescriptor.from_body(rid - WPD_INDEX_OFFSET, body)
+    return descriptors, evlr_waveform
 
 
 def _check_record_count(path: Path, what: str, n: int, header_bytes: int, space: int, after: str, before: str) -> None:
