@@ -1,7 +1,7 @@
 """The ``ingest`` stage: a LAS waveform file -> a pulse table in Parquet.
 
-Streams :class:`.las_read.WaveformPulseReader` batches into
-:func:`.tables.write_pulse_batches` (atomic: a failure leaves no output and no temporary
+Streams :class:`waveforest.io.las.read.WaveformPulseReader` batches into
+:func:`waveforest.io.pulses.write_pulse_batches` (atomic: a failure leaves no output and no temporary
 file). Sensor positions come from a trajectory CSV (``--trajectory``), from a nominal
 range (``--nominal-range``: the sensor that far before the first echo along the beam), or
 are left unknown (NaN).
@@ -92,6 +92,19 @@ class IngestResult:
         )
 
 
+def _sensor_locator(trajectory, nominal_range_m) -> tuple[object, str]:
+    """The reader's ``locate`` callable and the ``sensor`` label: from a trajectory CSV
+    (``"trajectory"``), a nominal range, m (``"nominal"``), or neither (None, ``"unknown"``).
+    Both given raise :class:`WaveforestError`."""
+    if trajectory is not None and nominal_range_m is not None:
+        raise WaveforestError("give either a trajectory or a nominal range, not both")
+    if trajectory is not None:
+        return trajectory_locator(read_trajectory(trajectory)), "trajectory"
+    if nominal_range_m is not None:
+        return nominal_range_locator(float(nominal_range_m)), "nominal"
+    return None, "unknown"
+
+
 def run(
     las_path: str | os.PathLike,
     out: str | os.PathLike,
@@ -122,19 +135,12 @@ def run(
     agc_attribute : str or None
         Point (or extra-bytes) dimension holding the AGC.
     chunk_points, bucket_points, batch_pulses : int
-        Streaming sizes (see :class:`.las_read.WaveformPulseReader`).
+        Streaming sizes (see :class:`waveforest.io.las.read.WaveformPulseReader`).
     progress : bool
         Show a progress bar on stderr.
     """
     las_path, out = Path(las_path), Path(out)
-    if trajectory is not None and nominal_range_m is not None:
-        raise WaveforestError("give either a trajectory or a nominal range, not both")
-    if trajectory is not None:
-        locate, sensor = trajectory_locator(read_trajectory(trajectory)), "trajectory"
-    elif nominal_range_m is not None:
-        locate, sensor = nominal_range_locator(float(nominal_range_m)), "nominal"
-    else:
-        locate, sensor = None, "unknown"
+    locate, sensor = _sensor_locator(trajectory, nominal_range_m)
     if out.resolve() == las_path.resolve():
         raise WaveforestError(f"{out}: the output would overwrite the input")
 
