@@ -153,11 +153,12 @@ def _read_csv(path: Path) -> pd.DataFrame:
         raise ParameterFileError(f"{path}: not a readable CSV ({exc})") from exc
 
 
-@functools.lru_cache(maxsize=1)
-def _tables() -> tuple[pd.DataFrame, dict[str, SpeciesParams]]:
-    t1 = _read_csv(RES / "table1_species.csv")
-    sp = _read_csv(RES / "species.csv")
-    st = _read_csv(RES / "structure.csv")
+def _check_files(t1: pd.DataFrame, sp: pd.DataFrame, st: pd.DataFrame) -> list[str]:
+    """Check the columns of species.csv and structure.csv, species.csv against Table 1 (same
+    names, same order, slugs of :func:`waveforest.species.slug_of`) and that every structure
+    number has a source and appears once; return the slugs in Table 1 order.
+
+    Raises :class:`ParameterFileError` naming the file."""
     path_sp, path_st = RES / "species.csv", RES / "structure.csv"
     for col in ("slug", "name", "model", "element", "lad", "leaf_rho", "leaf_tau", "wood_rho",
                 "wood_tau", "surface_rho", "surface_kind", "h_min_ok", "h_max_ok", "optics_source"):
@@ -177,58 +178,81 @@ def _tables() -> tuple[pd.DataFrame, dict[str, SpeciesParams]]:
     dup = st.duplicated(["slug", "param"])
     if dup.any():
         raise ParameterFileError(f"{path_st}: duplicate rows {st.loc[dup, ['slug', 'param']].values.tolist()}")
+    return slugs
 
-    params: dict[str, SpeciesParams] = {}
-    for row in sp.itertuples(index=False):
-        if row.model not in MODELS:
-            raise ParameterFileError(f"{path_sp}: {row.slug}: model {row.model!r} not one of {MODELS}")
-        rows = st[st["slug"] == row.slug]
-        got = set(rows["param"])
-        need = set(REQUIRED[row.model])
-        if row.model == "tree":  # plus the one leaf-area group the row gives
-            need |= next((set(g) for g in TREE_LEAF_AREA.values() if set(g) <= got), set(TREE_LEAF_AREA["power_law"]))
-        if got != need:
-            raise ParameterFileError(
-                f"{path_st}: {row.slug} ({row.model}): missing {sorted(need - got)}, "
-                f"unexpected {sorted(got - need)}"
-            )
-        values = pd.to_numeric(rows["value"], errors="coerce").to_numpy(dtype=float)
-        if not np.all(np.isfinite(values)):
-            raise ParameterFileError(f"{path_st}: {row.slug}: non-numeric value")
-        structure = dict(zip(rows["param"], values.tolist()))
 
-        def num(col: str, needed: bool, row=row) -> float:
-            v = getattr(row, col)
-            v = float(v) if pd.notna(v) else float("nan")
-            if needed and not (np.isfinite(v) and 0.0 <= v <= 1.0):
-                raise ParameterFileError(f"{path_sp}: {row.slug}: {col} must be in [0, 1], got {v}")
-            return v
-
-        leaf = row.model in _NEEDS_LEAVES
-        p = SpeciesParams(
-            slug=row.slug,
-            name=row.name,
-            model=row.model,
-            element=str(row.element) if pd.notna(row.element) else "",
-            lad=str(row.lad) if pd.notna(row.lad) else "",
-            leaf_rho=num("leaf_rho", leaf),
-            leaf_tau=num("leaf_tau", leaf),
-            wood_rho=num("wood_rho", row.model in _NEEDS_WOOD),
-            wood_tau=num("wood_tau", row.model in _NEEDS_WOOD),
-            surface_rho=num("surface_rho", row.model in _NEEDS_SURFACE),
-            surface_kind=int(row.surface_kind) if pd.notna(row.surface_kind) else -1,
-            h_min_ok=float(row.h_min_ok),
-            h_max_ok=float(row.h_max_ok),
-            structure=structure,
+def _structure(row, st: pd.DataFrame) -> dict[str, float]:
+    """The structural numbers of species ``row`` (a species.csv row): exactly the parameters
+    its model family needs (:data:`REQUIRED`; trees plus one :data:`TREE_LEAF_AREA` group),
+    all finite; else :class:`ParameterFileError`."""
+    path_sp, path_st = RES / "species.csv", RES / "structure.csv"
+    if row.model not in MODELS:
+        raise ParameterFileError(f"{path_sp}: {row.slug}: model {row.model!r} not one of {MODELS}")
+    rows = st[st["slug"] == row.slug]
+    got = set(rows["param"])
+    need = set(REQUIRED[row.model])
+    if row.model == "tree":  # plus the one leaf-area group the row gives
+        need |= next((set(g) for g in TREE_LEAF_AREA.values() if set(g) <= got), set(TREE_LEAF_AREA["power_law"]))
+    if got != need:
+        raise ParameterFileError(
+            f"{path_st}: {row.slug} ({row.model}): missing {sorted(need - got)}, "
+            f"unexpected {sorted(got - need)}"
         )
-        if leaf and (not p.element or not p.lad):
-            raise ParameterFileError(f"{path_sp}: {row.slug}: a {row.model} model needs element and lad")
-        if leaf and p.leaf_rho + p.leaf_tau > 1.0:
-            raise ParameterFileError(f"{path_sp}: {row.slug}: leaf_rho + leaf_tau > 1")
-        if row.model in _NEEDS_SURFACE and p.surface_kind not in (0, 3):
-            raise ParameterFileError(f"{path_sp}: {row.slug}: surface_kind must be 0 or 3")
-        params[row.slug] = p
+    values = pd.to_numeric(rows["value"], errors="coerce").to_numpy(dtype=float)
+    if not np.all(np.isfinite(values)):
+        raise ParameterFileError(f"{path_st}: {row.slug}: non-numeric value")
+    return dict(zip(rows["param"], values.tolist()))
 
+
+def _species_params(row, st: pd.DataFrame) -> SpeciesParams:
+    """The parameters of species ``row`` (a species.csv row); optical properties the model
+    needs must lie in [0, 1] with ``leaf_rho + leaf_tau <= 1``, leaf models need an element
+    and a LAD, surface models a ``surface_kind`` of 0 or 3; else :class:`ParameterFileError`."""
+    path_sp = RES / "species.csv"
+    structure = _structure(row, st)
+
+    def num(col: str, needed: bool) -> float:
+        v = getattr(row, col)
+        v = float(v) if pd.notna(v) else float("nan")
+        if needed and not (np.isfinite(v) and 0.0 <= v <= 1.0):
+            raise ParameterFileError(f"{path_sp}: {row.slug}: {col} must be in [0, 1], got {v}")
+        return v
+
+    leaf = row.model in _NEEDS_LEAVES
+    p = SpeciesParams(
+        slug=row.slug,
+        name=row.name,
+        model=row.model,
+        element=str(row.element) if pd.notna(row.element) else "",
+        lad=str(row.lad) if pd.notna(row.lad) else "",
+        leaf_rho=num("leaf_rho", leaf),
+        leaf_tau=num("leaf_tau", leaf),
+        wood_rho=num("wood_rho", row.model in _NEEDS_WOOD),
+        wood_tau=num("wood_tau", row.model in _NEEDS_WOOD),
+        surface_rho=num("surface_rho", row.model in _NEEDS_SURFACE),
+        surface_kind=int(row.surface_kind) if pd.notna(row.surface_kind) else -1,
+        h_min_ok=float(row.h_min_ok),
+        h_max_ok=float(row.h_max_ok),
+        structure=structure,
+    )
+    if leaf and (not p.element or not p.lad):
+        raise ParameterFileError(f"{path_sp}: {row.slug}: a {row.model} model needs element and lad")
+    if leaf and p.leaf_rho + p.leaf_tau > 1.0:
+        raise ParameterFileError(f"{path_sp}: {row.slug}: leaf_rho + leaf_tau > 1")
+    if row.model in _NEEDS_SURFACE and p.surface_kind not in (0, 3):
+        raise ParameterFileError(f"{path_sp}: {row.slug}: surface_kind must be 0 or 3")
+    return p
+
+
+@functools.lru_cache(maxsize=1)
+def _tables() -> tuple[pd.DataFrame, dict[str, SpeciesParams]]:
+    """The species table (:func:`species_table`) and the parameters by slug, read and
+    checked once."""
+    t1 = _read_csv(RES / "table1_species.csv")
+    sp = _read_csv(RES / "species.csv")
+    st = _read_csv(RES / "structure.csv")
+    slugs = _check_files(t1, sp, st)
+    params = {row.slug: _species_params(row, st) for row in sp.itertuples(index=False)}
     table = pd.DataFrame(
         {
             "slug": slugs,
