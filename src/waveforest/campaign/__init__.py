@@ -1,16 +1,23 @@
-"""The virtual ALS60 campaign: the embedded default data, with hidden effects (DESIGN.md).
+"""The virtual ALS60 campaign: the embedded default data, with hidden effects (docs/design.md).
 
-``waveforest synthesize`` writes a campaign folder in the layout a user provides for real
-data (``datasets.csv``, ``fields.csv``, ``targets.csv``, LAS 1.4 waveform files, trajectory
-CSVs; schema in :mod:`.readme`) plus ``truth.json``, which no analysis step reads.
+``waveforest synthesize`` (:mod:`waveforest.stages.synthesize`) writes a campaign folder in
+the layout a user provides for real data (``datasets.csv``, ``fields.csv``, ``targets.csv``,
+LAS 1.4 waveform files, trajectory CSVs; schema in :mod:`.readme`) plus ``truth.json``, which
+no analysis step reads. Seeded streams come from :mod:`waveforest.rng` (keyed streams).
 
-Modules: :mod:`.params` (the parameter files in ``resources/campaign``), :mod:`.rng`
-(seeded streams), :mod:`.layout` (stands, samples, targets), :mod:`.flight` (strips, scan
-pattern, trajectories, pulses near the sites), :mod:`.scenes` (the true scenes), :mod:`.site_trace` (every site's pulses
-traced on its scene, sites in parallel threads),
-:mod:`.system_pulse` (the true S(t)), :mod:`.agc_loop` (the true AGC), :mod:`.dr_cfd` (the
-sensor's DR discriminator), :mod:`.truth_sensor` (the sensor as it really behaves),
-:mod:`.synthesize` (orchestration), :mod:`.cli` (the command).
+Modules:
+
+- :mod:`.params` -- the parameter files in ``resources/campaign``;
+- :mod:`.layout` -- stands, field samples and targets;
+- :mod:`.flight` -- strips, scan pattern, trajectories, pulses near the sites;
+- :mod:`.scenes` -- the true scene of each site;
+- :mod:`.site_trace` -- every site's pulses traced on its scene, sites in parallel threads;
+- :mod:`.system_pulse` -- the true S(t);
+- :mod:`.agc_loop` -- the true AGC;
+- :mod:`.dr_cfd` -- the sensor's DR discriminator;
+- :mod:`.truth_sensor` -- the sensor as it really behaves;
+- :mod:`.synthesize` -- the orchestration (:func:`run`);
+- :mod:`.readme` -- the campaign folder's README.
 """
 
 from waveforest.campaign.agc_loop import AGCParams, agc_sequence

@@ -218,15 +218,31 @@ def build_layout(species: pd.DataFrame, samples_per_species: int, seed: int) -> 
         raise CampaignParamsError("campaign.samples_per_species: expected >= 1")
     lay = load_layout()
     frame = area_frame(lay)
-    rng = stream_generator(seed, "layout")
+    rng = stream_generator(seed, "layout")  # one stream, drawn from in the order of the steps below
     sp = _merge_species(species)
-    area, st, smp = lay["area"], lay["stands"], lay["samples"]
+    n_stands = {int(y): int(c) for y, c in lay["stands"]["count"].items()}
+    centres, half = _place_stands(rng, lay, sp, samples_per_species, n_stands)
+    sites = load_targets()
+    tcentres = _place_targets(rng, lay, sites, centres, half)
+    stands, fields = _draw_samples(rng, lay, frame, sp, samples_per_species, centres, n_stands)
+    fields = _sample_attributes(rng, lay, frame, sp, fields)
+    targets = _targets_table(rng, lay, frame, sites, tcentres)
+    return Layout(frame=frame, fields=fields, targets=targets, stands=stands)
+
+
+def _place_stands(rng, lay: dict, sp: pd.DataFrame, samples_per_species: int, n_stands: dict
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """Stand centres (total, 2) in the area frame, m, and the half extents (total, 2) of their sample grids.
+
+    Stands of both years, placed at random (:func:`_place`) at least ``stands.min_separation_m``
+    apart and with the sample grids of two stands one ``sample_spacing_m`` apart or more.
+    Raises CampaignParamsError when they do not fit.
+    """
+    area, st = lay["area"], lay["stands"]
     half_s = float(area["along_m"]) / 2 - float(st["edge_margin_m"])
     half_w = float(area["across_m"]) / 2 - float(st["edge_margin_m"])
-    n_stands = {int(y): int(c) for y, c in st["count"].items()}
     total = sum(n_stands[y] for y in YEARS)
     spacing = float(st["sample_spacing_m"])
-    jitter = float(st["sample_jitter_m"])
     # samples per stand (the species' samples of a year dealt round-robin to its stands)
     n_year = {y: samples_per_species * len(species_for_year(sp, y)) for y in YEARS}
     counts = [len(range(k, n_year[y], n_stands[y])) for y in YEARS for k in range(n_stands[y])]
@@ -241,20 +257,39 @@ def build_layout(species: pd.DataFrame, samples_per_species: int, seed: int) -> 
     centres = _place(rng, total, half_s, half_w, float(st["min_separation_m"]), np.empty((0, 2)), 0.0,
                      f"stands of {samples_per_species} samples per species and year", stands_clear,
                      "lower campaign.samples_per_species, enlarge the area or lower the separation")
-    sites = load_targets()
+    return centres, half
+
+
+def _place_targets(rng, lay: dict, sites: pd.DataFrame, centres: np.ndarray, half: np.ndarray) -> np.ndarray:
+    """Target centres (n_sites, 2) in the area frame, m: isolated from every stand (no sample's
+    pulse sees a target square, no target pulse sees a plant) and ``targets.min_separation_m`` apart."""
+    area, st = lay["area"], lay["stands"]
+    half_s = float(area["along_m"]) / 2 - float(st["edge_margin_m"])
+    half_w = float(area["across_m"]) / 2 - float(st["edge_margin_m"])
     tsep = float(lay["targets"]["min_separation_m"])
     reach = np.maximum(np.asarray(sites["side_m"], dtype=float) / np.sqrt(2.0) + SAMPLE_PULSE_REACH_M,
                        np.asarray(sites["radius_m"], dtype=float) + TARGET_PULSE_REACH_M + PLANT_REACH_M)
-    reach += np.sqrt(2.0) * jitter
+    reach += np.sqrt(2.0) * float(st["sample_jitter_m"])
 
     def target_clear(i, p, pts):
         # no sample's pulse sees the target square, no target pulse sees a plant (isolation)
         gap = np.maximum(np.abs(centres - p) - half, 0.0)
         return bool(np.min(np.hypot(gap[:, 0], gap[:, 1])) >= reach[i])
 
-    tcentres = _place(rng, len(sites), half_s, half_w, tsep, centres, tsep, "targets", target_clear)
+    return _place(rng, len(sites), half_s, half_w, tsep, centres, tsep, "targets", target_clear)
 
-    t = lay["terrain"]
+
+def _draw_samples(rng, lay: dict, frame, sp: pd.DataFrame, samples_per_species: int, centres: np.ndarray,
+                  n_stands: dict) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """The stands table and the field samples (year, stand_id, idx, species, s, w, ground_z).
+
+    Per year the species' samples in random order are dealt round-robin to the year's stands;
+    each stand's samples sit on its grid (:func:`stand_grid`) with uniform jitter, at the
+    terrain height plus the stand's offset and a per-sample N(0, ``terrain.sample_z_sd``).
+    """
+    t, st = lay["terrain"], lay["stands"]
+    spacing = float(st["sample_spacing_m"])
+    jitter = float(st["sample_jitter_m"])
     stand_rows, field_rows = [], []
     k0 = 0
     for year in YEARS:
@@ -282,7 +317,18 @@ def build_layout(species: pd.DataFrame, samples_per_species: int, seed: int) -> 
                 field_rows.append({"year": year, "stand_id": stand_id, "idx": i, "species": slug,
                                    "s": cs + gs[i], "w": cw + gw[i], "ground_z": zs[i]})
         k0 += nst
-    fields = pd.DataFrame(field_rows)
+    return pd.DataFrame(stand_rows), pd.DataFrame(field_rows)
+
+
+def _sample_attributes(rng, lay: dict, frame, sp: pd.DataFrame, fields: pd.DataFrame) -> pd.DataFrame:
+    """The fields.csv columns of the drawn samples (:data:`FIELD_COLUMNS` + s, w, cover_estimated).
+
+    Height uniform in the species' [min_h, max_h] (or ``samples.height_override_m``), m,
+    2 decimals; design (S12 in 2012; P10 for a tree with probability P10 / (P10 + S10), else
+    S10); plot radius by year; the S12 samples whose cover is estimated (probability
+    ``samples.canopy_cover_fraction``); positions rounded to ``samples.position_decimals``.
+    """
+    smp = lay["samples"]
     info = sp.set_index("slug")
     fields["functional_group"] = info.loc[fields["species"], "functional_group"].to_numpy()
     fields["is_tree"] = info.loc[fields["species"], "is_tree"].to_numpy().astype(bool).astype(int)
@@ -310,9 +356,14 @@ def build_layout(species: pd.DataFrame, samples_per_species: int, seed: int) -> 
     fields["s"], fields["w"] = frame.to_frame(fields["x"], fields["y"])
     fields["sample_id"] = [f"{sid}-{i + 1:03d}" for sid, i in zip(fields["stand_id"], fields["idx"])]
     fields = fields.drop(columns="idx")
-    fields = fields[FIELD_COLUMNS + ["s", "w", "cover_estimated"]].reset_index(drop=True)
+    return fields[FIELD_COLUMNS + ["s", "w", "cover_estimated"]].reset_index(drop=True)
 
-    zt = rng.normal(0.0, float(t["stand_z_sd"]), len(sites))
+
+def _targets_table(rng, lay: dict, frame, sites: pd.DataFrame, tcentres: np.ndarray) -> pd.DataFrame:
+    """targets.csv rows, one per target site and year it is laid out, with the truth columns
+    (site, true_rho, side_m, on_ground_rho) and the frame coordinates s, w; z = terrain + N(0, stand_z_sd)."""
+    dec = int(lay["samples"]["position_decimals"])
+    zt = rng.normal(0.0, float(lay["terrain"]["stand_z_sd"]), len(sites))
     trows = []
     for i, site in sites.iterrows():
         cs, cw = tcentres[i]
@@ -327,4 +378,4 @@ def build_layout(species: pd.DataFrame, samples_per_species: int, seed: int) -> 
                 "side_m": float(site["side_m"]), "on_ground_rho": site["on_ground_rho"]})
     targets = pd.DataFrame(trows)
     targets["s"], targets["w"] = frame.to_frame(targets["x"], targets["y"])
-    return Layout(frame=frame, fields=fields, targets=targets, stands=pd.DataFrame(stand_rows))
+    return targets

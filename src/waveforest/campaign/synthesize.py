@@ -1,6 +1,6 @@
 """Generate the virtual ALS60 campaign: ``run(cfg, out_dir, effects, seed)``.
 
-Order of work (each step's randomness has its own seeded stream, :mod:`.rng`):
+Order of work (each step's randomness has its own keyed stream, :func:`waveforest.rng.stream_generator`):
 
 1. parameters (``resources/campaign``) and the config's datasets; the true sensor of each
    dataset (:class:`.truth_sensor.TruthSensor`);
@@ -185,34 +185,12 @@ def run(cfg: dict, out_dir: str | os.PathLike, effects=None, seed: int | None = 
     if datasets.empty:
         raise SynthesizeError("config datasets: no dataset to generate")
     sensors = {row["dataset"]: TruthSensor.from_row(row) for _, row in datasets.iterrows()}
-    years = sorted(set(int(y) for y in datasets["year"]))
     lay = load_layout()
-
-
     layout = build_layout(species_table(), int(camp["samples_per_species"]), seed)
-    fields = layout.fields[layout.fields["year"].isin(years)].reset_index(drop=True)
-    targets = layout.targets[layout.targets["year"].isin(years)].reset_index(drop=True)
-    only = camp["species"]
-    if only:
-        unknown = sorted(set(only) - set(layout.fields["species"]))
-        if unknown:
-            raise SynthesizeError(f"campaign.species: unknown species {', '.join(unknown)}")
-        fields = fields[fields["species"].isin(only)].reset_index(drop=True)
+    fields, targets = _campaign_sites(layout, sorted(set(int(y) for y in datasets["year"])), camp["species"])
 
     # 3. pulses of every dataset near its sites
-    margin = float(camp["disc_margin_m"])
-    tree_r = float(cfg["select"]["tree_radius_m"])
-    cap = camp["max_pulses_per_site"]
-    plans, pulses = {}, {}
-    for _, row in datasets.iterrows():
-        ds, year = row["dataset"], int(row["year"])
-        sites = _sites_table(fields, targets, year, margin, tree_r)
-        plans[ds] = plan_flight(row, layout.frame, lay, float(camp["density_scale"]), seed,
-                                float(sites["ground_z"].mean()))
-        p = site_pulses(plans[ds], sites, lay, seed, None if cap is None else int(cap))
-        p.insert(0, "dataset", ds)
-        p["year"] = year
-        pulses[ds] = p
+    plans, pulses = _plan_pulses(datasets, fields, targets, layout, lay, cfg, seed)
     timings = {"plan": time.perf_counter() - t_start, "sites_wall": 0.0, "scenes": 0.0, "trace": 0.0,
                "record_write": 0.0}
     allp = pd.concat(pulses.values(), ignore_index=True)
@@ -221,22 +199,12 @@ def run(cfg: dict, out_dir: str | os.PathLike, effects=None, seed: int | None = 
     allp["row"] = np.concatenate([np.arange(len(p)) for p in pulses.values()])
 
     # 4. trace every site once
-    site_info = _site_info(fields, targets, margin)
+    site_info = _site_info(fields, targets, float(camp["disc_margin_m"]))
     for p in pulses.values():
         p["kind"] = p["site"].map(site_info["kind"]).to_numpy()
     a0, batches, cover_true = _trace_sites(allp, site_info, datasets, sensors, cfg, eff, seed, timings, progress)
     t_rec = time.perf_counter()
-
-    # canopy cover (visual estimate) for the marked S12 samples
-    smp = lay["samples"]
-    crng = stream_generator(seed, "cover")
-    noise = crng.normal(0.0, float(smp["canopy_cover_sd_pct"]), len(layout.fields))
-    est = layout.fields["sample_id"].map(cover_true).to_numpy(dtype=float) * 100.0 + noise
-    step = float(smp["canopy_cover_step_pct"])
-    est = np.clip(np.round(est / step) * step, 0.0, 100.0)
-    cover = pd.Series(np.where(layout.fields["cover_estimated"].to_numpy(), est, np.nan),
-                      index=layout.fields["sample_id"])
-    fields["canopy_cover_pct"] = fields["sample_id"].map(cover).to_numpy()
+    fields["canopy_cover_pct"] = fields["sample_id"].map(_canopy_cover(layout, cover_true, lay, seed)).to_numpy()
 
     # 5. record, write LAS and trajectories
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -254,25 +222,11 @@ def run(cfg: dict, out_dir: str | os.PathLike, effects=None, seed: int | None = 
             summary.pulses[ds] = info_ds["n_pulses"]
             summary.points[ds] = info_ds["n_points"]
             batches[ds] = None  # free sigma
+        # 6. the tables, the truth and the README
         _write_tables(tmp, datasets, fields, targets, camp)
         write_table(pa.Table.from_pandas(pd.concat(truth_rows, ignore_index=True), preserve_index=False),
                     tmp / "truth_pulses.parquet")
-        manifest = {
-            "description": "Truth of the virtual ALS60 campaign. No analysis step reads this file.",
-            "waveforest_version": __version__,
-            "seed": seed,
-            "effects": eff,
-            "active_effects": active(eff),
-            "config": {"datasets": list(datasets["dataset"]), "campaign": camp,
-                       "vegetation": {k: cfg["vegetation"][k] for k in ("ground_rho", "lai_jitter")}},
-            "frame": {"origin_x": layout.frame.origin_x, "origin_y": layout.frame.origin_y,
-                      "azimuth_deg": layout.frame.azimuth_deg},
-            "datasets": truth_ds,
-            "targets": {r["target_id"]: {"true_rho": r["true_rho"], "side_m": r["side_m"],
-                                         "on_ground_rho": None if pd.isna(r["on_ground_rho"]) else float(r["on_ground_rho"])}
-                        for _, r in targets.iterrows()},
-            "canopy_cover_true_pct": {k: 100.0 * v for k, v in cover_true.items()},
-        }
+        manifest = _truth_manifest(cfg, seed, eff, datasets, layout, targets, truth_ds, cover_true)
         with open(tmp / "truth.json", "w") as fh:
             json.dump(_jsonable(manifest), fh, indent=1, sort_keys=False)
         (tmp / "README.md").write_text(readme_text())
@@ -284,6 +238,80 @@ def run(cfg: dict, out_dir: str | os.PathLike, effects=None, seed: int | None = 
         raise
     summary.seconds = time.perf_counter() - t_start
     return summary
+
+
+def _campaign_sites(layout, years: list[int], only) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """The field samples and targets of ``years`` (samples only of the species ``only``, if given).
+
+    Raises SynthesizeError for a species of ``only`` the layout does not have.
+    """
+    fields = layout.fields[layout.fields["year"].isin(years)].reset_index(drop=True)
+    targets = layout.targets[layout.targets["year"].isin(years)].reset_index(drop=True)
+    if only:
+        unknown = sorted(set(only) - set(layout.fields["species"]))
+        if unknown:
+            raise SynthesizeError(f"campaign.species: unknown species {', '.join(unknown)}")
+        fields = fields[fields["species"].isin(only)].reset_index(drop=True)
+    return fields, targets
+
+
+def _plan_pulses(datasets: pd.DataFrame, fields: pd.DataFrame, targets: pd.DataFrame, layout, lay: dict,
+                 cfg: dict, seed: int) -> tuple[dict, dict]:
+    """Per dataset, its flight plan (:func:`.flight.plan_flight`) and the pulses near its year's
+    sites (:func:`.flight.site_pulses`, with columns ``dataset`` first and ``year``)."""
+    camp = cfg["campaign"]
+    margin = float(camp["disc_margin_m"])
+    tree_r = float(cfg["select"]["tree_radius_m"])
+    cap = camp["max_pulses_per_site"]
+    plans, pulses = {}, {}
+    for _, row in datasets.iterrows():
+        ds, year = row["dataset"], int(row["year"])
+        sites = _sites_table(fields, targets, year, margin, tree_r)
+        plans[ds] = plan_flight(row, layout.frame, lay, float(camp["density_scale"]), seed,
+                                float(sites["ground_z"].mean()))
+        p = site_pulses(plans[ds], sites, lay, seed, None if cap is None else int(cap))
+        p.insert(0, "dataset", ds)
+        p["year"] = year
+        pulses[ds] = p
+    return plans, pulses
+
+
+def _canopy_cover(layout, cover_true: dict, lay: dict, seed: int) -> pd.Series:
+    """The visually estimated canopy cover of the marked samples, %, by sample_id (NaN elsewhere).
+
+    The true cover (fraction) x 100 plus N(0, ``canopy_cover_sd_pct``), rounded to
+    ``canopy_cover_step_pct`` and clipped to [0, 100]; stream ("cover",) over all samples of the layout.
+    """
+    smp = lay["samples"]
+    crng = stream_generator(seed, "cover")
+    noise = crng.normal(0.0, float(smp["canopy_cover_sd_pct"]), len(layout.fields))
+    est = layout.fields["sample_id"].map(cover_true).to_numpy(dtype=float) * 100.0 + noise
+    step = float(smp["canopy_cover_step_pct"])
+    est = np.clip(np.round(est / step) * step, 0.0, 100.0)
+    return pd.Series(np.where(layout.fields["cover_estimated"].to_numpy(), est, np.nan),
+                     index=layout.fields["sample_id"])
+
+
+def _truth_manifest(cfg: dict, seed: int, eff: dict, datasets: pd.DataFrame, layout, targets: pd.DataFrame,
+                    truth_ds: dict, cover_true: dict) -> dict:
+    """The content of ``truth.json``: seed, effects, config, frame, per-dataset truth, targets, true cover."""
+    camp = cfg["campaign"]
+    return {
+        "description": "Truth of the virtual ALS60 campaign. No analysis step reads this file.",
+        "waveforest_version": __version__,
+        "seed": seed,
+        "effects": eff,
+        "active_effects": active(eff),
+        "config": {"datasets": list(datasets["dataset"]), "campaign": camp,
+                   "vegetation": {k: cfg["vegetation"][k] for k in ("ground_rho", "lai_jitter")}},
+        "frame": {"origin_x": layout.frame.origin_x, "origin_y": layout.frame.origin_y,
+                  "azimuth_deg": layout.frame.azimuth_deg},
+        "datasets": truth_ds,
+        "targets": {r["target_id"]: {"true_rho": r["true_rho"], "side_m": r["side_m"],
+                                     "on_ground_rho": None if pd.isna(r["on_ground_rho"]) else float(r["on_ground_rho"])}
+                    for _, r in targets.iterrows()},
+        "canopy_cover_true_pct": {k: 100.0 * v for k, v in cover_true.items()},
+    }
 
 
 def _site_info(fields: pd.DataFrame, targets: pd.DataFrame, margin: float) -> pd.DataFrame:
