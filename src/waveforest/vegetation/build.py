@@ -51,7 +51,8 @@ from waveforest.vegetation.generic import build_layer, build_residue, build_surf
 from waveforest.vegetation.ground import ground_plane
 from waveforest.vegetation.herbs import build_shoots
 from waveforest.vegetation.lad import LeafAngleDistribution, lad_by_name
-from waveforest.vegetation.params import PLOT_AREA_M2, species_params
+from waveforest.vegetation.params import PLOT_AREA_M2, SpeciesParams, species_params
+from waveforest.vegetation.plant import Plant
 from waveforest.vegetation.tree import allometric_leaf_area, build_tree
 
 UNDERSTORY_SPECIES = "fresh_grass_low"
@@ -142,6 +143,56 @@ def _leaf_optics(p, leaf_rho, leaf_tau, leaf_albedo) -> tuple[float, float]:
     return rho, min(tau, 1.0 - rho)
 
 
+def _species_plant(p: SpeciesParams, h: float, rng: np.random.Generator, lad: LeafAngleDistribution | None,
+                   jitter: float, leaf_area_scale: float, clumping: float) -> tuple[Plant, float]:
+    """The plant(s) of the species' model family and the one-sided leaf area asked of it, m^2.
+
+    The target is the allometry (trees, :func:`allometric_leaf_area`) or LAI x
+    :data:`PLOT_AREA_M2` (plot models), times ``jitter`` and ``leaf_area_scale``; 0 for
+    surfaces.
+    """
+    target = 0.0
+    if p.model == "tree":
+        target = allometric_leaf_area(p, h) * jitter
+        plant = build_tree(p, h, rng, lad, target, leaf_area_scale)
+    elif p.model == "shoots":
+        target = p["lai"] * PLOT_AREA_M2 * jitter
+        plant = build_shoots(p, h, rng, lad, target, leaf_area_scale, clumping)
+    elif p.model == "tufts":
+        target = p["lai"] * PLOT_AREA_M2 * jitter
+        plant = build_tufts(p, h, rng, lad, target, leaf_area_scale, clumping)
+    elif p.model == "layer":
+        target = p["lai"] * PLOT_AREA_M2 * jitter
+        plant = build_layer(p, h, rng, lad, target, leaf_area_scale, clumping)
+    elif p.model == "residue":
+        target = p["lai"] * PLOT_AREA_M2 * jitter
+        plant = build_residue(p, h, rng, lad, target, leaf_area_scale)
+    else:
+        plant = build_surface(p, h, rng)
+    return plant, target * leaf_area_scale
+
+
+def _understory(lai: float, rng: np.random.Generator) -> tuple[tuple, float]:
+    """The understory layer of LAI ``lai`` under a tree: the scene part ``(triangles, rho,
+    tau, KIND_LEAF)`` and its one-sided leaf area, m^2, of :data:`UNDERSTORY_SPECIES` tufts, :data:`UNDERSTORY_HEIGHT_M` tall,
+    drawn from a pool of :data:`UNDERSTORY_POOL_LAI` (nested layers for one seed)."""
+    up = species_params(UNDERSTORY_SPECIES)
+    under = build_tufts(up, UNDERSTORY_HEIGHT_M, rng, lad_by_name(up.lad), lai * PLOT_AREA_M2, 1.0, 0.0,
+                        pool_area=UNDERSTORY_POOL_LAI * PLOT_AREA_M2)
+    return (under.leaves, up.leaf_rho, up.leaf_tau, KIND_LEAF), under.leaf_area_m2
+
+
+def _scene_of(parts: list[tuple]) -> Scene:
+    """One :class:`Scene` of ``(triangles, rho, tau, kind)`` parts, in their order."""
+    counts = [len(t) for t, *_ in parts]
+    return Scene(
+        np.concatenate([t for t, *_ in parts]),
+        np.repeat(np.array([r for _, r, _, _ in parts], dtype=np.float32), counts),
+        np.repeat(np.array([t for _, _, t, _ in parts], dtype=np.float32), counts),
+        np.repeat(np.array([k for *_, k in parts], dtype=np.uint8), counts),
+    )
+
+
 def build(species: str, height: float, seed: int, *, ground_rho: float = 0.30,
           lai_jitter: float = 0.10, understory: float = 0.0, clumping: float = 0.0,
           lad_shift: float = 0.0, leaf_albedo: float = 1.0, leaf_area_scale: float = 1.0,
@@ -188,26 +239,7 @@ def build(species: str, height: float, seed: int, *, ground_rho: float = 0.30,
     else:
         rho, tau = _leaf_optics(p, leaf_rho, leaf_tau, leaf_albedo)
 
-    target = 0.0
-    if p.model == "tree":
-        target = allometric_leaf_area(p, h) * jitter
-        plant = build_tree(p, h, rng, lad, target, leaf_area_scale)
-    elif p.model == "shoots":
-        target = p["lai"] * PLOT_AREA_M2 * jitter
-        plant = build_shoots(p, h, rng, lad, target, leaf_area_scale, clumping)
-    elif p.model == "tufts":
-        target = p["lai"] * PLOT_AREA_M2 * jitter
-        plant = build_tufts(p, h, rng, lad, target, leaf_area_scale, clumping)
-    elif p.model == "layer":
-        target = p["lai"] * PLOT_AREA_M2 * jitter
-        plant = build_layer(p, h, rng, lad, target, leaf_area_scale, clumping)
-    elif p.model == "residue":
-        target = p["lai"] * PLOT_AREA_M2 * jitter
-        plant = build_residue(p, h, rng, lad, target, leaf_area_scale)
-    else:
-        plant = build_surface(p, h, rng)
-    target *= leaf_area_scale
-
+    plant, target = _species_plant(p, h, rng, lad, jitter, leaf_area_scale, clumping)
     parts = []  # (triangles, rho, tau, kind)
     if plant.leaves.size:
         parts.append((plant.leaves, rho, tau, KIND_LEAF))
@@ -219,25 +251,15 @@ def build(species: str, height: float, seed: int, *, ground_rho: float = 0.30,
 
     under_area = 0.0
     if understory > 0 and p.model == "tree":
-        up = species_params(UNDERSTORY_SPECIES)
-        under = build_tufts(up, UNDERSTORY_HEIGHT_M, np.random.default_rng(s_under),
-                            lad_by_name(up.lad), understory * PLOT_AREA_M2, 1.0, 0.0,
-                            pool_area=UNDERSTORY_POOL_LAI * PLOT_AREA_M2)
-        parts.append((under.leaves, up.leaf_rho, up.leaf_tau, KIND_LEAF))
-        under_area = under.leaf_area_m2
+        under, under_area = _understory(understory, np.random.default_rng(s_under))
+        parts.append(under)
 
     if ground and surface_kind != KIND_GROUND:
         g = ground_plane(ground_rho)
         parts.append((g.triangles, ground_rho, 0.0, KIND_GROUND))
     if not parts:
         raise VegetationError(f"{species} is a bare surface: ground=False leaves an empty scene")
-    counts = [len(t) for t, *_ in parts]
-    scene = Scene(
-        np.concatenate([t for t, *_ in parts]),
-        np.repeat(np.array([r for _, r, _, _ in parts], dtype=np.float32), counts),
-        np.repeat(np.array([t for _, _, t, _ in parts], dtype=np.float32), counts),
-        np.repeat(np.array([k for *_, k in parts], dtype=np.uint8), counts),
-    )
+    scene = _scene_of(parts)
     return Built(
         scene=scene,
         species=species,
