@@ -40,10 +40,11 @@ def toy() -> None:
 def real_chain(results: Path, config_path: Path) -> None:
     from waveforest import config
     from waveforest.diagnose.simulator import StudySimulator
+    from waveforest.diagnose.strata import pulse_keys
     from waveforest.io.pulses import read_pulses
     from waveforest.io.tables import read_datasets
     from waveforest.sensor import load_calibration as load_json
-    from waveforest.stages.diagnose import diagnosed_datasets, pulse_keys
+    from waveforest.stages.diagnose import diagnosed_datasets
     from waveforest.stages.simulate import load_calibration
 
     cfg = config.load(config_path)

@@ -6,8 +6,10 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from waveforest.diagnose import before_after as BA
 from waveforest.diagnose import gap as G
 from waveforest.errors import WaveforestError
+from waveforest.stats import bootstrap as B
 
 COVERAGE_TRIALS = 120
 """Null data sets drawn to check the coverage of the 95 % interval of d."""
@@ -135,22 +137,22 @@ def test_cluster_bootstrap_is_wider_than_a_pulse_bootstrap_would_be():
 def test_robust_sd_is_the_sd_of_normal_replicates_and_ignores_a_wild_one():
     """One replicate with a degenerate cell (a huge d^2) must not blow up an interval."""
     r = np.random.default_rng(3).normal(0.0, 2.0, (4000, 2))
-    assert np.allclose(G.robust_sd(r), 2.0, rtol=0.05)
+    assert np.allclose(B.robust_sd(r), 2.0, rtol=0.05)
     r[0, 0] = 1e6
-    assert G.robust_sd(r)[0] == pytest.approx(G.robust_sd(r[1:])[0], rel=0.01)
-    lo, hi = G.wald_interval(np.zeros(2), r, df=30)
+    assert B.robust_sd(r)[0] == pytest.approx(B.robust_sd(r[1:])[0], rel=0.01)
+    lo, hi = B.wald_interval(np.zeros(2), r, df=30)
     assert hi[0] < 5.0 and lo[0] > -5.0
-    lo, hi = G.recentred_interval(1.0, r[:, 0])
+    lo, hi = B.recentred_interval(1.0, r[:, 0])
     assert lo < 1.0 < hi and hi - lo < 10.0
-    assert np.isnan(G.robust_sd(np.array([[1.0], [np.nan]])))[0]
+    assert np.isnan(B.robust_sd(np.array([[1.0], [np.nan]])))[0]
 
 
 def test_bootstrap_weights_are_stratified_rescaled_and_seeded():
     uni = pd.Series(["a"] * 5 + ["b"] * 3, index=[f"s{i}" for i in range(8)])
-    w = G.bootstrap_weights(uni, 40, seed=3)
+    w = B.bootstrap_weights(uni, 40, seed=3)
     assert w.shape == (40, 8)
     assert np.all(w[:, :5].sum(axis=1) == 4) and np.all(w[:, 5:].sum(axis=1) == 2)
-    assert np.array_equal(w, G.bootstrap_weights(uni, 40, seed=3))
+    assert np.array_equal(w, B.bootstrap_weights(uni, 40, seed=3))
 
 
 def test_wasserstein_in_pooled_sds():
@@ -169,10 +171,10 @@ def test_paired_reduction_detects_a_better_model():
     good = clustered(rng, samples=20)
     bad = good.copy()
     bad["H"] = bad["H"] + 1.5
-    r = G.paired_reduction(real, bad, good, n_boot=200, seed=1)
+    r = BA.paired_reduction(real, bad, good, n_boot=200, seed=1)
     assert r.reduction > 0 and r.ci_low > 0
     assert r.relative == pytest.approx(r.reduction / (r.gap_base - r.noise_base))
-    same = G.paired_reduction(real, good, good, n_boot=50, seed=1)
+    same = BA.paired_reduction(real, good, good, n_boot=50, seed=1)
     assert same.reduction == 0 and same.ci_low == 0 == same.ci_high
 
 
@@ -182,7 +184,7 @@ def test_before_after_table():
     after = clustered(rng, samples=8)
     before = after.copy()
     before["Apeak"] = before["Apeak"] + 10.0  # one SD
-    t = G.before_after(real, before, after, n_boot=100, seed=2)
+    t = BA.before_after(real, before, after, n_boot=100, seed=2)
     assert set(t["level"]) == {"cell", "feature", "total"}
     cells = t[t["level"] == "cell"]
     assert len(cells) == 2 * 2 * 5  # datasets x species x features

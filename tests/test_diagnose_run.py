@@ -15,11 +15,12 @@ from click.testing import CliRunner
 from fixtures.study import SyntheticStudy
 
 from waveforest.constants import RANGE_PER_NS
+from waveforest.diagnose.missing_effects import find_missing_effects
 from waveforest.diagnose.model import model_dict, read_model, write_model
 from waveforest.diagnose.search import NamedEffect, SearchSettings
 from waveforest.effects import CATALOGUE
 from waveforest.errors import WaveforestError
-from waveforest.stages.diagnose import OUTPUT_NAMES, find_missing_effects, write_outputs
+from waveforest.stages.diagnose import OUTPUT_NAMES, write_outputs
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -44,8 +45,7 @@ def test_pulses_under_the_crowns_are_a_stratum_with_the_mirror_rule():
     "below crown", capped on their own; a twin stays in its pulse's stratum only when its first echo meets the same height
     rule, and compare's height rule blanks the waveform features of low crown pulses only."""
     from waveforest import config
-    from waveforest.diagnose.simulator import BELOW_CROWN, apply_rules
-    from waveforest.stages.diagnose import pulse_keys
+    from waveforest.diagnose.strata import BELOW_CROWN, apply_rules, pulse_keys
 
     base = dict(dataset="2010_12_1", species="birch", is_tree=True)
     rows = [dict(base, pulse_id=i, sample_id=f"s{i % 3}", comparison_set=i < 20, below_crown_set=i >= 20)
@@ -75,7 +75,7 @@ def test_real_below_crown_echoes_are_found_as_a_twins_are():
     from fixtures.tables import pulse_table
 
     from waveforest import config
-    from waveforest.diagnose.simulator import own_cfd_echoes
+    from waveforest.diagnose.strata import own_cfd_echoes
     from waveforest.io.pulses import padded_to_list
     from waveforest.sensor import gaussian_system_waveform
     from waveforest.stages.simulate import Calibration
@@ -110,8 +110,8 @@ def test_pulses_under_the_crowns_are_chosen_by_their_own_cfd_echo():
     from fixtures.tables import pulse_table
 
     from waveforest import config
+    from waveforest.diagnose.strata import with_pulses_under_crowns
     from waveforest.sensor import gaussian_system_waveform
-    from waveforest.stages.diagnose import with_pulses_under_crowns
     from waveforest.stages.select import SelectRules, select_pulses
     from waveforest.stages.simulate import Calibration
 
@@ -141,7 +141,7 @@ def test_a_beam_turned_about_its_stem_keeps_heights_and_distances():
     every point of the beam keeps its height and its distance from the stem (stem_distance)."""
     from fixtures.tables import pulse_table
 
-    from waveforest.diagnose.simulator import stem_distance, turned_about_stems
+    from waveforest.diagnose.strata import stem_distance, turned_about_stems
 
     t = pulse_table("d", [[(1.0, 0.5, 100.0)], [(2.0, -1.0, 100.0)]])
     t = t.append_column("sample_x", pa_array([0.5, 2.0])).append_column("sample_y", pa_array([0.0, 0.0]))

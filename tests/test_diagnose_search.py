@@ -11,7 +11,8 @@ from fixtures.study import SyntheticStudy
 from scipy.stats import norm
 
 from waveforest.diagnose import catalogue as cat
-from waveforest.diagnose.search import SearchSettings, parabolic_vertex, refinement_step, search, split_samples
+from waveforest.diagnose.optimise import parabolic_vertex, refinement_step
+from waveforest.diagnose.search import SearchSettings, search, split_samples
 from waveforest.effects import CATALOGUE
 from waveforest.errors import WaveforestError
 

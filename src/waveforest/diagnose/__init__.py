@@ -1,37 +1,17 @@
-"""Diagnosis: where simulation and measurement disagree, which missing effect explains it.
+"""Diagnosis of missing effects: where simulation and measurement disagree, and why.
 
-Beyond Hovi & Korpela (2014): the authors listed candidate reasons for the gaps between
-their simulated and real waveform features (docs/method.md §(j)) but could not test them. This
-package does it as a workflow stage (``waveforest diagnose``):
+Beyond Hovi & Korpela (2014), docs/method.md §(j); the ``diagnose`` stage
+(:mod:`waveforest.stages.diagnose`) reads the inputs and writes the outputs. Modules:
 
-* :mod:`.gap` — the documented measure of disagreement per dataset x species x feature,
-  one total, a noise floor and cluster-bootstrap confidence intervals;
-* :mod:`.catalogue` — the effects of :mod:`waveforest.effects` as one-parameter
-  components of the simulation model (search scale, grid, where each acts);
-* :mod:`.search` — fit each candidate on one half of the field samples with common random
-  numbers, test it on the other half, name the best significant one, repeat;
-* :mod:`.model` — ``model.yaml`` (the extended model) writing and reading;
-* :mod:`.synthetic` — a cheap simulator with known effect signatures (tests, demos);
-* :mod:`.simulator` — the adapter to the study's real ``simulate`` stage;
-* :mod:`.run` / :mod:`.cli` — orchestration and the ``diagnose`` command.
+* :mod:`.gap` — the gap of one simulation against the real data (per cell, feature, total);
+* :mod:`.before_after` — two simulations against the same real data, paired bootstrap;
+* :mod:`.catalogue` — the effects as one-parameter model components (search coordinate, grid);
+* :mod:`.optimise` — the 1-D optimiser (parabolic vertex, Brent-like steps);
+* :mod:`.simulations` — the search's cache of simulator calls (common random numbers);
+* :mod:`.search` — settings and the search loop (fit on one half, test on the other, name);
+* :mod:`.strata` — the pulses compared, selection rules, the stratum under the crowns;
+* :mod:`.simulator` — the study's simulation chain as ``simulate(pulses, effects, seed)``;
+* :mod:`.missing_effects` — search, fresh before/after, signatures, the markdown summary;
+* :mod:`.model` — ``model.yaml``, written and read back;
+* :mod:`.figures` — ``gap.png``.
 """
-
-from waveforest.diagnose.gap import (
-    FEATURE_SD_FLOOR,
-    FEATURES,
-    GapData,
-    GapReport,
-    gap_report,
-    paired_reduction,
-    total_gap,
-)
-
-__all__ = [
-    "FEATURES",
-    "FEATURE_SD_FLOOR",
-    "GapData",
-    "GapReport",
-    "gap_report",
-    "paired_reduction",
-    "total_gap",
-]

@@ -1,5 +1,11 @@
 """The gap: a documented measure of disagreement between real and simulated features.
 
+docs/method.md §(j) (the gap). This module computes the gap of one simulation against the
+real data (:func:`gap_report`, :func:`total_gap`); the paired comparison of two simulations
+is :mod:`.before_after`, the generic bootstrap statistics :mod:`waveforest.stats.bootstrap`.
+Errors: :class:`waveforest.errors.WaveforestError` for missing columns, a sample in two
+species, simulated samples outside the universe, or no valid cell.
+
 A *cell* is one dataset x species (x stratum: feature tables may carry a ``stratum`` column,
 e.g. "below crown", which splits a species' pulses into cells labelled "birch below crown";
 the bootstrap still resamples the species' samples with all their pulses); in it, each
@@ -34,9 +40,9 @@ Pulses of one field sample see the same plant and are correlated, so every boots
 resamples *field samples* (clusters), stratified by species, and takes each drawn sample's
 real and simulated pulses together (a paired cluster bootstrap). Even a perfect model has
 E[d^2] = Var(d) > 0: the *noise floor* ``F = mean of (Var*(d) + Var*(l))`` (bootstrap
-variances, from interquartile ranges: :func:`robust_sd`) is the gap expected from sampling
-noise alone, and the *excess gap* is ``G - F``. The gap is *significant* when the lower bound of the excess gap's interval is
-above 0. Intervals of G (and of differences of G) are bootstrap percentile intervals
+variances, from interquartile ranges: :func:`waveforest.stats.bootstrap.robust_sd`) is the gap expected from sampling
+noise alone, and the *excess gap* is ``G - F``. The gap is *significant* when the lower
+bound of the excess gap's interval is above 0. Intervals of G (and of differences of G) are bootstrap percentile intervals
 recentred on the estimate (G + quantiles of G* - median G*): the bootstrap adds its own
 noise to d*, shifting G* upwards by about F; recentring removes that shift and keeps the
 skewness of a sum of squares. Intervals of d and l are ``estimate -+ t * SE*`` (bootstrap
@@ -47,15 +53,20 @@ are percentile intervals (descriptive only).
 
 from __future__ import annotations
 
-import warnings
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 import pandas as pd
-from scipy.stats import t as student_t
 from scipy.stats import wasserstein_distance
 
 from waveforest.errors import WaveforestError
+from waveforest.stats.bootstrap import (
+    DEFAULT_ALPHA,
+    bootstrap_weights,
+    recentred_interval,
+    robust_sd,
+    wald_interval,
+)
 
 FEATURES: tuple[str, ...] = ("H", "Npeaks", "Apeak", "FWHM", "E")
 """Features compared (docs/method.md §(h)), in report order."""
@@ -72,9 +83,6 @@ FEATURE_SD_FLOOR: dict[str, float] = {
     "n_echoes": _ROUNDING_SD,  # a count
 }
 """Smallest meaningful SD of each feature (its measurement resolution), feature units."""
-
-DEFAULT_ALPHA = 0.05
-"""Two-sided level of every interval (95 % intervals)."""
 
 MIN_CELL_PULSES = 10
 """A cell enters the gap when it has at least this many real pulses ..."""
@@ -114,39 +122,6 @@ def sample_universe(*tables: pd.DataFrame) -> pd.Series:
         raise WaveforestError(f"feature tables: sample_id(s) {bad} belong to more than one species")
     return both.set_index("sample_id")["species"].sort_index()
 
-
-def bootstrap_weights(universe: pd.Series, n_boot: int, seed) -> np.ndarray:
-    """Multiplicities of a cluster bootstrap stratified by species.
-
-    Within each species of J_s samples, J_s - 1 samples are drawn with replacement (the
-    rescaling bootstrap of Rao & Wu 1988 with m = J_s - 1): the plain bootstrap's variance of a
-    mean is biased low by (J_s - 1) / J_s, which matters with the few field samples per
-    species of a campaign (intervals of d then have their nominal coverage).
-
-    Parameters
-    ----------
-    universe : Series
-        ``sample_id -> species`` (:func:`sample_universe`), J samples.
-    n_boot : int
-        Replicates B.
-    seed : int or SeedSequence
-        Seed of the draws.
-
-    Returns
-    -------
-    (B, J) float64
-        How many times each sample enters each replicate; each species' entries sum to J_s - 1.
-    """
-    if n_boot < 1:
-        raise ValueError(f"n_boot must be >= 1, got {n_boot}")
-    rng = np.random.default_rng(seed)
-    species = universe.to_numpy()
-    w = np.zeros((n_boot, len(species)))
-    for sp in np.unique(species):
-        idx = np.flatnonzero(species == sp)
-        m = max(len(idx) - 1, 1)
-        w[:, idx] = rng.multinomial(m, np.full(len(idx), 1.0 / len(idx)), size=n_boot)
-    return w
 
 
 @dataclass
@@ -246,17 +221,7 @@ class GapData:
             if src == 1 and np.any((j < 0) & (c >= 0)):
                 bad = sorted(table.loc[(j < 0) & (c >= 0), "sample_id"].astype(str).unique())[:5]
                 raise WaveforestError(f"simulated feature table: sample_id(s) {bad} are not in the real table")
-            keep = (c >= 0) & (j >= 0)
-            flat = c[keep] * n_j + j[keep]
-            for k, f in enumerate(features):
-                x = table[f].to_numpy(dtype=np.float64)[keep]
-                ok = np.isfinite(x)
-                if src == 0:
-                    center[:, k] = _group_mean(c[keep][ok], x[ok], n_c)
-                xc = x[ok] - center[c[keep][ok], k]
-                n[src, :, k] = np.bincount(flat[ok], minlength=n_c * n_j).reshape(n_c, n_j)
-                s1[src, :, k] = np.bincount(flat[ok], xc, minlength=n_c * n_j).reshape(n_c, n_j)
-                s2[src, :, k] = np.bincount(flat[ok], xc * xc, minlength=n_c * n_j).reshape(n_c, n_j)
+            _add_sums(table, c, j, features, src, center, (n, s1, s2))
         n_real = n[0].sum(axis=-1)
         n_real_samples = (n[0] > 0).sum(axis=-1)
         valid = (n_real >= min_pulses) & (n_real_samples >= min_samples) & (n[1].sum(axis=-1) >= 2)
@@ -273,6 +238,27 @@ class GapData:
             real=real,
             sim=sim,
         )
+
+
+def _add_sums(table: pd.DataFrame, c: np.ndarray, j: np.ndarray, features, src: int, center: np.ndarray,
+              sums: tuple[np.ndarray, np.ndarray, np.ndarray]) -> None:
+    """Fill ``n, s1, s2 [src]`` (and, for the real table, ``center``) from one table's rows.
+
+    ``c`` and ``j`` are each row's cell and sample index (-1: not counted).
+    """
+    n, s1, s2 = sums
+    n_c, n_j = n.shape[1], n.shape[3]
+    keep = (c >= 0) & (j >= 0)
+    flat = c[keep] * n_j + j[keep]
+    for k, f in enumerate(features):
+        x = table[f].to_numpy(dtype=np.float64)[keep]
+        ok = np.isfinite(x)
+        if src == 0:
+            center[:, k] = _group_mean(c[keep][ok], x[ok], n_c)
+        xc = x[ok] - center[c[keep][ok], k]
+        n[src, :, k] = np.bincount(flat[ok], minlength=n_c * n_j).reshape(n_c, n_j)
+        s1[src, :, k] = np.bincount(flat[ok], xc, minlength=n_c * n_j).reshape(n_c, n_j)
+        s2[src, :, k] = np.bincount(flat[ok], xc * xc, minlength=n_c * n_j).reshape(n_c, n_j)
 
 
 def _require(table: pd.DataFrame, columns, what: str) -> None:
@@ -393,78 +379,6 @@ def total_gap(
     return float(out) if weights is None else out
 
 
-def recentred_interval(estimate: float, replicates: np.ndarray, alpha: float = DEFAULT_ALPHA) -> tuple[float, float]:
-    """Bootstrap percentile interval of ``replicates`` shifted so its centre is ``estimate``.
-
-    ``[estimate + q(alpha/2) - median, estimate + q(1 - alpha/2) - median]`` of the finite
-    replicates: the bootstrap's shape, without the upward bias that resampling adds to
-    squared statistics (module docstring). The median, not the mean, is the centre: a few
-    replicates with a near-degenerate cell have huge squared terms (:func:`robust_sd`).
-    """
-    r = np.asarray(replicates, dtype=np.float64)
-    r = r[np.isfinite(r)]
-    if r.size < 2:
-        return (np.nan, np.nan)
-    lo, m, hi = np.quantile(r, [alpha / 2, 0.5, 1 - alpha / 2])
-    return (float(estimate + lo - m), float(estimate + hi - m))
-
-
-def wald_interval(estimate: np.ndarray, replicates: np.ndarray, df, alpha: float = DEFAULT_ALPHA) -> np.ndarray:
-    """``estimate -+ t(1 - alpha/2, df) * SE*``, SE* the (robust, :func:`robust_sd`) SD of the
-    bootstrap replicates.
-
-    Used for d and l (nearly unbiased, nearly symmetric): with the ~10 field samples per
-    species of a campaign it keeps its nominal coverage where the percentile interval of
-    the same replicates is too narrow (tests/test_diagnose_gap.py).
-
-    Parameters
-    ----------
-    estimate : (...) float64
-    replicates : (B, ...) float64
-    df : int or (...) int
-        Degrees of freedom: field samples of the cell minus 1.
-
-    Returns
-    -------
-    (2, ...) float64
-        Lower and upper bounds.
-    """
-    half = student_t.ppf(1 - alpha / 2, df) * robust_sd(replicates)
-    return np.stack([estimate - half, estimate + half])
-
-
-IQR_PER_SD = 1.3489795003921634
-"""Interquartile range of a normal distribution in SDs (2 * Phi^-1(0.75))."""
-
-
-def robust_sd(replicates: np.ndarray) -> np.ndarray:
-    """SD of bootstrap replicates estimated as IQR / 1.349 (over axis 0, ignoring NaN).
-
-    A replicate that draws one or two field samples into a cell can give a near-zero pooled
-    SD and so a huge d (and d^2); one such replicate in a few hundred blew the plain SD of a
-    gap difference up a thousandfold on the virtual campaign. The IQR ignores those tails
-    and equals the SD for normal replicates, which d, l and gap differences nearly are.
-
-    Parameters
-    ----------
-    replicates : (B, ...) float64
-
-    Returns
-    -------
-    (...) float64; NaN where fewer than 2 replicates are finite.
-    """
-    r = np.asarray(replicates, dtype=np.float64)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN slices
-        q1, q3 = np.nanquantile(r, [0.25, 0.75], axis=0)
-    out = (q3 - q1) / IQR_PER_SD
-    return np.where(np.sum(np.isfinite(r), axis=0) >= 2, out, np.nan)
-
-
-def cluster_df(universe: pd.Series) -> int:
-    """Degrees of freedom of a statistic pooled over all samples: samples - species (>= 1)."""
-    return max(len(universe) - universe.nunique(), 1)
-
 
 def noise_floor(data: GapData, weights: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
     """Bootstrap variance of d plus that of l, per cell and feature: the gap of noise alone.
@@ -584,7 +498,14 @@ def gap_report(
     w1 = np.full(data.valid.shape, np.nan)
     w1_ci = np.full((2,) + data.valid.shape, np.nan)
     if wasserstein:
-        w1, w1_ci = _wasserstein(data, point["pooled_sd"], weights, q)
+        w1, w1_ci = wasserstein_cells(data, point["pooled_sd"], weights, q)
+    cells = _cells_table(data, point, terms, noise, d_ci, l_ci, w1, w1_ci)
+    summary, total_reps = _summary_table(data, terms, contributions(boot), noise, w1 if wasserstein else None, alpha)
+    return GapReport(cells=cells, summary=summary, replicates=total_reps)
+
+
+def _cells_table(data: GapData, point: dict, terms, noise, d_ci, l_ci, w1, w1_ci) -> pd.DataFrame:
+    """:attr:`GapReport.cells`: one row per cell and feature."""
     rows = []
     for c, (ds, sp) in enumerate(data.cells.itertuples(index=False)):
         for k, f in enumerate(data.features):
@@ -601,7 +522,14 @@ def gap_report(
                 "w1": w1[c, k], "w1_ci_low": w1_ci[0, c, k], "w1_ci_high": w1_ci[1, c, k],
                 "contribution": terms[c, k], "noise": noise[c, k], "valid": bool(data.valid[c, k]),
             })
-    cells = pd.DataFrame(rows)
+    return pd.DataFrame(rows)
+
+
+def _summary_table(data: GapData, terms, boot_terms, noise, w1, alpha: float) -> tuple[pd.DataFrame, np.ndarray]:
+    """:attr:`GapReport.summary` (per feature and ``total``) and the total gap's replicates.
+
+    ``w1`` is None when the Wasserstein distances were not computed.
+    """
     summary_rows = {}
     total_reps = None
     for f in list(data.features) + ["total"]:
@@ -612,23 +540,23 @@ def gap_report(
                                "significant": False, "w1": np.nan, "n_cells": 0}
             continue
         g = float(np.nanmean(terms[mask]))
-        reps = np.nanmean(contributions(boot)[:, mask], axis=1)
+        reps = np.nanmean(boot_terms[:, mask], axis=1)
         fl = float(np.nanmean(noise[mask]))
         lo, hi = recentred_interval(g, reps, alpha)
         summary_rows[f] = {
             "gap": g, "ci_low": lo, "ci_high": hi, "noise_floor": fl,
             "excess": g - fl, "excess_ci_low": lo - fl, "excess_ci_high": hi - fl,
-            "significant": bool(lo - fl > 0), "w1": float(np.nanmean(w1[mask])) if wasserstein else np.nan,
+            "significant": bool(lo - fl > 0), "w1": float(np.nanmean(w1[mask])) if w1 is not None else np.nan,
             "n_cells": int(mask.sum()),
         }
         if f == "total":
             total_reps = reps
     summary = pd.DataFrame.from_dict(summary_rows, orient="index")
     summary.index.name = "feature"
-    return GapReport(cells=cells, summary=summary, replicates=total_reps)
+    return summary, total_reps
 
 
-def _wasserstein(data: GapData, pooled: np.ndarray, weights: np.ndarray, q) -> tuple[np.ndarray, np.ndarray]:
+def wasserstein_cells(data: GapData, pooled: np.ndarray, weights: np.ndarray, q) -> tuple[np.ndarray, np.ndarray]:
     """W1 / pooled SD per cell and feature, and its bootstrap percentile interval.
 
     The bootstrap reuses the sample multiplicities as pulse weights (scipy's weighted W1),
@@ -663,172 +591,3 @@ def _wasserstein(data: GapData, pooled: np.ndarray, weights: np.ndarray, q) -> t
             if np.isfinite(reps).any():
                 ci[:, c, k] = np.nanquantile(reps, q)
     return w1, ci
-
-
-@dataclass
-class Reduction:
-    """Paired comparison of two simulations against the same real data (same bootstrap).
-
-    Attributes
-    ----------
-    gap_base, gap_new : float
-        Total moment gaps G of the baseline and the new simulation.
-    noise_base : float
-        Noise floor of the baseline.
-    reduction : float
-        ``gap_base - gap_new`` (> 0: the new simulation agrees better).
-    ci_low, ci_high : float
-        Interval of the reduction, ``reduction -+ t * SE*`` with the paired bootstrap's
-        standard error (same resamples for both) and samples - species degrees of freedom.
-    relative : float
-        ``reduction / (gap_base - noise_base)``: the share of the baseline's excess gap
-        removed; NaN when the baseline has no excess.
-    replicates : (B,) float64
-        Bootstrap replicates of the reduction.
-    """
-
-    gap_base: float
-    gap_new: float
-    noise_base: float
-    reduction: float
-    ci_low: float
-    ci_high: float
-    relative: float
-    replicates: np.ndarray
-
-
-def paired_reduction(
-    real: pd.DataFrame,
-    sim_base: pd.DataFrame,
-    sim_new: pd.DataFrame,
-    *,
-    n_boot: int = 200,
-    seed=0,
-    alpha: float = DEFAULT_ALPHA,
-    universe: pd.Series | None = None,
-    **build_kw,
-) -> Reduction:
-    """How much ``sim_new`` reduces the gap of ``sim_base``, with a paired cluster bootstrap.
-
-    Both gaps average the same cells (valid in both) and every replicate resamples the same
-    field samples for the real data and both simulations.
-    """
-    if universe is None:
-        universe = sample_universe(real, sim_base, sim_new)
-    a = GapData.build(real, sim_base, universe, **build_kw)
-    b = GapData.build(real, sim_new, universe, **build_kw)
-    valid = a.valid & b.valid
-    w = bootstrap_weights(universe, n_boot, seed)
-    ga, gb = total_gap(a, valid=valid), total_gap(b, valid=valid)
-    reps = total_gap(a, w, valid) - total_gap(b, w, valid)
-    lo, hi = wald_interval(ga - gb, reps, cluster_df(universe), alpha)
-    fl = float(np.nanmean(noise_floor(a, w, valid)[valid]))
-    excess = ga - fl
-    rel = (ga - gb) / excess if excess > 0 else np.nan
-    return Reduction(gap_base=ga, gap_new=gb, noise_base=fl, reduction=ga - gb, ci_low=lo, ci_high=hi,
-                     relative=float(rel), replicates=reps)
-
-
-def before_after(
-    real: pd.DataFrame,
-    sim_before: pd.DataFrame,
-    sim_after: pd.DataFrame,
-    *,
-    n_boot: int = 200,
-    seed=0,
-    alpha: float = DEFAULT_ALPHA,
-    wasserstein: bool = True,
-    **build_kw,
-) -> pd.DataFrame:
-    """The gap of two simulations (base and extended model) against the same real data.
-
-    One paired cluster bootstrap (the same resampled field samples for the real data and
-    both simulations) gives the interval of each gap and of its reduction; both gaps average
-    the same cells (valid in both).
-
-    Parameters
-    ----------
-    real, sim_before, sim_after : DataFrame
-        Feature tables (dataset, species, sample_id, features).
-    n_boot, seed, alpha
-        Bootstrap replicates, seed and interval level.
-    wasserstein : bool
-        Also report W1 / pooled SD per cell (before and after).
-    **build_kw
-        :meth:`GapData.build` settings (features, floors, min_pulses, min_samples).
-
-    Returns
-    -------
-    DataFrame
-        One row per dataset x species x feature (``level = cell``), per feature (``level =
-        feature``, dataset and species empty) and one ``level = total`` row, with: n_cells,
-        gap_before, before_ci_low, before_ci_high, gap_after, after_ci_low, after_ci_high,
-        noise_floor (of the base model), reduction, reduction_ci_low, reduction_ci_high,
-        relative_reduction (share of the base model's excess gap removed); cell rows also
-        d_before, d_after, log_sd_ratio_before, log_sd_ratio_after, w1_before, w1_after,
-        n_real, n_sim_before, n_sim_after, mean_real, mean_before, mean_after.
-        Gaps are moment gaps (squared pooled SDs; a cell's gap is its d^2 + l^2).
-    """
-    universe = sample_universe(real, sim_before, sim_after)
-    a = GapData.build(real, sim_before, universe, **build_kw)
-    b = GapData.build(real, sim_after, universe, **build_kw)
-    valid = a.valid & b.valid
-    if not valid.any():
-        raise WaveforestError("gap: no cell has enough real and simulated pulses to compare")
-    w = bootstrap_weights(universe, n_boot, seed)
-    pa_, pb_ = cell_statistics(a), cell_statistics(b)
-    ta, tb = contributions(pa_), contributions(pb_)
-    ra, rb = contributions(cell_statistics(a, w)), contributions(cell_statistics(b, w))
-    noise = noise_floor(a, w, valid)
-    df_cell = np.maximum((a.n[0] > 0).sum(axis=-1) - 1, 1)
-    df_all = cluster_df(universe)
-    w1a = w1b = np.full(valid.shape, np.nan)
-    if wasserstein:
-        q = [alpha / 2, 1 - alpha / 2]
-        w1a, _ = _wasserstein(_with_valid(a, valid), pa_["pooled_sd"], w[:0], q)
-        w1b, _ = _wasserstein(_with_valid(b, valid), pb_["pooled_sd"], w[:0], q)
-
-    def summarise(mask: np.ndarray, df) -> dict:
-        with np.errstate(invalid="ignore"), warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN replicates of a tiny cell
-            ga, gb = float(np.nanmean(ta[mask])), float(np.nanmean(tb[mask]))
-            reps_a, reps_b = np.nanmean(ra[:, mask], axis=1), np.nanmean(rb[:, mask], axis=1)
-            fl = float(np.nanmean(noise[mask]))
-        lo_a, hi_a = recentred_interval(ga, reps_a, alpha)
-        lo_b, hi_b = recentred_interval(gb, reps_b, alpha)
-        r_lo, r_hi = wald_interval(ga - gb, reps_a - reps_b, df, alpha)
-        excess = ga - fl
-        return {"n_cells": int(mask.sum()), "gap_before": ga, "before_ci_low": lo_a, "before_ci_high": hi_a,
-                "gap_after": gb, "after_ci_low": lo_b, "after_ci_high": hi_b, "noise_floor": fl,
-                "reduction": ga - gb, "reduction_ci_low": float(r_lo), "reduction_ci_high": float(r_hi),
-                "relative_reduction": (ga - gb) / excess if excess > 0 else np.nan}
-
-    rows = []
-    for c, (ds, sp) in enumerate(a.cells.itertuples(index=False)):
-        for k, f in enumerate(a.features):
-            if not valid[c, k]:
-                continue
-            mask = np.zeros_like(valid)
-            mask[c, k] = True
-            rows.append({"level": "cell", "dataset": ds, "species": sp, "feature": f,
-                         **summarise(mask, df_cell[c, k]),
-                         "d_before": pa_["d"][c, k], "d_after": pb_["d"][c, k],
-                         "log_sd_ratio_before": pa_["log_sd_ratio"][c, k],
-                         "log_sd_ratio_after": pb_["log_sd_ratio"][c, k],
-                         "w1_before": w1a[c, k], "w1_after": w1b[c, k],
-                         "n_real": int(pa_["n_real"][c, k]), "n_sim_before": int(pa_["n_sim"][c, k]),
-                         "n_sim_after": int(pb_["n_sim"][c, k]), "mean_real": pa_["mean_real"][c, k],
-                         "mean_before": pa_["mean_sim"][c, k], "mean_after": pb_["mean_sim"][c, k]})
-    for k, f in enumerate(a.features):
-        mask = valid & (np.arange(len(a.features)) == k)[None, :]
-        if mask.any():
-            rows.append({"level": "feature", "dataset": "", "species": "", "feature": f,
-                         **summarise(mask, df_all)})
-    rows.append({"level": "total", "dataset": "", "species": "", "feature": "total", **summarise(valid, df_all)})
-    return pd.DataFrame(rows)
-
-
-def _with_valid(data: GapData, valid: np.ndarray) -> GapData:
-    """``data`` with another validity mask (a shallow copy)."""
-
-    return replace(data, valid=valid)

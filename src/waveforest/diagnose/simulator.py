@@ -21,30 +21,19 @@ pulses). It adds four things:
   targets' pulses (``calibration_pulses``) each value tried gets S(t) recalibrated under it
   (cached per value). Without them the candidate is applied on top of the calibrated S(t),
   which already holds part of the effect;
-* **the selection rules mirrored on the simulation**: real pulses were selected with their
-  first echo at least ``select.tree_min_echo_h_m`` above the ground for trees; a simulated
-  twin whose first echo is lower is dropped in the same way, and the waveform features of
-  species in ``simulate.compare_min_h_m`` (birch: 1.5 m) use only pulses whose first echo is
-  higher, for real and simulated pulses alike (:func:`apply_rules`, as ``compare`` does).
-  The pulses under the crowns (``stratum`` "below crown") are one population on both sides,
-  drawn by one rule and one detector. Real: every pulse whose own first CFD echo (found as a
-  twin's is, :func:`own_cfd_echoes`) lies within ``select.tree_radius_m`` of a compared stem
-  and lower than ``select.tree_min_echo_h_m`` (:func:`.run.with_pulses_under_crowns`). Twin:
-  for each such pulse, the first of up to :data:`BELOW_CROWN_ATTEMPTS` traces of its beam
-  whose first echo meets the same rule, the beam turned about the stem by a seeded azimuth
-  from the second attempt on (:func:`turned_about_stems`: each point keeps its height and
-  its distance from the stem) with rays, noise and ``xy_error`` offsets drawn anew. A real
-  pulse of the stratum went through a gap of its plant; its twin is the same beam through a
-  gap of the twin's plant, so both sides are draws of "what lies under the crown at that
-  distance and angle". (With one trace per pulse only the twins whose plant happened to
-  have a gap there stayed, 4-17 per dataset on a campaign of 40 birches per year, weighted
-  towards beams that pass easily; with up to 16, about 49 of the 54 pulses of its 2012
-  dataset get a twin, and without effects the stratum's H, E and Apeak differ from the real
-  by d = +0.02, -0.01, -0.06. Drawing the real side by the sensor's DR echo instead left
-  out the pulses whose DR fired on a weak crown return that the CFD passes over, half of
-  them with a first echo on low branches at 0.6-1 m, while their twins kept theirs.) The
-  adapter simulates every pulse it is given, so it marks them all ``comparison_set`` for
-  ``simulate_pulses``.
+* **the selection rules mirrored on the simulation** (:mod:`.strata`): a simulated twin
+  is dropped or masked by the rules that selected its real pulse
+  (:func:`.strata.apply_rules`); a twin of the stratum under the crowns is the first of up
+  to :data:`.strata.BELOW_CROWN_ATTEMPTS` traces of its beam, turned about the stem from the
+  second attempt on (:func:`.strata.turned_about_stems`), whose first echo meets that
+  stratum's rule. The adapter simulates every pulse it is given, so it marks them all
+  ``comparison_set`` for ``simulate_pulses``.
+
+Contract: ``StudySimulator(...)(pulses, effects, seed)`` takes rows with dataset and
+pulse_id (and optionally stratum) and returns a feature table (one row per twin with an
+echo; H in m, FWHM in ns, Apeak in DN, E in DN ns). Errors:
+:class:`waveforest.errors.WaveforestError` for a dataset without select table or
+calibration, and when no twin has an echo. Measured costs: docs/validation.md (Speed).
 """
 
 from __future__ import annotations
@@ -58,27 +47,21 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.compute as pc
 
-from waveforest.constants import RANGE_PER_NS
+from waveforest.diagnose.strata import (
+    BELOW_CROWN,
+    BELOW_CROWN_ATTEMPTS,
+    apply_rules,
+    stem_distance,
+    turned_about_stems,
+)
 from waveforest.errors import WaveforestError
-from waveforest.io.pulses import list_to_padded, padded_to_list
 from waveforest.io.tables import dataset_row
 from waveforest.mcrt import prepare
-from waveforest.model.forward import SensorSetup, hash_ids, stable_hash, twin_echoes
+from waveforest.rng import hash_ids, stable_hash
 from waveforest.sensor import CFDParams, FeatureParams, feature_table, range_correction_of
-from waveforest.sensor._checks import gain_or_one
-from waveforest.sensor.agc import GAIN_COLUMN
 from waveforest.sensor.calibration import calibration_effects
 from waveforest.stages.simulate import simulate_pulses
 from waveforest.vegetation import build_scene, species_table
-
-BELOW_CROWN = "below crown"
-"""``stratum`` of the pulses of ``select``'s ``below_crown_set`` (the others have "")."""
-
-BELOW_CROWN_ATTEMPTS = 16
-"""Most attempts at a twin under the crown per pulse of that stratum (:meth:`StudySimulator._below_crown`)."""
-
-WAVEFORM_FEATURES = ("Npeaks", "Apeak", "FWHM", "E")
-"""Features restricted by ``simulate.compare_min_h_m`` (all but H)."""
 
 SCENE_CACHE_SIZE = 512
 """Most prepared scenes kept (least recently used dropped first) ..."""
@@ -86,110 +69,6 @@ SCENE_CACHE_SIZE = 512
 SCENE_CACHE_TRIANGLES = 12_000_000
 """... and most triangles in them (a prepared scene with its Embree BVH takes roughly
 100 bytes per triangle; a low-species plot has ~200 000 triangles)."""
-
-
-def apply_rules(features: pd.DataFrame, cfg: dict) -> pd.DataFrame:
-    """The selection rules of ``select`` and ``compare`` applied to a feature table.
-
-    Rows of trees (``is_tree``) whose first echo lies below ``select.tree_min_echo_h_m`` are
-    dropped (``select``'s rule, which the real pulses satisfy by construction), and so are
-    rows of the stratum "below crown" whose first echo lies at or above it (the mirror
-    rule); for species in ``simulate.compare_min_h_m`` the waveform features of the other
-    rows with H at or below the threshold become NaN (``compare``'s rule, docs/method.md §(i1)).
-    Rows without a first echo (H NaN) are dropped.
-
-    Parameters
-    ----------
-    features : DataFrame
-        Feature table with species, H, the waveform features and optionally is_tree and
-        stratum.
-    cfg : dict
-        Loaded study config.
-    """
-    df = features[np.isfinite(features["H"].to_numpy(dtype=float))].copy()
-    below = (df["stratum"].astype(str) == BELOW_CROWN).to_numpy() if "stratum" in df else np.zeros(len(df), bool)
-    if "is_tree" in df.columns:
-        tree = df["is_tree"].fillna(False).astype(bool).to_numpy()
-        high = df["H"].to_numpy(float) >= float(cfg["select"]["tree_min_echo_h_m"])
-        keep = np.where(below, ~high, ~tree | high)
-        df, below = df[keep].copy(), below[keep]
-    species = df["species"].astype(str).to_numpy()
-    h = df["H"].to_numpy(float)
-    for sp, lo in cfg["simulate"]["compare_min_h_m"].items():
-        low = (species == sp) & ~(h > float(lo)) & ~below
-        for f in WAVEFORM_FEATURES:
-            if f in df.columns:
-                df.loc[low, f] = np.nan
-    return df.reset_index(drop=True)
-
-
-def turned_about_stems(pulses: pa.Table, azimuth) -> pa.Table:
-    """``pulses`` with each beam turned about its sample's vertical axis by ``azimuth`` (rad):
-    the sensor position and anchor about (sample_x, sample_y), the direction with them.
-    Heights, ranges and each point's distance from the stem are kept (echo lists are not
-    turned; the simulation does not read them)."""
-    c, s = np.cos(np.asarray(azimuth, float)), np.sin(np.asarray(azimuth, float))
-    x0, y0 = (pulses.column(k).to_numpy(zero_copy_only=False).astype(float) for k in ("sample_x", "sample_y"))
-    out = pulses
-    for x, y, origin in (("sensor_x", "sensor_y", (x0, y0)), ("anchor_x", "anchor_y", (x0, y0)),
-                         ("dir_x", "dir_y", (0.0, 0.0))):
-        u = out.column(x).to_numpy(zero_copy_only=False).astype(float) - origin[0]
-        v = out.column(y).to_numpy(zero_copy_only=False).astype(float) - origin[1]
-        out = out.set_column(out.schema.get_field_index(x), x, pa.array(origin[0] + c * u - s * v))
-        out = out.set_column(out.schema.get_field_index(y), y, pa.array(origin[1] + s * u + c * v))
-    return out
-
-
-def stem_distance(pulses: pa.Table, z) -> np.ndarray:
-    """Horizontal distance (m) from (sample_x, sample_y) of the point at height ``z`` (m) on
-    each pulse's recorded beam line (sensor + s dir)."""
-    col = {c: pulses.column(c).to_numpy(zero_copy_only=False).astype(float)
-           for c in ("sensor_x", "sensor_y", "sensor_z", "dir_x", "dir_y", "dir_z", "sample_x", "sample_y")}
-    s = (np.asarray(z, float) - col["sensor_z"]) / col["dir_z"]
-    return np.hypot(col["sensor_x"] + col["dir_x"] * s - col["sample_x"], col["sensor_y"] + col["dir_y"] * s
-                    - col["sample_y"])
-
-
-def own_cfd_echoes(pulses: pa.Table, calibration, cfg: dict) -> pa.Table:
-    """``pulses`` with their DR echoes replaced by the CFD echoes of their own waveforms.
-
-    The CFD, its range correction and its arming on the recorded noise (noise SD / AGC gain)
-    are those that give a simulated twin its echoes (:func:`waveforest.model.forward.twin_echoes`);
-    times, amplitudes and positions (on the recorded beam line, anchor + dir t c/2, as a
-    twin's) replace the DR's. A pulse without a CFD echo is left out, as a twin without one is.
-
-    Parameters
-    ----------
-    pulses : pa.Table
-        AGC-normalised pulse rows of one dataset (``agc`` or ``select`` table rows).
-    calibration : waveforest.stages.simulate.Calibration
-        The dataset's calibration (CFD, range correction, noise).
-    cfg : dict
-        Loaded study config (``sensor.cfd`` when the calibration has no CFD).
-    """
-
-    samples, lengths = list_to_padded(pulses.column("samples"))
-    sampling = pulses.column("sampling_ns").to_numpy(zero_copy_only=False)
-    gain = gain_or_one(pulses.column(GAIN_COLUMN).to_numpy(zero_copy_only=False)) if GAIN_COLUMN in \
-        pulses.column_names else None
-    setup = SensorSetup.from_config(cfg, calibration.system, calibration.noise_mean, calibration.noise_sd,
-                                    float(sampling[0]) if len(sampling) else 1.0,
-                                    range_correction=calibration.range_correction, cfd=calibration.cfd)
-    echoes = twin_echoes(samples, lengths, sampling, setup, gain)
-    times, counts = np.nan_to_num(echoes.times_ns), echoes.n_echoes.astype(np.int64)
-    columns = {"echo_time_ns": padded_to_list(times, counts, pa.float64()),
-               "echo_intensity": padded_to_list(np.nan_to_num(echoes.amplitudes).astype(np.float32), counts,
-                                                pa.float32()),
-               "n_echoes": pa.array(counts.astype(np.int16))}
-    for axis in "xyz":
-        anchor = pulses.column(f"anchor_{axis}").to_numpy(zero_copy_only=False).astype(float)
-        direction = pulses.column(f"dir_{axis}").to_numpy(zero_copy_only=False).astype(float)
-        columns[f"echo_{axis}"] = padded_to_list(anchor[:, None] + direction[:, None] * times * RANGE_PER_NS,
-                                                 counts, pa.float64())
-    out = pulses
-    for name, values in columns.items():
-        out = out.set_column(out.schema.get_field_index(name), name, values)
-    return out.filter(pa.array(counts > 0))
 
 
 def _is_tree_model(species: str) -> bool:
@@ -203,11 +82,11 @@ def _is_tree_model(species: str) -> bool:
 class _SceneCache:
     """``scene_builder`` for ``simulate_pulses`` that returns cached prepared scenes.
 
-    The BVH is built at MEDIUM quality: a scene serves a few pulses of ``diagnose.n_rays``
-    (2,000) per simulation, far below what a HIGH build pays back over
-    (:func:`waveforest.mcrt.tracer.bvh_quality`); measured on the slow-test campaign of
-    ``tests/test_diagnose_run.py``, a half-sample simulation with new plants takes 5.0 s
-    instead of 10.0 s, one that re-traces cached scenes the same 1.1-1.3 s.
+    Keyed by (species, height, scene seed, vegetation keyword arguments); least recently
+    used scenes are dropped beyond :data:`SCENE_CACHE_SIZE` scenes or
+    :data:`SCENE_CACHE_TRIANGLES` triangles. The BVH is built at MEDIUM quality: a scene
+    serves a few pulses of ``diagnose.n_rays`` per simulation, far below what a HIGH build
+    pays back over (:func:`waveforest.mcrt.tracer.bvh_quality`; timings in docs/validation.md).
     """
 
     def __init__(self, size: int = SCENE_CACHE_SIZE, triangles: int = SCENE_CACHE_TRIANGLES):

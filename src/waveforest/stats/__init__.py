@@ -1,1 +1,1 @@
-"""stats."""
+"""Statistics: :mod:`.lda` (linear discriminant analysis), :mod:`.bootstrap` (cluster bootstrap)."""

@@ -1,0 +1,279 @@
+"""The populations compared: pulse keys, selection rules and the stratum under the crowns.
+
+docs/method.md §(j) (the simulator and the strata). A pulse of the diagnosis is a row of
+``select``'s ``comparison_set`` of a modelled species (``stratum`` ""), or, with
+``diagnose.below_crown``, of the stratum under the crowns (``stratum`` :data:`BELOW_CROWN`):
+a pulse whose own first CFD echo lies within ``select.tree_radius_m`` of a compared stem
+and lower than ``select.tree_min_echo_h_m`` (the ground seen through gaps in the crown).
+Real and simulated pulses of a stratum are drawn by one rule and one detector:
+
+* real side: :func:`own_cfd_echoes` gives every pulse the CFD echoes a twin would get, and
+  :func:`with_pulses_under_crowns` re-draws ``below_crown_set`` with ``select``'s rules on
+  them; :func:`below_crown_features` computes their features;
+* twin side (:class:`.simulator.StudySimulator`): up to :data:`BELOW_CROWN_ATTEMPTS` traces
+  of the beam, turned about the stem (:func:`turned_about_stems`, :func:`stem_distance`),
+  the first whose echo meets the same rule;
+* both sides: :func:`apply_rules` (``select``'s and ``compare``'s rules, docs/method.md §(i1)).
+
+:func:`pulse_keys` lists the pulses (with a seeded, order-independent cap for the fit
+subset); :func:`real_features` joins their real features. Lengths in m, times in ns.
+Errors: :class:`waveforest.errors.WaveforestError` for select tables without the key
+columns and for no matching real feature row.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pyarrow as pa
+import pyarrow.compute as pc
+
+from waveforest.constants import RANGE_PER_NS
+from waveforest.errors import WaveforestError
+from waveforest.io.pulses import list_to_padded, padded_to_list
+from waveforest.model.forward import SensorSetup, twin_echoes
+from waveforest.rng import hash_ids, stable_hash
+from waveforest.sensor import FeatureParams, feature_table
+from waveforest.sensor._checks import gain_or_one
+from waveforest.sensor.agc import GAIN_COLUMN
+from waveforest.stages.select import SelectRules, select_pulses
+
+BELOW_CROWN = "below crown"
+"""``stratum`` of the pulses of ``select``'s ``below_crown_set`` (the others have "")."""
+
+BELOW_CROWN_ATTEMPTS = 16
+"""Most attempts at a twin under the crown per pulse of that stratum (:class:`.simulator.StudySimulator`)."""
+
+WAVEFORM_FEATURES = ("Npeaks", "Apeak", "FWHM", "E")
+"""Features restricted by ``simulate.compare_min_h_m`` (all but H)."""
+
+KEY_COLUMNS = ("dataset", "pulse_id", "sample_id", "species", "is_tree", "comparison_set", "below_crown_set")
+"""``select`` columns that identify a pulse to simulate."""
+
+
+def apply_rules(features: pd.DataFrame, cfg: dict) -> pd.DataFrame:
+    """The selection rules of ``select`` and ``compare`` applied to a feature table.
+
+    Rows of trees (``is_tree``) whose first echo lies below ``select.tree_min_echo_h_m`` are
+    dropped (``select``'s rule, which the real pulses satisfy by construction), and so are
+    rows of the stratum "below crown" whose first echo lies at or above it (the mirror
+    rule); for species in ``simulate.compare_min_h_m`` the waveform features of the other
+    rows with H at or below the threshold become NaN (``compare``'s rule, docs/method.md §(i1)).
+    Rows without a first echo (H NaN) are dropped.
+
+    Parameters
+    ----------
+    features : DataFrame
+        Feature table with species, H, the waveform features and optionally is_tree and
+        stratum.
+    cfg : dict
+        Loaded study config.
+    """
+    df = features[np.isfinite(features["H"].to_numpy(dtype=float))].copy()
+    below = (df["stratum"].astype(str) == BELOW_CROWN).to_numpy() if "stratum" in df else np.zeros(len(df), bool)
+    if "is_tree" in df.columns:
+        tree = df["is_tree"].fillna(False).astype(bool).to_numpy()
+        high = df["H"].to_numpy(float) >= float(cfg["select"]["tree_min_echo_h_m"])
+        keep = np.where(below, ~high, ~tree | high)
+        df, below = df[keep].copy(), below[keep]
+    species = df["species"].astype(str).to_numpy()
+    h = df["H"].to_numpy(float)
+    for sp, lo in cfg["simulate"]["compare_min_h_m"].items():
+        low = (species == sp) & ~(h > float(lo)) & ~below
+        for f in WAVEFORM_FEATURES:
+            if f in df.columns:
+                df.loc[low, f] = np.nan
+    return df.reset_index(drop=True)
+
+
+def turned_about_stems(pulses: pa.Table, azimuth) -> pa.Table:
+    """``pulses`` with each beam turned about its sample's vertical axis by ``azimuth`` (rad):
+    the sensor position and anchor about (sample_x, sample_y), the direction with them.
+    Heights, ranges and each point's distance from the stem are kept (echo lists are not
+    turned; the simulation does not read them)."""
+    c, s = np.cos(np.asarray(azimuth, float)), np.sin(np.asarray(azimuth, float))
+    x0, y0 = (pulses.column(k).to_numpy(zero_copy_only=False).astype(float) for k in ("sample_x", "sample_y"))
+    out = pulses
+    for x, y, origin in (("sensor_x", "sensor_y", (x0, y0)), ("anchor_x", "anchor_y", (x0, y0)),
+                         ("dir_x", "dir_y", (0.0, 0.0))):
+        u = out.column(x).to_numpy(zero_copy_only=False).astype(float) - origin[0]
+        v = out.column(y).to_numpy(zero_copy_only=False).astype(float) - origin[1]
+        out = out.set_column(out.schema.get_field_index(x), x, pa.array(origin[0] + c * u - s * v))
+        out = out.set_column(out.schema.get_field_index(y), y, pa.array(origin[1] + s * u + c * v))
+    return out
+
+
+def stem_distance(pulses: pa.Table, z) -> np.ndarray:
+    """Horizontal distance (m) from (sample_x, sample_y) of the point at height ``z`` (m) on
+    each pulse's recorded beam line (sensor + s dir)."""
+    col = {c: pulses.column(c).to_numpy(zero_copy_only=False).astype(float)
+           for c in ("sensor_x", "sensor_y", "sensor_z", "dir_x", "dir_y", "dir_z", "sample_x", "sample_y")}
+    s = (np.asarray(z, float) - col["sensor_z"]) / col["dir_z"]
+    return np.hypot(col["sensor_x"] + col["dir_x"] * s - col["sample_x"], col["sensor_y"] + col["dir_y"] * s
+                    - col["sample_y"])
+
+
+def own_cfd_echoes(pulses: pa.Table, calibration, cfg: dict) -> pa.Table:
+    """``pulses`` with their DR echoes replaced by the CFD echoes of their own waveforms.
+
+    The CFD, its range correction and its arming on the recorded noise (noise SD / AGC gain)
+    are those that give a simulated twin its echoes (:func:`waveforest.model.forward.twin_echoes`);
+    times, amplitudes and positions (on the recorded beam line, anchor + dir t c/2, as a
+    twin's) replace the DR's. A pulse without a CFD echo is left out, as a twin without one is.
+
+    Parameters
+    ----------
+    pulses : pa.Table
+        AGC-normalised pulse rows of one dataset (``agc`` or ``select`` table rows).
+    calibration : waveforest.stages.simulate.Calibration
+        The dataset's calibration (CFD, range correction, noise).
+    cfg : dict
+        Loaded study config (``sensor.cfd`` when the calibration has no CFD).
+    """
+
+    samples, lengths = list_to_padded(pulses.column("samples"))
+    sampling = pulses.column("sampling_ns").to_numpy(zero_copy_only=False)
+    gain = gain_or_one(pulses.column(GAIN_COLUMN).to_numpy(zero_copy_only=False)) if GAIN_COLUMN in \
+        pulses.column_names else None
+    setup = SensorSetup.from_config(cfg, calibration.system, calibration.noise_mean, calibration.noise_sd,
+                                    float(sampling[0]) if len(sampling) else 1.0,
+                                    range_correction=calibration.range_correction, cfd=calibration.cfd)
+    echoes = twin_echoes(samples, lengths, sampling, setup, gain)
+    times, counts = np.nan_to_num(echoes.times_ns), echoes.n_echoes.astype(np.int64)
+    columns = {"echo_time_ns": padded_to_list(times, counts, pa.float64()),
+               "echo_intensity": padded_to_list(np.nan_to_num(echoes.amplitudes).astype(np.float32), counts,
+                                                pa.float32()),
+               "n_echoes": pa.array(counts.astype(np.int16))}
+    for axis in "xyz":
+        anchor = pulses.column(f"anchor_{axis}").to_numpy(zero_copy_only=False).astype(float)
+        direction = pulses.column(f"dir_{axis}").to_numpy(zero_copy_only=False).astype(float)
+        columns[f"echo_{axis}"] = padded_to_list(anchor[:, None] + direction[:, None] * times * RANGE_PER_NS,
+                                                 counts, pa.float64())
+    out = pulses
+    for name, values in columns.items():
+        out = out.set_column(out.schema.get_field_index(name), name, values)
+    return out.filter(pa.array(counts > 0))
+
+
+
+def pulse_keys(selected: dict, cfg: dict, cap: int | None = None) -> pd.DataFrame:
+    """The pulses the diagnosis simulates (module docstring).
+
+    Parameters
+    ----------
+    selected : dict
+        Dataset -> ``select`` pa.Table.
+    cfg : dict
+        Loaded study config.
+    cap : int, optional
+        At most this many pulses per dataset x species x stratum (a seeded random subset: a
+        smaller cap gives a subset of a larger one); None = all.
+
+    Returns
+    -------
+    DataFrame
+        dataset, pulse_id, sample_id, species, is_tree, stratum (:data:`BELOW_CROWN` or "");
+        sorted by dataset and pulse_id.
+    """
+
+    species = [str(s) for s in cfg["simulate"]["species"]]
+    optional = ("is_tree", "below_crown_set")  # select tables of other tools may lack them
+    parts = []
+    for ds, table in sorted(selected.items()):
+        missing = [c for c in KEY_COLUMNS if c not in table.column_names and c not in optional]
+        if missing:
+            raise WaveforestError(f"select table of {ds} lacks column(s) {', '.join(missing)}")
+        df = table.select([c for c in KEY_COLUMNS if c in table.column_names]).to_pandas()
+        df = df.reindex(columns=list(KEY_COLUMNS), fill_value=False)
+        below = df["below_crown_set"].fillna(False).astype(bool) & bool(cfg["diagnose"]["below_crown"])
+        df = df[(df["comparison_set"].fillna(False).astype(bool) | below) & df["species"].astype(str).isin(species)]
+        df = df.assign(stratum=np.where(below[df.index], BELOW_CROWN, "")).drop(
+            columns=["comparison_set", "below_crown_set"])
+        if cap is not None:
+            rank = hash_ids(stable_hash(int(cfg["seed"]), ds, "diagnose"), df["pulse_id"].to_numpy(np.int64))
+            df = df.assign(_rank=rank).sort_values(["_rank", "pulse_id"])
+            df = df.groupby(["species", "stratum"], sort=False).head(int(cap)).drop(columns="_rank")
+        parts.append(df)
+    keys = pd.concat(parts, ignore_index=True) if parts else pd.DataFrame(
+        columns=["dataset", "pulse_id", "sample_id", "species", "is_tree", "stratum"])
+    keys["sample_id"] = keys["sample_id"].astype(str)
+    keys["species"] = keys["species"].astype(str)
+    keys["dataset"] = keys["dataset"].astype(str)
+    return keys.sort_values(["dataset", "pulse_id"]).reset_index(drop=True)
+
+
+def real_features(features: pd.DataFrame, keys: pd.DataFrame, cfg: dict) -> pd.DataFrame:
+    """The real feature rows of ``keys``' pulses, with ``compare``'s rules applied."""
+
+    f = features.copy()
+    if "source" in f.columns:
+        f = f[f["source"].astype(str) == "real"]
+    f["dataset"] = f["dataset"].astype(str)
+    key_cols = ["dataset", "pulse_id", "sample_id", "species", "is_tree", "stratum"]
+    f = f.drop(columns=[c for c in key_cols[2:] if c in f.columns])
+    real = keys[key_cols].merge(f, on=["dataset", "pulse_id"], how="inner", validate="one_to_one")
+    if real.empty:
+        raise WaveforestError("diagnose: no real feature row matches the selected comparison pulses")
+    return apply_rules(real, cfg)
+
+
+def with_pulses_under_crowns(selected: pa.Table, agc: pa.Table, fields: pd.DataFrame, year: int, calibration,
+                             cfg: dict) -> pa.Table:
+    """``selected`` with its ``below_crown_set`` re-drawn by the pulses' own first CFD echo.
+
+    The real side of the stratum "below crown" is chosen by the detector that chooses its twins
+    (:class:`.simulator.StudySimulator`): every pulse of the dataset gets the CFD echoes of its own waveform
+    (:func:`.simulator.own_cfd_echoes`), and ``select``'s rules
+    (:func:`waveforest.stages.select.select_pulses`) on those echoes say which lie under a
+    compared crown. Those rows carry their CFD echoes and replace the pulses' ``select`` rows,
+    also those of a crown the DR echo gave them (a DR that fired on a weak crown return the
+    CFD passes over; its twin is sorted by the CFD too).
+
+    Parameters
+    ----------
+    selected : pa.Table
+        ``select`` table of one dataset.
+    agc : pa.Table
+        Its AGC-normalised pulse table (``agc`` stage).
+    fields : DataFrame
+        fields.csv.
+    year : int
+        The dataset's campaign year.
+    calibration : waveforest.stages.simulate.Calibration
+    cfg : dict
+        Loaded study config.
+    """
+
+    own = select_pulses(own_cfd_echoes(agc, calibration, cfg), fields, year, SelectRules.from_config(cfg))
+    under = own.filter(own.column("below_crown_set"))
+    keep = pc.invert(pc.is_in(selected.column("pulse_id"), value_set=under.column("pulse_id")))
+    if "below_crown_set" in selected.column_names:
+        keep = pc.and_(keep, pc.invert(pc.fill_null(selected.column("below_crown_set"), False)))
+    ordinary = selected.filter(keep)
+    under = under.select([c for c in ordinary.column_names if c in under.column_names])
+    return pa.concat_tables([ordinary, under], promote_options="permissive")
+
+
+def below_crown_features(keys: pd.DataFrame, selected: dict, metas: dict, cfg: dict) -> pd.DataFrame:
+    """Real feature rows of the stratum "below crown" of ``keys``, from their own CFD echoes
+    (:func:`with_pulses_under_crowns`), with ``compare``'s rules.
+
+    Parameters
+    ----------
+    keys : DataFrame
+        :func:`pulse_keys`.
+    selected : dict
+        Dataset -> table of :func:`with_pulses_under_crowns`.
+    metas : dict
+        Dataset -> calibration JSON dict.
+    cfg : dict
+        Loaded study config.
+    """
+
+    below = keys[keys["stratum"] == BELOW_CROWN]
+    parts = []
+    for ds, rows in below.groupby("dataset", sort=True):
+        table = selected[ds]
+        sub = table.filter(pc.is_in(table.column("pulse_id"), value_set=pa.array(rows["pulse_id"].to_numpy(np.int64))))
+        parts.append(feature_table(sub, {ds: metas[ds]}, FeatureParams.from_config(cfg)))
+    return real_features(pd.concat(parts, ignore_index=True), below, cfg) if parts else pd.DataFrame()
