@@ -27,33 +27,30 @@ trigger_loss      0        sensor      fraction of sigma(t), earliest first, los
 ================  =======  ==========  ===========================================================
 
 Test values (``Effect.test_value``: what tests and ``diagnose`` hide in a campaign) are
-realistic magnitudes, chosen large enough to move a Table 3 feature mean by more than 3
-standard errors in a campaign with the paper's pulse counts (tests/test_campaign_agreement.py,
-which prints each effect's largest shift):
+realistic magnitudes, meant to move a Table 3 feature mean by more than 3 standard errors in
+a campaign with the paper's pulse counts (tests/test_campaign_agreement.py prints each
+effect's largest shift; the recorded shifts are in docs/validation.md, "Campaign agreement
+and effect sizes"):
 
 - ``understory`` 2.5: the grass/herb/seedling layer of boreal clear-cuts and young stands
   (Calamagrostis, Deschampsia, Epilobium, tree seedlings) reaches a green LAI of about 1-3 by
-  mid-summer, so 2.5 is a dense but common layer. It moves birch E by +4.5 SE only: the
-  selection keeps a tree's pulses only with a first echo above 1 m and the birch waveform
-  features only above 1.5 m (docs/method.md §(i1), i4), so the layer shows through multiple
-  scattering alone. It does show, strongly, in the pulses that reach the ground through
-  gaps in the crowns (first echo under 1 m within 0.5 m of the stem), which ``diagnose``
-  compares as a stratum of their own with ``diagnose.below_crown``: there it raises E and
-  Apeak by 2.5-4 pooled SDs.
+  mid-summer, so 2.5 is a dense but common layer. The selection keeps a tree's pulses only
+  with a first echo above 1 m and the birch waveform features only above 1.5 m
+  (docs/method.md §(i1), i4), so in the crown pulses the layer shows through multiple
+  scattering alone; the pulses that reach the ground through gaps in the crowns (first echo
+  under 1 m within 0.5 m of the stem) see it directly, and ``diagnose`` compares them as a
+  stratum of their own (``diagnose.below_crown``).
 - ``clumping`` 0.15 m: the value is the SD of the Thomas-process displacement around a
   cluster centre (vegetation/placement.py), so a *smaller* radius is *stronger* clumping
   (radius >> plant spacing is uniform again). Raspberry canes rise from one root crown and
-  fireweed and grass shoots from short rhizome branches, a few dm across: 0.15 m puts ~68 %
-  of a cluster's shoots within 0.15 m of each axis of its centre (0.3 m moved the fireweed E
-  by 2.2 SE only, in a campaign of a quarter of these pulses).
+  fireweed and grass shoots from short rhizome branches, a few dm across: at 0.15 m about
+  68 % of a cluster's shoots lie within 0.15 m of its centre along each axis (one SD).
 - ``xy_error`` 0.25 m: the SD of the horizontal georeferencing error of the recorded data
-  relative to the field positions, the paper's "typical XY error 0.20-0.25 m" (docs/method.md §(a),
-  j). In the campaign it is a drift of the GNSS/INS solution that moves the recorded
-  trajectory and points together (campaign/flight.py), so that ``simulate`` traces each
-  recorded beam where the real one was not; in the model, ``simulate`` shifts each traced
-  beam by N(0, xy_error) per axis. It moves birch E by -4.6 SE only: a juvenile birch crown
-  looks alike within a quarter metre of where the pulse was meant to go. ``diagnose`` names it
-  on a campaign of birches alone with ~2400 birch pulses (tests/test_diagnose_run.py).
+  relative to the field positions, the paper's "typical XY error 0.20-0.25 m"
+  (docs/method.md §(a), j). In the campaign it is a drift of the GNSS/INS solution that moves
+  the recorded trajectory and points together (campaign/flight.py), so that ``simulate``
+  traces each recorded beam where the real one was not; in the model, ``simulate`` shifts
+  each traced beam by N(0, xy_error) per axis.
 """
 
 from __future__ import annotations

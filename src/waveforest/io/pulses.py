@@ -1,6 +1,6 @@
 """The pulse table: one row per laser pulse, for real and simulated pulses alike.
 
-Schema (DESIGN.md, "Data contracts"). Times inside a waveform count from its first
+Schema (docs/design.md, "Data contracts"). Times inside a waveform count from its first
 sample; sample ``k`` is at ``k * sampling_ns``. Coordinates are those of the LAS file
 (projected, metres). Unknown values are NaN, never invented.
 
@@ -130,12 +130,9 @@ def write_pulses(table: pa.Table, path: str | Path) -> Path:
 
 
 _STREAM_OPTIONS = dict(compression="lz4", use_dictionary=["dataset", "source"], write_statistics=False)
-"""Parquet options of streamed pulse tables: fast lz4, no dictionaries or statistics on the
-noise-like waveform lists. Writing the table, mostly the ``samples`` list column, is ~4/5 of
-ingest's time: on one core of the idle 2-core machine the reader alone runs at ~1,000,000
-pulses/s of 256 samples, the whole ingest at 195,000-235,000 (benchmarks/ingest.py). No
-compression writes faster for a 2x larger file; zstd with defaults halves the rate for a 2.4x
-smaller one; byte-stream-split and larger write batches or pages gain nothing measurable."""
+"""Parquet options of streamed pulse tables: lz4 compression, dictionaries only for the
+``dataset`` and ``source`` strings, no column statistics (the waveform lists are noise-like).
+Why these (ingest rates of the alternatives): docs/validation.md, "Speed"."""
 
 
 def write_pulse_batches(batches: Iterable[pa.Table], path: str | Path) -> int:

@@ -116,7 +116,7 @@ def read_trajectory(path: str | os.PathLike) -> Trajectory:
 
 
 def trajectory_locator(trajectory: Trajectory):
-    """A pulse locator (see ``las_read.Locator``): sensor from the trajectory, range to the first echo."""
+    """A pulse locator (see :data:`waveforest.io.las.read.Locator`): sensor from the trajectory, range to the first echo."""
 
     def locate(gps: np.ndarray, first_echo: np.ndarray, direction: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         sensor = trajectory.position(gps)

@@ -835,8 +835,8 @@ def accumulate(index: np.ndarray, beam: np.ndarray, value: np.ndarray, bins: np.
 def take_rays(org, dirs, index):
     """Rows ``index`` of a ray batch's origins and directions, as new contiguous arrays.
 
-    The same as ``org[index], dirs[index]``, in a tenth of NumPy's time for (m, 3) float32
-    rows (2 vs 19 ms for 240,000 rays on one core).
+    The same as ``org[index], dirs[index]`` (a parallel Numba gather; NumPy's fancy indexing
+    of (m, 3) rows is slower, docs/validation.md, "Speed").
     """
     m = index.size
     o = np.empty((m, 3), org.dtype)

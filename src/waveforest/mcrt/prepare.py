@@ -72,8 +72,8 @@ class PreparedScene:
 
 
 def _box(triangles: np.ndarray) -> np.ndarray:
-    """(2, 3) float64 [min, max] of (n, 3, 3) vertices (axis by axis: NumPy reduces a
-    contiguous row far faster than a strided column)."""
+    """(2, 3) float64 [min, max] of (n, 3, 3) vertices (reduced axis by axis over a
+    contiguous (3, 3n) copy)."""
     v = np.ascontiguousarray(triangles.reshape(-1, 3).T)
     return np.stack([v.min(axis=1), v.max(axis=1)]).astype(np.float64)
 

@@ -17,24 +17,23 @@ is ``window_ns`` long, and contributions after it are not binned but summed in
 ``sigma_dropped`` (they are still in ``order_totals``).
 
 Randomness: a counter-based generator keyed by (seed, pulse index in the call, ray, order,
-draw) (:mod:`.kernels`), so the same seed gives the identical result whatever the threads,
+draw) (:mod:`waveforest.mcrt.kernels`), so the same seed gives the identical result whatever the threads,
 the chunking and the parallel mode. ``sampler="sobol"`` draws the same uniforms from a per-pulse
 Owen-scrambled Sobol' sequence instead (randomized QMC); ``roulette`` ends low-power paths by
 an unbiased Russian roulette (a weight window). Both are off by default (docs/method.md §(d) as written).
 
-Embree: the default intersector calls ``rtcIntersect1`` / ``rtcOccluded1`` from Numba kernels
-(:mod:`.backends.embree`) on a BVH of HIGH build quality; profiled on the vegetation scenes (30,000 rays,
-10 orders), the Embree calls take ~80 % of the CPU time of a pulse, the scattering kernel
-~13 %, emission, compaction, binning and Python the rest.
+Embree: the default intersector calls ``rtcIntersect1`` / ``rtcOccluded1`` from a Numba
+kernel (:mod:`waveforest.mcrt.backends.embree`) on a BVH of HIGH build quality.
 
 Threads (``parallel``): ``pulses`` (default) runs chunks of pulses concurrently, one serial
 wavefront per thread (Embree calls and kernels are ``nogil``); ``rays`` splits every Embree
-call and Numba kernel of one wavefront over the threads (``prange``). ``benchmarks/mcrt.py``
-times both: ``pulses`` is the faster on 2 cores (less synchronisation per order).
+call and Numba kernel of one wavefront over the threads (``prange``). Both give identical
+results.
 
-Scene reuse: building the Embree BVH of a ~200,000-triangle scene costs about as much as
-tracing three to five pulses; trace many pulses per :func:`prepare` d scene where that is
-statistically sound (a pool of instances with random placement), as the calling stage decides.
+Scene reuse: a scene :func:`prepare` d once can be traced for any number of pulses; whether
+pulses may share an instance (a pool of instances with random placement) is the calling
+stage's decision. Where the CPU time goes, the thread modes and the cost of a BVH build
+against tracing: docs/validation.md, "Speed" (``benchmarks/mcrt.py``).
 """
 
 from __future__ import annotations
@@ -81,9 +80,9 @@ CHUNK_RAYS = 240_000
 
 HIGH_QUALITY_MIN_RAYS = 12 * 30_000
 """``trace`` of an unprepared scene builds a HIGH-quality BVH from this many emitted rays on
-(12 pulses of 30,000 rays), else a MEDIUM one: on the vegetation scenes HIGH costs ~0.3 s
-more CPU to build and saves ~20 ms of CPU per 30,000-ray pulse (``benchmarks/mcrt.py``), a
-saving proportional to the rays traced."""
+(12 pulses of 30,000 rays), else a MEDIUM one: HIGH costs more to build and saves CPU time
+in proportion to the rays traced (the break-even measured on the vegetation scenes:
+docs/validation.md, "Speed")."""
 
 
 def bvh_quality(n_pulses: int, n_rays: int) -> str:
@@ -335,8 +334,7 @@ def trace(scene: Scene | PreparedScene, beams: Beams, n_rays: int = 30000, max_o
         Threads to use (default: Numba's thread count, set by ``--threads``).
     parallel : {"pulses", "rays"}
         How the threads share the work: ``pulses`` traces chunks of pulses concurrently,
-        one serial wavefront per thread (the faster on 2 cores, see ``benchmarks/mcrt.py``;
-        a single pulse falls back to ``rays``); ``rays`` splits every Embree call and
+        one serial wavefront per thread (a single pulse falls back to ``rays``); ``rays`` splits every Embree call and
         Numba kernel of one wavefront over the threads. Results are identical.
     progress : bool
         Show a progress bar over chunks (stderr).

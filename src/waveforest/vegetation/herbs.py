@@ -31,9 +31,8 @@ here follows the docs/method.md suggestions, numbers in ``structure.csv``:
 
 Random shoot positions make the plot a Boolean model of shoots: its nadir gap fraction is
 exp(-Omega G(0) L), where Omega <= 1 measures how much the leaves of one shoot hide each
-other. With the numbers of ``structure.csv`` Omega is 0.75-1 over the Table 1 height ranges
-("consistent with the LAI and the G-function", the check of the issue); a shoot carrying
-many more leaves stacks them and Omega drops towards 0.4.
+other (the values over the Table 1 height ranges, checked by the tests: docs/validation.md,
+"Vegetation models").
 
 Positions are uniform (or a Thomas process of radius ``clumping`` with
 ``plants_per_cluster`` shoots per cluster) and periodic: leaf bases and stem segments are

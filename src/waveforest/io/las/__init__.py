@@ -15,8 +15,18 @@ Writing (the virtual campaign, tests)::
         for chunk in chunks:
             w.write(chunk)
 
-Conventions (pulse grouping, geometry, AGC, memory) are documented in :mod:`.las_read`
-and :mod:`.las_write`; the byte layouts in :mod:`.las_format`.
+Modules:
+
+- :mod:`~waveforest.io.las.format`: byte layouts (header, (E)VLRs, point formats 4, 5, 9, 10,
+  wave packet descriptors), the errors and warnings.
+- :mod:`~waveforest.io.las.file`: :func:`open_waveform_las`, the checks of a file's header,
+  VLRs and waveform data before any point is read.
+- :mod:`~waveforest.io.las.points`: point records -> compact records, grouped into pulses.
+- :mod:`~waveforest.io.las.gather`: waveform packets decoded from the waveform data.
+- :mod:`~waveforest.io.las.read`: points and packets -> pulse tables (conventions: pulse
+  grouping, geometry, AGC, memory).
+- :mod:`~waveforest.io.las.write`: pulse tables -> LAS files.
+- :mod:`~waveforest.io.las.info`: a lasinfo-style summary.
 """
 
 from waveforest.io.las.file import LasWaveformFile, WaveformData, find_wdp, open_waveform_las

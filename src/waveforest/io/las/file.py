@@ -5,7 +5,7 @@ itself (numpy, so that the legacy and 64-bit point counts and the waveform field
 as written, and every count and length is bounded by the file's geometry before anything
 is read), then hands laspy the checked header and VLR bytes for the point format and its
 extra-bytes dimensions. EVLR bodies are not read (the waveform record may be gigabytes).
-It returns a :class:`LasWaveformFile`, or raises :class:`.las_format.LasWaveformError`
+It returns a :class:`LasWaveformFile`, or raises :class:`waveforest.io.las.format.LasWaveformError`
 naming the file, the field and what was expected.
 """
 

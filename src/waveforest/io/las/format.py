@@ -1,7 +1,7 @@
 """The binary layout of LAS 1.3/1.4 files with waveform packets (ASPRS LAS 1.4 R15).
 
-One place for the byte layouts that both the reader (:mod:`.las_read`) and the writer
-(:mod:`.las_write`) use: the public header block, (extended) variable length record
+One place for the byte layouts that both the reader (:mod:`waveforest.io.las.read`) and the writer
+(:mod:`waveforest.io.las.write`) use: the public header block, (extended) variable length record
 headers, the Waveform Packet Descriptor (WPD) body, the Extra Bytes descriptor, and the
 point data records of the waveform point formats 4, 5, 9 and 10.
 

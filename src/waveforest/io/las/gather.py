@@ -6,9 +6,9 @@ so no Python loop runs over pulses or samples and no index array the size of the
 is built. Samples are little-endian unsigned 8-, 16- or 32-bit integers (LAS compression
 type 0), returned as float32.
 
-NumPy rather than a Numba kernel on purpose: importing Numba and loading a compiled
-kernel adds ~120 MB of resident memory (llvmlite), a quarter of ingest's 500 MB budget,
-and this gather already runs at ~2 million 256-sample packets per second.
+NumPy rather than a Numba kernel on purpose: ``ingest`` does not import Numba (llvmlite's
+resident memory counts against ingest's memory budget; the figures are in
+docs/validation.md, "Speed").
 """
 
 from __future__ import annotations

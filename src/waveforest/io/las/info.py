@@ -1,6 +1,6 @@
 """A lasinfo-style summary of a LAS waveform file (``waveforest info``).
 
-Header facts come from :func:`.las_read.open_waveform_las`; counts (pulses, packets,
+Header facts come from :func:`waveforest.io.las.file.open_waveform_las`; counts (pulses, packets,
 returns by number, samples per packet, bounds, AGC) from one streaming pass over the
 points in GPS-time buckets, so the summary works on files larger than memory.
 """

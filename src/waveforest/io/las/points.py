@@ -1,6 +1,6 @@
 """LAS point records -> compact records, checked, and grouped into pulses by GPS time.
 
-:class:`PointScanner` streams the points of a :class:`.las_file.LasWaveformFile` with laspy
+:class:`PointScanner` streams the points of a :class:`waveforest.io.las.file.LasWaveformFile` with laspy
 in chunks and keeps :data:`COMPACT_DTYPE` records (76 bytes a point), checking every
 waveform reference on the way (descriptor defined, not empty, uncompressed, finite gain
 and offset, consistent with the packet size, packet inside the waveform data).

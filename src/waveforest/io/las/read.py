@@ -1,7 +1,7 @@
 """Read LAS 1.3/1.4 waveform files (point formats 4, 5, 9, 10) into pulse tables.
 
-:class:`WaveformPulseReader` streams a file checked by :func:`.las_file.open_waveform_las`
-as pulse tables (:data:`.tables.PULSE_SCHEMA`); :func:`read_waveform_las` reads it whole.
+:class:`WaveformPulseReader` streams a file checked by :func:`waveforest.io.las.file.open_waveform_las`
+as pulse tables (:data:`waveforest.io.pulses.PULSE_SCHEMA`); :func:`read_waveform_las` reads it whole.
 
 Pulses
 ------
@@ -16,7 +16,7 @@ the end of the record). Pulses none of whose returns has a waveform (descriptor 
 are skipped with a warning. ``pulse_id`` is the index of the pulse in GPS-time order
 (skipped pulses keep their number, so ids are stable).
 
-Geometry (LAS 1.4 R15, see :mod:`.las_format`): for the chosen return ``P`` with location
+Geometry (LAS 1.4 R15, see :mod:`waveforest.io.las.format`): for the chosen return ``P`` with location
 ``L`` (ps) and ``d = (x(t), y(t), z(t))`` (m/ps, target -> sensor), the first sample lies at
 ``anchor = P + L * d`` and ``dir = -d / |d|``. ``sampling_ns`` is the descriptor's spacing
 / 1000; samples are the raw digitizer values as float32 (DN; the descriptor's gain and
@@ -73,8 +73,8 @@ QUANTILE_STRIDE = 256
 """One in this many sorted GPS times of each chunk is kept to place bucket boundaries."""
 _MADV_DONTNEED = getattr(mmap, "MADV_DONTNEED", None)
 _RECORD_BYTES = np.dtype((np.void, COMPACT_DTYPE.itemsize))
-"""A compact record as opaque bytes: NumPy copies these ~4x faster than the structured
-records, which it copies field by field."""
+"""A compact record as opaque bytes, for whole-record copies (NumPy copies structured records
+field by field)."""
 
 
 @dataclass

@@ -1,6 +1,6 @@
 """Write pulse tables as LAS 1.3/1.4 files with waveform packets (formats 4, 5, 9, 10).
 
-The inverse of :mod:`.las_read`: each pulse of a pulse table (:data:`.tables.PULSE_SCHEMA`)
+The inverse of :mod:`waveforest.io.las.read`: each pulse of a pulse table (:data:`waveforest.io.pulses.PULSE_SCHEMA`)
 becomes one waveform packet and one LAS point per DR echo. The virtual campaign writes its
 data with it, and the tests write every layout real sensors produce (e.g. the Leica ALS60's
 LAS 1.3 point format 4 with 8-bit, 256-sample packets).
@@ -26,7 +26,7 @@ global encoding bit 1) or in a ``.wdp`` file beside it (bit 2) that starts with 
 60-byte record header. Nothing time-dependent is written (creation day/year are arguments),
 so the same table gives byte-identical files.
 
-What LAS cannot hold is refused with :class:`.las_format.LasWaveformError`, never
+What LAS cannot hold is refused with :class:`waveforest.io.las.format.LasWaveformError`, never
 silently changed: samples that are not whole numbers in ``[0, 2**bits - 1]``, a sampling
 interval that is not a whole number of picoseconds, a pulse without DR echo (no point to
 carry its packet) or with more echoes than the point format's return number holds, two

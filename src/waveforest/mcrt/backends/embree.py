@@ -3,16 +3,12 @@
 embreex's ``EmbreeScene.run`` traces a batch of rays one ``rtcIntersect1`` at a time from a
 Cython loop, on a BVH of MEDIUM build quality it gives no way to change. Here the same Embree
 library is driven through its C API: the scene is built with ctypes (build quality chosen by
-the caller), and the per-ray ``rtcIntersect1`` / ``rtcOccluded1`` calls are made from
-``@njit(parallel=True, nogil=True)`` kernels over blocks of rays (``prange``: both cores, no
-Python threads, no GIL). ``benchmarks/mcrt.py`` prints both paths on the same rays: on the
-vegetation scenes the direct path (HIGH quality) needs about 0.6 of the CPU time of
-embreex's ``run`` (raspberry 104 vs 169 ms, birch 7.7 vs 12.3 ms per pulse of 30,000 rays
-and 10 orders), with the same hits; of the gain, ~1/3 is the BVH quality. Each call traces
-sorted copies of its rays, in Z-order of their origins (:func:`coherent_order`), and puts the
-results back in the caller's order: on the canopy of ``benchmarks/mcrt.py`` that needs ~11 %
-less CPU (170 -> 152 ms per pulse on one thread, sort included; tracing the rays in place in
-that order gains only ~3 %, as the scattered reads of the ray arrays then miss the cache).
+the caller), and the per-ray ``rtcIntersect1`` / ``rtcOccluded1`` calls are made from one
+``@njit(parallel=True, nogil=True)`` kernel over blocks of rays (``prange``, no Python
+threads, no GIL). Each call traces sorted copies of its rays, in Z-order of their origins
+(:func:`coherent_order`), and puts the results back in the caller's order; the hits are those
+of embreex's ``run``. Speed against embreex and of the ray order: docs/validation.md, "Speed"
+(``benchmarks/mcrt.py``).
 
 The library is the ``libembree4`` bundled with the installed embreex wheel
 (``embreex.libs``), else one found by :func:`ctypes.util.find_library`; :func:`available`
@@ -51,17 +47,17 @@ QUALITIES = {"low": 0, "medium": 1, "high": 2}
 """Embree BVH build qualities (RTC_BUILD_QUALITY_*)."""
 
 DEFAULT_QUALITY = "high"
-"""BVH quality of :func:`waveforest.mcrt.prepare`: a HIGH build takes ~4x the time of a MEDIUM
-one (raspberry, 227,000 triangles: ~0.38 vs ~0.10 s) but its Embree calls need ~20 % less CPU
-(~110 vs ~135 ms per pulse), which pays from about a dozen pulses per scene
-(``benchmarks/mcrt.py``; :func:`waveforest.mcrt.trace` of an unprepared scene chooses)."""
+"""BVH quality of :func:`waveforest.mcrt.prepare`: a HIGH build is slower than a MEDIUM one
+and its queries faster, so it pays for a scene traced often (:func:`waveforest.mcrt.trace` of
+an unprepared scene chooses, :func:`waveforest.mcrt.tracer.bvh_quality`; the trade-off
+measured: docs/validation.md, "Speed")."""
 
 BLOCK_RAYS = 512
 """Rays per ``prange`` task (one RTCRayHit slot each)."""
 
 CELL_BITS = 5
 """Rays are traced in Z-order of their origins on a ``2**CELL_BITS``-per-axis grid
-(:func:`coherent_order`; 6 bits measured slower on the canopy, 159 vs 152 ms)."""
+(:func:`coherent_order`)."""
 
 SLOT_FLOATS = 32
 """Slot size in float32 (128 bytes, room for an RTCRayHit of 96 bytes)."""
