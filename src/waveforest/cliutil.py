@@ -50,6 +50,12 @@ def stage_options(func):
     return wrapper
 
 
+def input_files_option(flag: str, dest: str, help: str, required: bool = False):
+    """An option taking one or more existing files after one flag (:class:`MultiValueOption`;
+    the command needs ``cls=MultiValueCommand``), passed as a tuple of Paths under ``dest``."""
+    return click.option(flag, dest, cls=MultiValueOption, type=EXISTING_FILE, required=required, help=help)
+
+
 def dataset_pulses_options(func):
     """Add the inputs of a stage on one dataset's pulse table: the ``PULSES`` argument and
     ``--targets`` / ``--datasets`` (the campaign's targets.csv and datasets.csv), passed as

@@ -57,8 +57,17 @@ def _save(fig, path: str | Path) -> Path:
 
 
 def _legend(ax) -> None:
+    """A small legend, if anything is labelled."""
     if ax.get_legend_handles_labels()[0]:
         ax.legend(fontsize=7)
+
+
+def _label(ax, title: str, xlabel: str, ylabel: str) -> None:
+    """Title, axis labels and :func:`_legend` of one panel."""
+    ax.set_title(title)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    _legend(ax)
 
 
 def plot_system_waveform(system, path, title: str = "System waveform S(t)", tuning=None) -> Path:
@@ -132,10 +141,7 @@ def fig6_heights(real: dict, sim: dict, dataset: str, path: str | Path) -> Path:
             if data.size:
                 ax.hist(data, bins=bins, density=True, histtype="step", lw=1.6, color=colour,
                         label=f"{label} (n={data.size}, mean {data.mean():.2f} m)")
-        ax.set_title(sp)
-        ax.set_xlabel("first-echo height H (m)")
-        ax.set_ylabel("density (1/m)")
-        _legend(ax)
+        _label(ax, sp, "first-echo height H (m)", "density (1/m)")
     fig.suptitle(f"{dataset}: echo heights, real vs simulated", y=1.03)
     return _save(fig, path)
 
@@ -161,10 +167,7 @@ def fig7_waveforms(aligned: dict, grid_ns: np.ndarray, dataset: str, path: str |
                 sd = np.nanstd(data, axis=0)
             ax.plot(grid_ns, mean, color=colour, lw=1.5, label=f"{label} (n={data.shape[0]})")
             ax.fill_between(grid_ns, mean - sd, mean + sd, color=colour, alpha=0.2, lw=0)
-        ax.set_title(sp)
-        ax.set_xlabel("time from first echo (ns)")
-        ax.set_ylabel("waveform (DN)")
-        _legend(ax)
+        _label(ax, sp, "time from first echo (ns)", "waveform (DN)")
     fig.suptitle(f"{dataset}: waveforms aligned on the first echo (mean +- SD)", y=1.03)
     return _save(fig, path)
 

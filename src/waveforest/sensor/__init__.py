@@ -1,17 +1,21 @@
-"""The sensor model and waveform processing (docs/method.md §(b), c, e, f, h).
+"""The sensor model and waveform processing, pure (docs/method.md §(b), §(c), §(e), §(f), §(h)).
 
-Everything between sigma(t) and a feature table, for real and simulated waveforms alike:
+Everything between sigma(t) and a feature table, for real and simulated waveforms alike; no
+file I/O beyond the small loaders named here (the stages are in :mod:`waveforest.stages`).
 
-- :class:`SystemWaveform`, :func:`gaussian_system_waveform`, :func:`load_system_waveform` -- S(t), Eqs. 6-8;
-- :func:`render` -- the signal model of Eq. 7 (convolution, trigger, record window, sampling,
-  noise, rounding, clipping; effects noise_autocorr, nonlinearity, trigger_loss);
-- :class:`CFDParams`, :func:`detect_echoes`, :func:`fit_range_correction` -- echo detection (f);
-- :func:`first_echo_features`, :func:`feature_table` -- features (h);
-- :func:`agc_gain`, :func:`normalise_waveforms`, :func:`normalise_intensity`, :func:`fit_b` -- Eq. 1 (b);
-- :func:`calibrate_system_waveform`, :func:`noise_stats` -- Eq. 8 and the noise (e);
-- :func:`target_membership`, :func:`pulse_targets` -- pulses on reference targets.
-
-CLI stages: ``waveforest agc``, ``waveforest calibrate``, ``waveforest features``.
+- :mod:`.system_waveform` -- :class:`SystemWaveform`, :func:`gaussian_system_waveform`, :func:`load_system_waveform` (S(t), Eqs. 6-8);
+- :mod:`.signal` -- :func:`render`, the signal model of Eq. 7 (convolution, trigger, record
+  window, sampling, noise, rounding, clipping; effects noise_autocorr, nonlinearity, trigger_loss);
+- :mod:`.noise` -- :func:`noise_stats`, :func:`ar1`;
+- :mod:`.cfd`, :mod:`.cfd_tuning` -- :class:`CFDParams`, :func:`detect_echoes`, :func:`fit_range_correction` (§(f));
+- :mod:`.features` -- :func:`first_echo_features`, :func:`feature_table` (§(h));
+- :mod:`.agc` -- :func:`agc_gain`, :func:`normalise_waveforms`, :func:`normalise_intensity`, :func:`fit_b` (Eq. 1, §(b));
+- :mod:`.calibration` -- :func:`calibrate_system_waveform` (Eq. 8, §(e)), the typed
+  :class:`Calibration` and its loader :func:`load_calibration`;
+- :mod:`.targets` -- :func:`target_membership`, :func:`pulse_targets` (pulses on reference targets);
+- :mod:`.reference` -- the reference sensor of the studies (§(i2), §(i3));
+- :mod:`.waveforms` -- waveforms aligned on the first echo (Fig. 7);
+- :mod:`.params`, :mod:`._checks` -- parameter objects, input checks.
 """
 
 from waveforest.sensor.agc import (

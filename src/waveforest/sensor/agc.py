@@ -15,9 +15,8 @@ within-target relative SD ("nested CV") of an echo amplitude A over homogeneous 
 ``agc.statistic`` chooses A_raw. ``peak`` is docs/method.md §(b) word for word: max V - n0. Its
 noise part is not gained: the largest of a few noisy samples near the top exceeds the true
 peak by about one noise SD whatever the gain, so on weak targets A_raw = g A_0 + delta and the
-fit reads g^(1 - delta / A) -- b comes out low by about delta / A (-11 % on the virtual
-2010_30_2, whose bitumen roof peaks at ~13 DN and darkest tarp at ~25 DN; -4.9 to +4.9 %
-with ``energy`` on all nine virtual datasets). ``energy`` (default) sums V - n0 over
+fit reads g^(1 - delta / A) -- b comes out low by about delta / A (measured errors of both
+statistics: docs/validation.md, "AGC fit"). ``energy`` (default) sums V - n0 over
 ``agc.energy_half_window_ns`` either side of the largest sample: the noise in that window has
 zero mean, so the sum scales with the gain exactly and b stays unbiased on weak targets.
 
@@ -30,8 +29,8 @@ The fit groups are target *passes*, not targets: a target flown by two strips is
 ranges (1/R^2 of Eq. 7) and incidence angles (sigma = rho cos(gamma)/pi for a Lambertian
 target, plus the peak broadening of an inclined footprint) -- a few % of amplitude -- and,
 independently, at two AGC levels, because the loop follows each strip's own terrain. Pooled
-over strips, the CV would read that amplitude difference as AGC gain and bias b (about -10 %
-on the virtual campaign). Within one pass the sensor sees the target from (nearly) one
+over strips, the CV would read that amplitude difference as AGC gain and bias b
+(docs/validation.md, "AGC fit"). Within one pass the sensor sees the target from (nearly) one
 position: its range varies by r sin(theta) / R < 0.2 % (target radius r <= 5 m, scan zenith
 theta <= 15 degrees, R ~ 1 km) and its incidence by less than a degree, far below the noise
 of a peak amplitude, so a pass is truly homogeneous and only the AGC changes within it (the

@@ -17,11 +17,8 @@ paper's "no bias", asked of every class of echo width rather than of all pulses 
    FWHM at :data:`WIDTH_EDGES`: system-like, wider, much wider;
 4. score = the largest |median residual| over the classes, m.
 
-The grid pair with the smallest score wins. The virtual campaign's DR discriminator has f = 0.35
-and delay = FWHM/2: the smoke campaign recovers that pair, the larger birch campaigns pairs on
-its ridge ((0.45, 0.4 FWHM), (0.2, 0.75 FWHM)); their birch echoes are then within 7 mm of the
-DR ranges, where the starting pair (0.5, FWHM/2) with a correction fitted on the targets put
-them 6 cm low.
+The grid pair with the smallest score wins. How well tuning recovers the virtual campaign's
+DR discriminator: docs/validation.md ("Tuning recovers the DR discriminator").
 """
 
 from __future__ import annotations

@@ -23,13 +23,7 @@ import pandas as pd
 import pyarrow.parquet as pq
 
 from waveforest.atomic import atomic_path
-from waveforest.cliutil import (
-    EXISTING_FILE,
-    OUT_DIR,
-    MultiValueCommand,
-    MultiValueOption,
-    stage_options,
-)
+from waveforest.cliutil import OUT_DIR, MultiValueCommand, input_files_option, stage_options
 from waveforest.errors import WaveforestError
 from waveforest.io import paper
 from waveforest.report import plots
@@ -271,14 +265,10 @@ def markdown_report(t3: pd.DataFrame, checks: pd.DataFrame) -> str:
 
 
 @click.command("compare", cls=MultiValueCommand)
-@click.option("--real", "real", cls=MultiValueOption, type=EXISTING_FILE, required=True,
-              help="Feature tables of the selected real pulses (one or more).")
-@click.option("--sim", "sim", cls=MultiValueOption, type=EXISTING_FILE, required=True,
-              help="Feature tables of the simulated pulses (one or more).")
-@click.option("--pulses-real", "pulses_real", cls=MultiValueOption, type=EXISTING_FILE,
-              help="select tables (comparison flags and real waveforms).")
-@click.option("--pulses-sim", "pulses_sim", cls=MultiValueOption, type=EXISTING_FILE,
-              help="simulate chunk tables (simulated waveforms).")
+@input_files_option("--real", "real", "Feature tables of the selected real pulses (one or more).", required=True)
+@input_files_option("--sim", "sim", "Feature tables of the simulated pulses (one or more).", required=True)
+@input_files_option("--pulses-real", "pulses_real", "select tables (comparison flags and real waveforms).")
+@input_files_option("--pulses-sim", "pulses_sim", "simulate chunk tables (simulated waveforms).")
 @click.option("--out", type=OUT_DIR, required=True, help="Output folder (table3.csv, table3.md, fig6_*, fig7_*).")
 @stage_options
 def compare(real, sim, pulses_real, pulses_sim, out, cfg):

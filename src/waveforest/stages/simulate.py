@@ -13,14 +13,11 @@ pulse's ``pulse_id``, geometry and sample columns, the simulated waveform, its C
 R of Eq. 7 is the pulse's range to the sample's ground plane along the beam (docs/method.md §(c)).
 
 Each twin is recorded at the AGC gain g of its real pulse (``agc_gain``, Eq. 1) and
-AGC-normalised like it (:func:`.pulse_sim.render_sigma`): the simulated waveform is in the
-AGC-normalised DN of the real one, with the real one's noise SD (noise_sd / g: the AGC gains
-the signal, not the noise) and rounding steps (1/g DN); a ``nonlinearity`` effect (detector
-saturation at L DN) acts on the gained signal, as in the sensor. Over the birch crowns of a
-virtual campaign g averaged 0.88 and 0.84 (2010_12_1, 2012_10_1; a = the dataset's mean AGC),
-so the real birch waveforms carried 1.14-1.20 times the calibrated noise SD; twins rendered at
-gain 1 had fewer noise peaks (Npeaks d = -0.16 in 2012_10_1), a gap no missing effect was
-behind (tests/test_diagnose_run.py, ``BIRCH_ONLY``).
+AGC-normalised like it (:func:`waveforest.model.forward.render_sigma`): the simulated waveform
+is in the AGC-normalised DN of the real one, with the real one's noise SD (noise_sd / g: the
+AGC gains the signal, not the noise) and rounding steps (1/g DN); a ``nonlinearity`` effect
+(detector saturation at L DN) acts on the gained signal, as in the sensor. Why this matters
+(twins at gain 1 had fewer noise peaks): docs/validation.md ("AGC gain of birch crown pulses").
 
 Vegetation instances: the paper builds a new instance for every pulse. Here each field
 sample has a pool of ``simulate.instances_per_sample`` instances (seeded by the master seed,
@@ -219,32 +216,17 @@ def simulate_pulses(selected: pa.Table, dataset_info: pd.Series, calibration: Ca
 
         bar = tqdm(total=len(p), desc=f"simulate {dataset} chunk {chunk}", unit="pulse", leave=False)
     for _, g in groups:
-        rows = g.sort_values("pulse_id").index.to_numpy()
-        d = scal.loc[rows]
+        d = scal.loc[g.sort_values("pulse_id").index.to_numpy()]
         first = d.iloc[0]
         sample_id, inst = str(first["sample_id"]), int(g["instance"].iloc[0])
         scene = scene_builder(str(first["species"]), float(first["height_m"]),
-                            hashed_seed63(seed, "scene", sample_id, inst),
-                            ground_rho=float(veg["ground_rho"]), lai_jitter=float(veg["lai_jitter"]), **veg_fx)
-        sensor, direction, r = beam_geometry(d)
-        ok = np.all(np.isfinite(sensor), axis=1) & np.isfinite(r) & (r > 0)
-        n_no_echo += int((~ok).sum())
-        if ok.any():
-            rows, sensor, direction, r, d = rows[ok], sensor[ok], direction[ok], r[ok], d[ok]
-            ss = hashed_sequence(seed, dataset, "pulses", sample_id, inst, *((int(stream),) if stream else ()))
-            trace_seed = int(ss.spawn(1)[0].generate_state(1, dtype=np.uint64)[0] >> np.uint64(1))
-            rng = np.random.default_rng(ss)
-            offset = np.zeros_like(sensor)
-            if xy_error > 0:
-                offset[:, :2] = rng.normal(0.0, xy_error, (len(rows), 2))
-            origin = sensor - d[["sample_x", "sample_y", "ground_z"]].to_numpy(float) + offset
-            beams = Beams.from_divergence(origin, direction, div, r)
-            gain = gain_or_one(d[GAIN_COLUMN].to_numpy(float)) if GAIN_COLUMN in d else np.ones(len(d))
-            sim, _ = trace_and_render(scene, beams, r, mcrt, setup, trace_seed, rng, threads, gain=gain)
-            keep = sim.n_echoes > 0
-            n_no_echo += int((~keep).sum())
-            if keep.any():
-                pieces.append(_table(d[keep], sensor[keep], direction[keep], sim, keep, inst, carry))
+                              hashed_seed63(seed, "scene", sample_id, inst),
+                              ground_rho=float(veg["ground_rho"]), lai_jitter=float(veg["lai_jitter"]), **veg_fx)
+        ss = hashed_sequence(seed, dataset, "pulses", sample_id, inst, *((int(stream),) if stream else ()))
+        piece, lost = _simulate_group(d, scene, ss, inst, div, xy_error, mcrt, setup, threads, carry)
+        n_no_echo += lost
+        if piece is not None:
+            pieces.append(piece)
         if bar is not None:
             bar.update(len(g))
     if bar is not None:
@@ -252,6 +234,36 @@ def simulate_pulses(selected: pa.Table, dataset_info: pd.Series, calibration: Ca
     table = pa.concat_tables(pieces) if pieces else _empty(carry)
     summary = SimulateSummary(dataset, chunk, int(len(p)), table.num_rows, len(groups), n_no_echo)
     return table, summary
+
+
+def _simulate_group(d: pd.DataFrame, scene, ss: np.random.SeedSequence, inst: int, div, xy_error: float,
+                    mcrt: MCRTSetup, setup: SensorSetup, threads, carry: pa.Schema) -> tuple[pa.Table | None, int]:
+    """The twins of one (sample, instance) group: beams, MCRT, Eq. 7 at each pulse's AGC gain, CFD.
+
+    ``ss`` seeds the group: its first spawned child gives the MCRT seed (63 bits), ``ss`` itself
+    the ``xy_error`` offsets, then the sampling phase and noise. Returns (sim rows or None, the
+    number of pulses without geometry or without a simulated echo).
+    """
+    sensor, direction, r = beam_geometry(d)
+    ok = np.all(np.isfinite(sensor), axis=1) & np.isfinite(r) & (r > 0)
+    lost = int((~ok).sum())
+    if not ok.any():
+        return None, lost
+    sensor, direction, r, d = sensor[ok], direction[ok], r[ok], d[ok]
+    trace_seed = int(ss.spawn(1)[0].generate_state(1, dtype=np.uint64)[0] >> np.uint64(1))
+    rng = np.random.default_rng(ss)
+    offset = np.zeros_like(sensor)
+    if xy_error > 0:
+        offset[:, :2] = rng.normal(0.0, xy_error, (len(d), 2))
+    origin = sensor - d[["sample_x", "sample_y", "ground_z"]].to_numpy(float) + offset
+    beams = Beams.from_divergence(origin, direction, div, r)
+    gain = gain_or_one(d[GAIN_COLUMN].to_numpy(float)) if GAIN_COLUMN in d else np.ones(len(d))
+    sim, _ = trace_and_render(scene, beams, r, mcrt, setup, trace_seed, rng, threads, gain=gain)
+    keep = sim.n_echoes > 0
+    lost += int((~keep).sum())
+    if not keep.any():
+        return None, lost
+    return _table(d[keep], sensor[keep], direction[keep], sim, keep, inst, carry), lost
 
 
 def _table(d: pd.DataFrame, sensor, direction, sim, keep, inst: int, carry: pa.Schema) -> pa.Table:
