@@ -459,6 +459,9 @@ def _scatter_kernel(order, last, org, dirs, power, path, beam, ray, tfar, prim, 
                     n_bins, bin_ns, radius2, specular, phong_n, hotspot, eps,
                     c_val, c_bin, sh_org, sh_dir, sh_t,
                     n_org, n_dir, n_power, n_path, alive, sampler, v, survive, floor_power):
+    """Ray ``i`` of one order: its receiver contribution and its next ray (the contract and
+    the equations: :func:`scatter`). One ``prange`` loop over the rays, in two sections:
+    receiver contribution (Eq. 2) and next order (branch, roulette, direction)."""
     m = org.shape[0]
     d0 = 2 + 3 * (order - 1)  # Sobol' dimensions of this order: branch, direction 1, direction 2
     inv_pi = 1.0 / math.pi

@@ -292,6 +292,24 @@ def _trace_chunk(prepared: PreparedScene, beams: Beams, index: np.ndarray, key, 
     return acc, dropped, totals, first, t0
 
 
+def _chunk_plan(n: int, n_rays: int, chunk_rays: int, threads: int,
+                parallel: str) -> tuple[list[tuple[int, int]], bool]:
+    """Pulse ranges ``[a, b)`` traced as one wavefront each, and whether they run
+    concurrently (``parallel="pulses"`` with several threads and pulses).
+
+    A chunk holds ``chunk_rays // n_rays`` pulses (at least one); traced concurrently, at most
+    ``ceil(n / (threads * CHUNKS_PER_WORKER))`` so that workers that finish early take more.
+    An unknown ``parallel`` raises ValueError.
+    """
+    if parallel not in PARALLEL_MODES:
+        raise ValueError(f"parallel: expected one of {', '.join(PARALLEL_MODES)}, got {parallel!r}")
+    per_chunk = max(1, chunk_rays // n_rays)
+    by_pulses = parallel == "pulses" and threads > 1 and n > 1
+    if by_pulses:  # several chunks per worker, handed out as workers free up (load balance)
+        per_chunk = min(per_chunk, max(1, -(-n // (threads * CHUNKS_PER_WORKER))))
+    return [(a, min(n, a + per_chunk)) for a in range(0, n, per_chunk)], by_pulses
+
+
 def trace(scene: Scene | PreparedScene, beams: Beams, n_rays: int = 30000, max_order: int = 10,
           bin_ns: float = BIN_NS, viewed_diameter_m: float = 5.0, seed=0, *,
           specular: float = 0.0, hotspot: float = 1.0, window_ns: float = DEFAULT_WINDOW_NS,
@@ -370,19 +388,13 @@ def trace(scene: Scene | PreparedScene, beams: Beams, n_rays: int = 30000, max_o
     key = master_key(seed)
     n = len(beams)
     n_bins = int(math.ceil(window_ns / bin_ns - 1e-9))
-    per_chunk = max(1, int(chunk_rays) // int(n_rays))
     sigma = np.zeros((n, max_order if by_order else 1, n_bins))
     dropped = np.zeros(n)
     totals = np.zeros((n, max_order))
     first = np.zeros((n, MISS_KIND + 1), np.int64)
     t0 = np.zeros(n)
     threads = default_threads() if threads is None else max(1, int(threads))
-    if parallel not in PARALLEL_MODES:
-        raise ValueError(f"parallel: expected one of {', '.join(PARALLEL_MODES)}, got {parallel!r}")
-    by_pulses = parallel == "pulses" and threads > 1 and n > 1
-    if by_pulses:  # several chunks per worker, handed out as workers free up (load balance)
-        per_chunk = min(per_chunk, max(1, -(-n // (threads * CHUNKS_PER_WORKER))))
-    chunks = [(a, min(n, a + per_chunk)) for a in range(0, n, per_chunk)]
+    chunks, by_pulses = _chunk_plan(n, int(n_rays), int(chunk_rays), threads, parallel)
 
     def run_chunk(ab, embree_threads):
         a, b = ab
