@@ -241,36 +241,10 @@ def site_pulses(plan: FlightPlan, sites: pd.DataFrame, layout: dict, seed: int,
     tan_max = np.tan(np.radians(plan.max_zenith_deg))
     frames = []
     for st in plan.strips:
-        delta = st.delta
-        line_t = delta / st.speed
         for _, site in sites.iterrows():
-            cs, cw, gz, r = float(site["s"]), float(site["w"]), float(site["ground_z"]), float(site["disc_m"])
-            if abs(cw - st.w_line) > (st.z_fly - gz) * tan_max - st.sway_amp - margin - r:
-                continue
-            rng = stream_generator(seed, "scan", plan.dataset, st.index, str(site["site"]))
-            j = np.arange(np.ceil((cs - r - st.scan_phase) / delta), np.floor((cs + r - st.scan_phase) / delta) + 1)
-            if j.size == 0:
-                continue
-            s_line = st.scan_phase + j * delta
-            ph = rng.uniform(0, delta, j.size)
-            ni = int(np.ceil(2 * r / delta)) + 2
-            i = np.arange(ni) - ni // 2
-            wn = (cw - st.w_line) - ((cw - st.w_line) % delta) + ph[:, None] + i[None, :] * delta
-            sn = np.broadcast_to(s_line[:, None], wn.shape)
-            jj = np.broadcast_to(j[:, None], wn.shape)
-            sj = sn + rng.normal(0.0, jit * delta, wn.shape)
-            wj = st.w_line + wn + rng.normal(0.0, jit * delta, wn.shape)
-            keep = np.hypot(sj - cs, wj - cw) <= r
-            if not keep.any():
-                continue
-            sn, wn, jj, sj, wj = sn[keep], wn[keep], jj[keep], sj[keep], wj[keep]
-            # time: the sensor passes the scan line at t_line; the sweep crosses the swath in line_t
-            t_line = st.t_start + (sn - st.s_start) / (st.direction * st.speed)
-            q = np.clip((wn + st.half_swath) / (2 * st.half_swath), 0.0, 1.0)
-            q = np.where(jj.astype(np.int64) % 2 == 0, q, 1.0 - q)
-            t = t_line + (q - 0.5) * line_t
-            frames.append(pd.DataFrame({"strip": st.index, "site": site["site"], "gps_time": t,
-                                        "gs": sj, "gw": wj, "ground_z": gz}))
+            f = _strip_site_pulses(plan, st, site, seed, tan_max, margin, jit)
+            if f is not None:
+                frames.append(f)
     if not frames:
         return pd.DataFrame({c: [] for c in PULSE_COLUMNS})
     df = pd.concat(frames, ignore_index=True)
@@ -280,6 +254,53 @@ def site_pulses(plan: FlightPlan, sites: pd.DataFrame, layout: dict, seed: int,
         rank = pd.Series(u).groupby(df["site"].to_numpy()).rank(method="first").to_numpy()
         df = df[rank <= max_per_site].reset_index(drop=True)
     df = df.sort_values(["strip", "gps_time"], kind="stable").reset_index(drop=True)
+    return _pulse_geometry(plan, df)
+
+
+def _strip_site_pulses(plan: FlightPlan, st, site, seed: int, tan_max: float, margin: float,
+                       jit: float) -> pd.DataFrame | None:
+    """The pulses of strip ``st`` within ``site["disc_m"]`` of a site (None if none).
+
+    Scan lines every ``st.delta`` along track, pulses every ``delta`` across with a uniform
+    phase per line, both jittered by N(0, jit x delta); the GPS time follows the sweep
+    (alternating direction). Stream ("scan", dataset, strip, site). Columns strip, site,
+    gps_time, gs, gw (frame, m), ground_z.
+    """
+    delta = st.delta
+    line_t = delta / st.speed
+    cs, cw, gz, r = float(site["s"]), float(site["w"]), float(site["ground_z"]), float(site["disc_m"])
+    if abs(cw - st.w_line) > (st.z_fly - gz) * tan_max - st.sway_amp - margin - r:
+        return None
+    rng = stream_generator(seed, "scan", plan.dataset, st.index, str(site["site"]))
+    j = np.arange(np.ceil((cs - r - st.scan_phase) / delta), np.floor((cs + r - st.scan_phase) / delta) + 1)
+    if j.size == 0:
+        return None
+    s_line = st.scan_phase + j * delta
+    ph = rng.uniform(0, delta, j.size)
+    ni = int(np.ceil(2 * r / delta)) + 2
+    i = np.arange(ni) - ni // 2
+    wn = (cw - st.w_line) - ((cw - st.w_line) % delta) + ph[:, None] + i[None, :] * delta
+    sn = np.broadcast_to(s_line[:, None], wn.shape)
+    jj = np.broadcast_to(j[:, None], wn.shape)
+    sj = sn + rng.normal(0.0, jit * delta, wn.shape)
+    wj = st.w_line + wn + rng.normal(0.0, jit * delta, wn.shape)
+    keep = np.hypot(sj - cs, wj - cw) <= r
+    if not keep.any():
+        return None
+    sn, wn, jj, sj, wj = sn[keep], wn[keep], jj[keep], sj[keep], wj[keep]
+    # time: the sensor passes the scan line at t_line; the sweep crosses the swath in line_t
+    t_line = st.t_start + (sn - st.s_start) / (st.direction * st.speed)
+    q = np.clip((wn + st.half_swath) / (2 * st.half_swath), 0.0, 1.0)
+    q = np.where(jj.astype(np.int64) % 2 == 0, q, 1.0 - q)
+    t = t_line + (q - 0.5) * line_t
+    return pd.DataFrame({"strip": st.index, "site": site["site"], "gps_time": t, "gs": sj, "gw": wj,
+                         "ground_z": gz})
+
+
+def _pulse_geometry(plan: FlightPlan, df: pd.DataFrame) -> pd.DataFrame:
+    """:data:`PULSE_COLUMNS` of pulses (strip, site, gps_time, gs, gw, ground_z): the sensor
+    position on its strip at the GPS time, the unit direction to the ground point, its range, m,
+    and the LAS scan angle, degrees (positive to the right of the flight direction)."""
     sensor = np.empty((len(df), 3))
     for st in plan.strips:
         sel = (df["strip"] == st.index).to_numpy()

@@ -409,19 +409,7 @@ def _record_dataset(row, sensor: TruthSensor, plan, p: pd.DataFrame, a0: np.ndar
     agc, gain, observed = agc_sequence(p["gps_time"].to_numpy(), a0, p["strip"].to_numpy(), sensor.agc,
                                        stream_generator(seed, "agc", ds), saturation_dn=eff["nonlinearity"])
     n_s = sensor.n_samples
-    samples = np.zeros((n, n_s), dtype=np.uint8)
-    first = np.full(n, np.nan)
-    echo_ns = np.full((n, MAX_ECHOES), np.nan)
-    echo_amp = np.full((n, MAX_ECHOES), np.nan)
-    inten = np.zeros((n, MAX_ECHOES), dtype=np.uint8)
-    n_echo = np.zeros(n, dtype=np.int64)
-    walk = np.full((n, MAX_ECHOES), np.nan)
-    for site, rows, sig, t0, rg in batches:
-        rec = record(sensor, sig, t0, rg, gain[rows], stream_generator(seed, "sensor", ds, site),
-                     noise_autocorr=eff["noise_autocorr"], nonlinearity=eff["nonlinearity"],
-                     trigger_loss=eff["trigger_loss"])
-        samples[rows], first[rows], echo_ns[rows] = rec.samples, rec.first_sample_ns, rec.echo_ns
-        echo_amp[rows], inten[rows], n_echo[rows], walk[rows] = rec.echo_amp_dn, rec.intensity, rec.n_echoes, rec.walk_m
+    samples, first, echo_ns, echo_amp, inten, n_echo, walk = _record_sites(sensor, batches, gain, n, eff, seed, ds)
 
     # geometry: true positions, then the recording errors
     srng = stream_generator(seed, "strip_error", ds)
@@ -476,6 +464,48 @@ def _record_dataset(row, sensor: TruthSensor, plan, p: pd.DataFrame, a0: np.ndar
                              "y": traj["y"] + off[:, 1], "z": traj["z"] + off[:, 2]})
     traj_out.to_csv(out / f"{ds}_trajectory.csv", index=False, float_format="%.4f")
 
+    info = _dataset_info(row, sensor, plan, p, agc, kept, keep, lengths, strip_off)
+    truth = pd.DataFrame({
+        "dataset": ds, "gps_time": p["gps_time"].to_numpy(), "recorded": keep, "site": p["site"].to_numpy(),
+        "strip": p["strip"].to_numpy(), "sensor_x": sensor_true[:, 0], "sensor_y": sensor_true[:, 1],
+        "sensor_z": sensor_true[:, 2], "dir_x": d[:, 0], "dir_y": d[:, 1], "dir_z": d[:, 2],
+        "ground_x": p["ground_x"].to_numpy(), "ground_y": p["ground_y"].to_numpy(), "ground_z": p["ground_z"].to_numpy(),
+        "range_ground_m": p["range_ground_m"].to_numpy(), "a0_dn": a0, "agc": agc, "gain": gain,
+        "observed_peak_dn": observed, "xy_offset_x": xy[:, 0], "xy_offset_y": xy[:, 1],
+        "first_echo_range_m": echo_ns[:, 0] * RANGE_PER_NS, "first_echo_amp_dn": echo_amp[:, 0],
+        "first_echo_walk_m": walk[:, 0]})
+    return table, info, truth
+
+
+def _record_sites(sensor: TruthSensor, batches, gain: np.ndarray, n: int, eff: dict, seed: int, ds: str):
+    """The sensor's records of a dataset's n pulses, site by site (:func:`.truth_sensor.record`).
+
+    ``batches``: (site, rows, sigma, t0_ns, range_m) per site; stream ("sensor", ds, site).
+    Returns samples (n, n_s) uint8, first_sample_ns (n,), echo_ns, echo_amp_dn (n, 4), intensity
+    (n, 4) uint8, n_echoes (n,) int64 and walk_m (n, 4); rows of no batch keep NaN / 0.
+    """
+    n_s = sensor.n_samples
+    samples = np.zeros((n, n_s), dtype=np.uint8)
+    first = np.full(n, np.nan)
+    echo_ns = np.full((n, MAX_ECHOES), np.nan)
+    echo_amp = np.full((n, MAX_ECHOES), np.nan)
+    inten = np.zeros((n, MAX_ECHOES), dtype=np.uint8)
+    n_echo = np.zeros(n, dtype=np.int64)
+    walk = np.full((n, MAX_ECHOES), np.nan)
+    for site, rows, sig, t0, rg in batches:
+        rec = record(sensor, sig, t0, rg, gain[rows], stream_generator(seed, "sensor", ds, site),
+                     noise_autocorr=eff["noise_autocorr"], nonlinearity=eff["nonlinearity"],
+                     trigger_loss=eff["trigger_loss"])
+        samples[rows], first[rows], echo_ns[rows] = rec.samples, rec.first_sample_ns, rec.echo_ns
+        echo_amp[rows], inten[rows], n_echo[rows], walk[rows] = rec.echo_amp_dn, rec.intensity, rec.n_echoes, rec.walk_m
+    return samples, first, echo_ns, echo_amp, inten, n_echo, walk
+
+
+def _dataset_info(row, sensor: TruthSensor, plan, p: pd.DataFrame, agc: np.ndarray, kept: np.ndarray,
+                  keep: np.ndarray, lengths: np.ndarray, strip_off: np.ndarray) -> dict:
+    """The dataset's entry of ``truth.json``: counts, the AGC law at the mean AGC, noise, the true
+    S(t), the sensor, and the strips with their positioning offsets."""
+    n, k = len(p), len(kept)
     a_mean = float(np.mean(agc[kept])) if k else float("nan")
     law = sensor.agc
     c = law.scale_at(a_mean)
@@ -501,16 +531,7 @@ def _record_dataset(row, sensor: TruthSensor, plan, p: pd.DataFrame, a0: np.ndar
                     "t_start": st.t_start, "duration_s": st.duration, "altitude_m": st.z_fly,
                     "offset_xyz_m": strip_off[st.index]} for st in plan.strips],
     }
-    truth = pd.DataFrame({
-        "dataset": ds, "gps_time": p["gps_time"].to_numpy(), "recorded": keep, "site": p["site"].to_numpy(),
-        "strip": p["strip"].to_numpy(), "sensor_x": sensor_true[:, 0], "sensor_y": sensor_true[:, 1],
-        "sensor_z": sensor_true[:, 2], "dir_x": d[:, 0], "dir_y": d[:, 1], "dir_z": d[:, 2],
-        "ground_x": p["ground_x"].to_numpy(), "ground_y": p["ground_y"].to_numpy(), "ground_z": p["ground_z"].to_numpy(),
-        "range_ground_m": p["range_ground_m"].to_numpy(), "a0_dn": a0, "agc": agc, "gain": gain,
-        "observed_peak_dn": observed, "xy_offset_x": xy[:, 0], "xy_offset_y": xy[:, 1],
-        "first_echo_range_m": echo_ns[:, 0] * RANGE_PER_NS, "first_echo_amp_dn": echo_amp[:, 0],
-        "first_echo_walk_m": walk[:, 0]})
-    return table, info, truth
+    return info
 
 
 def _write_tables(out: Path, datasets: pd.DataFrame, fields: pd.DataFrame, targets: pd.DataFrame, camp: dict) -> None:
