@@ -42,6 +42,7 @@ wrapped into the plot (:mod:`waveforest.vegetation.placement`).
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 
@@ -130,28 +131,64 @@ def build_shoots(p: SpeciesParams, height: float, rng: np.random.Generator,
     base = positions(n, rng, clumping, p["plants_per_cluster"])
     lean_az = rng.uniform(0.0, 2.0 * math.pi, n)
     az0 = rng.uniform(0.0, 2.0 * math.pi, n)
-    lean = p["lean_frac"] * hs
-    lean_dir = horizontal(lean_az)[:, :2]
+    stems = _Stems(base, p["lean_frac"] * hs, horizontal(lean_az)[:, :2], hs)
+    wood = _stem_wood(p, stems)
+    leaves, areas, ln, width = _shoot_leaves(p, stems, lay, az0, factor, leaf_area_scale, lad, rng)
+    return Plant(
+        leaves=leaves,
+        leaf_area_m2=float(areas.sum()),
+        wood=wood,
+        n_plants=n,
+        element_size_m=float(np.hypot(ln.max(), width) + p["petiole_m"]),
+    )
 
-    def stem_point(shoot, u):
-        xy = base[shoot] + (lean[shoot] * u * u)[:, None] * lean_dir[shoot]
-        return np.concatenate([xy, (hs[shoot] * u)[:, None]], axis=1)
 
-    # stems
+class _Stems(NamedTuple):
+    """The stems of n shoots: ``base`` (n, 2) m, apex offset ``lean`` (n,) m along the
+    horizontal unit vectors ``lean_dir`` (n, 2), heights ``hs`` (n,) m."""
+
+    base: np.ndarray
+    lean: np.ndarray
+    lean_dir: np.ndarray
+    hs: np.ndarray
+
+    def point(self, shoot: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """(k, 3) points at relative height ``u`` (0 base, 1 apex) of stems ``shoot``; the
+        lean grows with u^2."""
+        xy = self.base[shoot] + (self.lean[shoot] * u * u)[:, None] * self.lean_dir[shoot]
+        return np.concatenate([xy, (self.hs[shoot] * u)[:, None]], axis=1)
+
+
+def _stem_wood(p: SpeciesParams, stems: _Stems) -> np.ndarray:
+    """Triangles of ``stem_segments`` tapered prisms per stem, each segment wrapped into the
+    plot by its midpoint."""
+    n = len(stems.hs)
     k = int(round(p["stem_segments"]))
     u = np.linspace(0.0, 1.0, k + 1)
     sh = np.repeat(np.arange(n), k)
     uu = np.tile(u[:-1], n)
-    p0, p1 = stem_point(sh, uu), stem_point(sh, uu + 1.0 / k)
+    p0, p1 = stems.point(sh, uu), stems.point(sh, uu + 1.0 / k)
     d = p["stem_base_diameter_m"] + (p["stem_top_diameter_m"] - p["stem_base_diameter_m"]) * u
     shift = np.zeros_like(p0)
     mid = 0.5 * (p0[:, :2] + p1[:, :2])
     shift[:, :2] = wrap(mid) - mid
-    wood = prisms(p0 + shift, p1 + shift, np.tile(d[:-1], n), np.tile(d[1:], n))
+    return prisms(p0 + shift, p1 + shift, np.tile(d[:-1], n), np.tile(d[1:], n))
 
-    # leaves
+
+def _shoot_leaves(p: SpeciesParams, stems: _Stems, lay: dict, az0: np.ndarray, factor: float,
+                  leaf_area_scale: float, lad: LeafAngleDistribution,
+                  rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """The leaves of every node of :func:`_layout` ``lay``, their areas times ``factor`` (to the
+    target LAI) and ``leaf_area_scale``.
+
+    Leaf bases at the petiole's end (``petiole_m`` at ``petiole_elev_deg``; the second
+    lateral pair halfway), wrapped into the plot; node azimuths from ``az0`` turned by
+    ``divergence_deg``, pairs opposite; leaflets spread by ``leaflet_spread_deg``; normals
+    from the LAD. Returns the triangles, the (k,) areas, m^2, the (k,) leaf lengths, m, and
+    the widest leaf's width, m.
+    """
     shoot, node = lay["shoot"], lay["node"]
-    node_pos = stem_point(shoot, lay["z"] / hs[shoot])
+    node_pos = stems.point(shoot, lay["z"] / stems.hs[shoot])
     node_az = az0[shoot] + lay["j"] * math.radians(p["divergence_deg"])
     psi = node_az[node] + lay["k"] * math.pi  # leaf azimuth (pairs opposite)
     elev = math.radians(p["petiole_elev_deg"])
@@ -167,11 +204,4 @@ def build_shoots(p: SpeciesParams, height: float, rng: np.random.Generator,
     leaf_base[:, :2] = wrap(leaf_base[:, :2])
     normals = sample_normals(lad, areas.size, rng)
     leaves = place_leaves(outline, leaf_base, normals, toward, ln, wf)
-    width = float(ln.max()) * wf * outline.width
-    return Plant(
-        leaves=leaves,
-        leaf_area_m2=float(areas.sum()),
-        wood=wood,
-        n_plants=n,
-        element_size_m=float(np.hypot(ln.max(), width) + p["petiole_m"]),
-    )
+    return leaves, areas, ln, float(ln.max()) * wf * outline.width
