@@ -14,7 +14,8 @@ from waveforest import config
 from waveforest.constants import RANGE_PER_NS
 from waveforest.model.forward import SensorSetup, render_sigma, split_effects
 from waveforest.sensor import feature_table, gaussian_system_waveform
-from waveforest.stages.simulate import Calibration, load_calibration, plan, simulate_pulses
+from waveforest.sensor.calibration import Calibration, load_calibration
+from waveforest.stages.simulate import plan, simulate_pulses
 
 SAMPLES = {  # sample_id: species, x, y, ground_z, height
     "R1": ("raspberry", 100.0, 200.0, 50.0, 1.2),
