@@ -1,4 +1,9 @@
-"""The ``info`` stage."""
+"""The ``info`` stage: a lasinfo-style summary of one LAS waveform file on stdout.
+
+Reads the file in one streaming pass (:func:`waveforest.io.las.info.summarise`, with the
+config's ``ingest`` streaming sizes and ``agc.attribute``); writes nothing. An unusable file
+ends in :class:`waveforest.io.las.format.LasWaveformError`.
+"""
 
 from __future__ import annotations
 
