@@ -57,6 +57,20 @@ class Section:
         self.items.append(("figure", caption, Path(path)))
 
 
+def _csv_if_present(sec: Section, used: set, path: Path, caption: str) -> None:
+    """Add the CSV at ``path`` as a table of ``sec`` (and to ``used``) if it exists."""
+    if path.exists():
+        used.add(path)
+        sec.table(caption, _read_csv(path))
+
+
+def _figure_if_present(sec: Section, used: set, path: Path, caption: str) -> None:
+    """Add the figure at ``path`` to ``sec`` (and to ``used``) if it exists."""
+    if path.exists():
+        used.add(path)
+        sec.figure(caption, path)
+
+
 def versions() -> dict:
     """Python, waveforest and every package waveforest requires, with their installed versions.
 
@@ -160,10 +174,9 @@ def _compare(results: Path, used: set) -> Section | None:
                         "delta_pct", "n_sim", "n_real", "paper_sim_mean", "paper_sim_sd", "paper_real_mean",
                         "paper_delta_pct") if c in t3.columns]
     sec.table("Table 3 analogue, with the paper's values", t3[cols])
-    if (d / "order_check.csv").exists():
-        used.add(d / "order_check.csv")
-        sec.table("Species order of mean Apeak, E, FWHM: our simulation vs the paper's simulation and our real "
-                  "data; largest deviation of our simulated means from the paper's", _read_csv(d / "order_check.csv"))
+    _csv_if_present(sec, used, d / "order_check.csv",
+                    "Species order of mean Apeak, E, FWHM: our simulation vs the paper's simulation and our real "
+                    "data; largest deviation of our simulated means from the paper's")
     for png in sorted(d.glob("fig6_*.png")):
         used.add(png)
         sec.figure(f"Fig. 6 analogue: echo heights, {png.stem[5:]}", png)
@@ -182,14 +195,10 @@ def _sensitivity(results: Path, used: set) -> Section | None:
     sec.text("3-m birch, no ground, nadir, R 1200 m, sensor XY jitter +-0.30 m; mean Apeak +- SE per setting. "
              "Paper: spherical LAD gives Apeak ~55 DN; +-10 deg mean leaf angle changes Apeak 20-30 %; leaf rho "
              "0.4 -> 0.5 raises it ~55 -> 70 DN; leaf-area scale 0.5 -> 1.5 ~50 -> 80 DN.")
-    if (d / "sensitivity_baseline.csv").exists():
-        used.add(d / "sensitivity_baseline.csv")
-        sec.table("Baseline: the birch model as is (spherical LAD, rho 0.47, tau 0.50, leaf-area scale 1)",
-                  _read_csv(d / "sensitivity_baseline.csv"))
+    _csv_if_present(sec, used, d / "sensitivity_baseline.csv",
+                    "Baseline: the birch model as is (spherical LAD, rho 0.47, tau 0.50, leaf-area scale 1)")
     sec.table("Sensitivity", _read_csv(d / "sensitivity.csv"))
-    if (d / "fig8.png").exists():
-        used.add(d / "fig8.png")
-        sec.figure("Fig. 8 analogue", d / "fig8.png")
+    _figure_if_present(sec, used, d / "fig8.png", "Fig. 8 analogue")
     return sec
 
 
@@ -211,12 +220,8 @@ def _sensor_study(results: Path, used: set) -> Section | None:
         sec.table("Overall accuracy (fraction correct)", wide.reset_index())
     else:
         sec.table("Sensor study", t)
-    if (d / "sensor_study_features.csv").exists():
-        used.add(d / "sensor_study_features.csv")
-        sec.table("Mean first-echo features per setting and species", _read_csv(d / "sensor_study_features.csv"))
-    if (d / "fig9.png").exists():
-        used.add(d / "fig9.png")
-        sec.figure("Fig. 9 analogue", d / "fig9.png")
+    _csv_if_present(sec, used, d / "sensor_study_features.csv", "Mean first-echo features per setting and species")
+    _figure_if_present(sec, used, d / "fig9.png", "Fig. 9 analogue")
     return sec
 
 

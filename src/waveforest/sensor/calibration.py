@@ -33,6 +33,10 @@ correction dR(Apeak) on all of them (:func:`fit_range_correction`), and reports 
 check (the fraction with |dR| < 0.10 m and the bias) on the target pulses before and after the
 correction. The JSON keeps the CFD with its correction (:func:`cfd_of`): every stage that
 detects echoes with this calibration uses that pair.
+
+A written calibration is read back as one typed :class:`Calibration` (S(t), noise, CFD, range
+correction and the whole JSON) by :func:`load_calibration`; :func:`read_calibration_json`
+gives the checked JSON alone.
 """
 
 from __future__ import annotations
