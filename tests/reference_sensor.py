@@ -199,7 +199,7 @@ def nested_cv_reference(amplitudes, agc, groups, a, b):
 def make_pulse_table(samples, *, dataset="2010_12_1", source="real", sampling_ns=1.0, echo_time_ns=None,
                      echo_xy=None, anchor=None, direction=None, range_m=1000.0, agc=np.nan, intensity=None,
                      extra=None):
-    """A pulse table (io.tables.PULSE_SCHEMA) around given waveforms, for tests.
+    """A pulse table (waveforest.io.pulses.PULSE_SCHEMA) around given waveforms, for tests.
 
     samples : (n, n_s) array (or list of 1-D arrays); echo_time_ns : (n,) first echo times (NaN: no
     echo); echo_xy : (n, 2) first-echo x, y; anchor, direction : (n, 3); extra : dict of columns.

@@ -225,7 +225,8 @@ def test_cli_is_registered_and_documents_its_options():
 
     r = CliRunner().invoke(cli, ["diagnose", "--help"])
     assert r.exit_code == 0, r.output
-    for opt in ("--selected", "--features-real", "--calibration", "--system", "--campaign", "--out", "--config"):
+    for opt in ("--selected", "--features-real", "--calibration", "--system", "--datasets", "--targets", "--fields",
+                "--out", "--config"):
         assert opt in r.output
 
 
@@ -234,7 +235,7 @@ def test_cli_missing_input_is_a_clear_error(tmp_path):
 
     r = CliRunner().invoke(cli, ["diagnose", "--selected", str(tmp_path / "nope.parquet"), "--features-real",
                                  str(tmp_path / "x.parquet"), "--calibration", str(tmp_path / "c.json"),
-                                 "--campaign", str(tmp_path), "--out", str(tmp_path / "out")])
+                                 "--datasets", str(tmp_path / "d.csv"), "--out", str(tmp_path / "out")])
     assert r.exit_code != 0 and "does not exist" in r.output
 
 

@@ -1,4 +1,4 @@
-"""The ``waveforest`` command: one subcommand per pipeline stage (DESIGN.md).
+"""The ``waveforest`` command: one subcommand per pipeline stage (docs/design.md).
 
 Each subcommand lives in its stage module (``waveforest.stages.<stage>``) and is loaded
 lazily, so ``waveforest --help`` stays fast and a stage appears once it exists.

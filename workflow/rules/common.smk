@@ -146,11 +146,6 @@ def results_dir(wildcards, output):
     return os.path.dirname(os.path.dirname(output[0]))
 
 
-def campaign_dir(wildcards, input):
-    """The campaign folder, that of the rule's datasets.csv input."""
-    return os.path.dirname(input.datasets)
-
-
 ENV = "../envs/waveforest.yaml"
 
 

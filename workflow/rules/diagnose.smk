@@ -9,10 +9,9 @@ rule diagnose:
         calibration=expand(result("calibration", "{dataset}.json"), dataset=COMPARE_DATASETS),
         system=expand(result("calibration", "{dataset}.parquet"), dataset=COMPARE_DATASETS),
         agc=expand(result("agc", "{dataset}.parquet"), dataset=COMPARE_DATASETS),
-        targets=campaign_file("targets.csv"),
-        table3=result("compare", "table3.csv"),
-        fields=campaign_file("fields.csv"),
         datasets=campaign_file("datasets.csv"),
+        targets=campaign_file("targets.csv"),
+        fields=campaign_file("fields.csv"),
     output:
         model=result("diagnose", "model.yaml"),
         candidates=result("diagnose", "candidates.csv"),
@@ -22,7 +21,6 @@ rule diagnose:
         summary=result("diagnose", "diagnose.md"),
     params:
         out=output_dir,
-        campaign=campaign_dir,
     log:
         result("logs", "diagnose.log"),
     benchmark:
@@ -32,5 +30,6 @@ rule diagnose:
     threads: 2
     shell:
         "waveforest diagnose --selected {input.selected} --features-real {input.real} "
-        "--calibration {input.calibration} --system {input.system} --agc {input.agc} --campaign {params.campaign} "
+        "--calibration {input.calibration} --system {input.system} --agc {input.agc} "
+        "--datasets {input.datasets} --targets {input.targets} --fields {input.fields} "
         "--out {params.out} --threads {threads} --config {input.config} > {log} 2>&1"

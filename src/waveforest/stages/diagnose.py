@@ -32,7 +32,6 @@ import pandas as pd
 
 from waveforest.atomic import atomic_path
 from waveforest.cliutil import (
-    EXISTING_DIR,
     EXISTING_FILE,
     OUT_DIR,
     MultiValueCommand,
@@ -312,24 +311,26 @@ def run(selected_paths, real_paths, calibration_paths, out_dir, cfg: dict, *, da
               help="AGC-normalised pulse tables (results/agc/{dataset}.parquet): their calibration-target "
                    "pulses recalibrate S(t) under each value of the candidates nonlinearity and trigger_loss; "
                    "without them those candidates act on top of the calibrated S(t).")
-@click.option("--campaign", "campaign", type=EXISTING_DIR, required=True,
-              help="Campaign folder (its datasets.csv and targets.csv; fields.csv if present).")
+@click.option("--datasets", "datasets", type=EXISTING_FILE, required=True, help="The campaign's datasets.csv.")
+@click.option("--targets", "targets", type=EXISTING_FILE,
+              help="The campaign's targets.csv (needed with --agc, to find the calibration-target pulses).")
+@click.option("--fields", "fields", type=EXISTING_FILE,
+              help="The campaign's fields.csv (needed by diagnose.below_crown and by select tables without "
+                   "sample positions).")
 @click.option("--out", "out", type=OUT_DIR, required=True,
               help="Output folder: model.yaml, candidates.csv, gap_before_after.csv, gap.png, "
                    "signatures.csv, diagnose.md.")
 @stage_options
-def diagnose(selected, features_real, calibration, system, agc, campaign, out, cfg):
+def diagnose(selected, features_real, calibration, system, agc, datasets, targets, fields, out, cfg):
     """Find where simulation and measurement disagree, name the missing effect, show the gap shrink.
 
     Beyond the paper: each effect of the catalogue (src/waveforest/effects.py) is fitted on
     one half of the field samples and tested on the other (config section `diagnose`).
     """
 
-    fields = campaign / "fields.csv"
     res = run(list(selected), list(features_real), list(calibration), out, cfg,
-              datasets_path=campaign / "datasets.csv", system_paths=list(system or ()),
-              fields_path=fields if fields.exists() else None, agc_paths=list(agc or ()),
-              targets_path=campaign / "targets.csv")
+              datasets_path=datasets, system_paths=list(system or ()), fields_path=fields,
+              agc_paths=list(agc or ()), targets_path=targets)
     named = ", ".join(f"{k} = {v:.3g}" for k, v in res.effects.items()) or "nothing named"
     click.echo(f"diagnose: verdict {res.verdict} ({named}); gap {res.gap_before:.3g} -> {res.gap_after:.3g}; "
                f"{res.n_pulses} pulses, {res.n_samples} samples, {res.n_simulations} simulations, "
