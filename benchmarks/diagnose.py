@@ -43,15 +43,15 @@ def real_chain(results: Path, config_path: Path) -> None:
     from waveforest.diagnose.strata import pulse_keys
     from waveforest.io.pulses import read_pulses
     from waveforest.io.tables import read_datasets
-    from waveforest.sensor import load_calibration as load_json
+    from waveforest.sensor.calibration import load_calibration
     from waveforest.stages.diagnose import diagnosed_datasets
-    from waveforest.stages.simulate import load_calibration
 
     cfg = config.load(config_path)
     ds = [d for d in diagnosed_datasets(cfg) if (results / "select" / f"{d}.parquet").exists()]
     sel = {d: read_pulses(results / "select" / f"{d}.parquet") for d in ds}
-    cal = {d: (load_calibration(results / "calibration" / f"{d}.parquet", results / "calibration" / f"{d}.json"),
-               load_json(results / "calibration" / f"{d}.json")) for d in ds}
+    cals = {d: load_calibration(results / "calibration" / f"{d}.json", results / "calibration" / f"{d}.parquet")
+            for d in ds}
+    cal = {d: (c, c.meta) for d, c in cals.items()}
     sim = StudySimulator(sel, read_datasets(results / "campaign" / "datasets.csv"), cal, cfg)
     keys = pulse_keys(sel, cfg)
     cap = cfg["diagnose"]["fit_pulses"]

@@ -78,7 +78,7 @@ def test_real_below_crown_echoes_are_found_as_a_twins_are():
     from waveforest.diagnose.strata import own_cfd_echoes
     from waveforest.io.pulses import padded_to_list
     from waveforest.sensor import gaussian_system_waveform
-    from waveforest.stages.simulate import Calibration
+    from waveforest.sensor.calibration import Calibration
 
     mean, sd, t = 10.0, 1.0, np.arange(120.0)
 
@@ -112,8 +112,8 @@ def test_pulses_under_the_crowns_are_chosen_by_their_own_cfd_echo():
     from waveforest import config
     from waveforest.diagnose.strata import with_pulses_under_crowns
     from waveforest.sensor import gaussian_system_waveform
+    from waveforest.sensor.calibration import Calibration
     from waveforest.stages.select import SelectRules, select_pulses
-    from waveforest.stages.simulate import Calibration
 
     fields = pd.DataFrame([dict(sample_id="T1", year=2010, species="birch", functional_group="broadleaf", x=0.0,
                                 y=0.0, ground_z=100.0, height_m=3.0, radius_m=0.5, is_tree=True)])
@@ -252,8 +252,8 @@ def test_study_simulator_recalibrates_under_a_calibration_shaping_candidate():
     from waveforest.diagnose.simulator import StudySimulator
     from waveforest.io.pulses import list_to_padded
     from waveforest.sensor import noise_stats
+    from waveforest.sensor.calibration import Calibration
     from waveforest.stages.calibrate import CalibrationPulses
-    from waveforest.stages.simulate import Calibration
 
     table, tr = target_pulses(np.random.default_rng(3), true_system(), per_target=20, b_true=0.0, n_other=0,
                               sensor_effects={"trigger_loss": 0.2})

@@ -12,8 +12,8 @@ from test_analysis_classify import _features
 from waveforest import config
 from waveforest.cli import main
 from waveforest.report import plots
-from waveforest.report.build import run
 from waveforest.stages.classify import classify_dataset
+from waveforest.stages.report import run
 
 
 def _results(tmp_path):

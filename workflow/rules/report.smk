@@ -25,5 +25,6 @@ rule report:
         ENV
     threads: 1
     shell:
-        "waveforest report --results {params.results} --config {input.config} "
-        "--out {output.html} > {log} 2>&1"
+        "waveforest report {input.table3} {input.sensitivity} {input.sensor_study} {input.classify} "
+        "{input.calibration} {input.diagnose} --results {params.results} --config {input.config} "
+        "--out {output.html} --markdown {output.markdown} > {log} 2>&1"

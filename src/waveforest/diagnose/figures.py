@@ -8,18 +8,10 @@ import numpy as np
 import pandas as pd
 
 from waveforest.atomic import atomic_path
+from waveforest.plotting import pyplot
 
 BEFORE_COLOUR, AFTER_COLOUR = "#7f7f7f", "#c55a11"
 NAMED_COLOUR, OTHER_COLOUR = "#1f4e79", "#bfbfbf"
-
-
-def _pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
 
 
 def gap_figure(gap: pd.DataFrame, candidates: pd.DataFrame, path: str | Path, *, title: str = "") -> Path:
@@ -41,7 +33,7 @@ def gap_figure(gap: pd.DataFrame, candidates: pd.DataFrame, path: str | Path, *,
     title : str
         Figure title (e.g. the verdict).
     """
-    plt = _pyplot()
+    plt = pyplot()
     rows = gap[gap["level"].isin(["feature", "total"])].reset_index(drop=True)
     n_c = len(candidates)
     fig, axes = plt.subplots(1, 2, figsize=(11, max(3.6, 0.9 + 0.28 * n_c)),

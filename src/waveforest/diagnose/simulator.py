@@ -127,7 +127,7 @@ class StudySimulator:
     datasets : DataFrame
         The campaign's datasets.csv (:func:`waveforest.io.tables.read_datasets`).
     calibrations : dict
-        Dataset -> (Calibration of :mod:`waveforest.stages.simulate`, calibration JSON dict).
+        Dataset -> (Calibration of :mod:`waveforest.sensor.calibration`, calibration JSON dict).
     cfg : dict
         Loaded study config.
     n_rays : int, optional

@@ -125,7 +125,7 @@ def own_cfd_echoes(pulses: pa.Table, calibration, cfg: dict) -> pa.Table:
     ----------
     pulses : pa.Table
         AGC-normalised pulse rows of one dataset (``agc`` or ``select`` table rows).
-    calibration : waveforest.stages.simulate.Calibration
+    calibration : waveforest.sensor.calibration.Calibration
         The dataset's calibration (CFD, range correction, noise).
     cfg : dict
         Loaded study config (``sensor.cfd`` when the calibration has no CFD).
@@ -239,7 +239,7 @@ def with_pulses_under_crowns(selected: pa.Table, agc: pa.Table, fields: pd.DataF
         fields.csv.
     year : int
         The dataset's campaign year.
-    calibration : waveforest.stages.simulate.Calibration
+    calibration : waveforest.sensor.calibration.Calibration
     cfg : dict
         Loaded study config.
     """

@@ -2,9 +2,9 @@
 
 - :mod:`.build` -- the report of a run: every table and figure, the config and software versions;
 - :mod:`.markdown` -- small Markdown table helpers;
-- :mod:`.plots` -- all figures of the stages, and :func:`~.plots.pyplot` / :func:`~.plots.save_png`.
+- :mod:`.plots` -- all figures of the stages (drawn with :mod:`waveforest.plotting`).
 """
 
-from waveforest.report.build import ReportOutputs, collect, run, versions
+from waveforest.report.build import collect, versions
 
-__all__ = ["ReportOutputs", "collect", "run", "versions"]
+__all__ = ["collect", "versions"]

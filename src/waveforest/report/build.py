@@ -440,25 +440,5 @@ def render_markdown(sections: list[Section], title: str, md_dir: Path) -> str:
     return "\n".join(lines)
 
 
-@dataclass(frozen=True)
-class ReportOutputs:
-    html: Path
-    markdown: Path
-    n_sections: int
-    n_tables: int
-    n_figures: int
 
 
-def run(results, out_html, cfg: dict | None, out_md=None, title: str = "waveforest study report") -> ReportOutputs:
-    """The ``report`` stage: write the HTML page, its Markdown twin and table4.csv/md beside them."""
-    out_html = Path(out_html)
-    out_md = Path(out_md) if out_md else out_html.with_suffix(".md")
-    out_html.parent.mkdir(parents=True, exist_ok=True)
-    sections = collect(results, cfg, out_html.parent)
-    with atomic_path(out_html) as tmp:
-        tmp.write_text(render_html(sections, title))
-    with atomic_path(out_md) as tmp:
-        tmp.write_text(render_markdown(sections, title, out_md.parent))
-    items = [i for s in sections for i in s.items]
-    return ReportOutputs(out_html, out_md, len(sections), sum(i[0] == "table" for i in items),
-                         sum(i[0] == "figure" for i in items))

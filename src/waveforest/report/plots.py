@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from waveforest.atomic import atomic_path
+from waveforest.plotting import pyplot, save_png
 
 H_BIN_M = 0.1
 """Bin width of the echo-height histograms (Fig. 6), m."""
@@ -30,25 +30,6 @@ PARAMETER_LABELS = {
     "pulse_width_ns": "emitted pulse width FWHM (ns)",
     "sampling_ns": "waveform sampling interval (ns)",
 }
-
-
-def pyplot():
-    """``matplotlib.pyplot`` on the non-interactive Agg backend (imported on first use: matplotlib is heavy)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def save_png(fig, path: str | Path, **savefig_kwargs) -> Path:
-    """Write ``fig`` as PNG to ``path`` atomically (``fig.savefig(..., **savefig_kwargs)``), close it; return the path."""
-    path = Path(path)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", **savefig_kwargs)
-    pyplot().close(fig)
-    return path
 
 
 def _save(fig, path: str | Path) -> Path:

@@ -53,13 +53,12 @@ from waveforest.diagnose.strata import (
 from waveforest.errors import WaveforestError
 from waveforest.io.pulses import read_pulses
 from waveforest.io.tables import dataset_row, read_datasets, read_fields, read_targets
-from waveforest.sensor import load_calibration as load_json
-from waveforest.sensor.calibration import CALIBRATION_EFFECTS
+from waveforest.sensor.calibration import CALIBRATION_EFFECTS, load_calibration, read_calibration_json
 from waveforest.stages.agc import read_agc_metadata
 from waveforest.stages.calibrate import read_calibration_pulses
 from waveforest.stages.classify import read_feature_tables
 from waveforest.stages.select import dataset_of
-from waveforest.stages.simulate import load_calibration, with_sample_columns
+from waveforest.stages.simulate import with_sample_columns
 
 OUTPUT_NAMES = {
     "model": "model.yaml",
@@ -197,7 +196,7 @@ def _read_selected(selected_paths, fields, fields_path, wanted: list[str]) -> di
 def _read_calibrations(calibration_paths, system_paths, selected: dict, load: bool) -> dict:
     """Dataset -> (Calibration, calibration JSON dict) of each selected dataset; ``{}`` unless
     ``load`` (the files are still checked for a JSON per dataset)."""
-    metas = _by_dataset(calibration_paths, lambda p: (str(load_json(p)["dataset"]), p), "calibration")
+    metas = _by_dataset(calibration_paths, lambda p: (str(read_calibration_json(p)["dataset"]), p), "calibration")
     systems = {}
     for ds in selected:
         if ds not in metas:
@@ -211,7 +210,8 @@ def _read_calibrations(calibration_paths, system_paths, selected: dict, load: bo
         for ds in selected:
             if not systems[ds].exists():
                 raise WaveforestError(f"{systems[ds]}: no such S(t) file (calibration of {ds})")
-            calibrations[ds] = (load_calibration(systems[ds], metas[ds]), load_json(metas[ds]))
+            cal = load_calibration(metas[ds], systems[ds])
+            calibrations[ds] = (cal, cal.meta)
     return calibrations
 
 

@@ -1,18 +1,45 @@
-"""The ``report`` stage."""
+"""The ``report`` stage: every table and figure of a run in one HTML page and its Markdown twin."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import click
 
-from waveforest.cliutil import (
-    stage_options,
-)
-from waveforest.report.build import run
+from waveforest.atomic import atomic_path
+from waveforest.cliutil import stage_options
+from waveforest.report.build import collect, render_html, render_markdown
+
+
+@dataclass(frozen=True)
+class ReportOutputs:
+    """What :func:`run` wrote, and how much of it."""
+
+    html: Path
+    markdown: Path
+    n_sections: int
+    n_tables: int
+    n_figures: int
+
+
+def run(results, out_html, cfg: dict | None, out_md=None, title: str = "waveforest study report") -> ReportOutputs:
+    """The ``report`` stage: write the HTML page, its Markdown twin and table4.csv/md beside them."""
+    out_html = Path(out_html)
+    out_md = Path(out_md) if out_md else out_html.with_suffix(".md")
+    out_html.parent.mkdir(parents=True, exist_ok=True)
+    sections = collect(results, cfg, out_html.parent)
+    with atomic_path(out_html) as tmp:
+        tmp.write_text(render_html(sections, title))
+    with atomic_path(out_md) as tmp:
+        tmp.write_text(render_markdown(sections, title, out_md.parent))
+    items = [i for s in sections for i in s.items]
+    return ReportOutputs(out_html, out_md, len(sections), sum(i[0] == "table" for i in items),
+                         sum(i[0] == "figure" for i in items))
 
 
 @click.command("report")
+@click.argument("inputs", nargs=-1, type=click.Path(exists=True, dir_okay=False, path_type=Path))
 @click.option("--results", type=click.Path(exists=True, file_okay=False, path_type=Path), default=Path("results"),
               show_default=True, help="Results folder of the run.")
 @click.option("--out", type=click.Path(dir_okay=False, path_type=Path), required=True,
@@ -20,8 +47,11 @@ from waveforest.report.build import run
 @click.option("--markdown", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Output Markdown (default: beside --out, suffix .md).")
 @stage_options
-def report(results, out, markdown, cfg):
+def report(inputs, results, out, markdown, cfg):
     """One HTML page and a Markdown twin with every table and figure of a run.
+
+    INPUTS are result files the report must find (the workflow passes the tables of the stages
+    it reports on; a missing one is an error). The report shows everything under --results.
 
     Also writes table4.csv and table4.md (Table 4 analogue with the paper's values) beside
     the report, and lists the config used and the software versions.

@@ -13,6 +13,7 @@ import numpy as np
 
 from waveforest.atomic import atomic_path
 from waveforest.constants import KIND_GROUND, KIND_LEAF, KIND_OTHER, KIND_WOOD
+from waveforest.plotting import pyplot
 from waveforest.scene import Scene
 
 KIND_COLOURS = {
@@ -50,11 +51,9 @@ def render_png(scene: Scene, path: str | Path, title: str = "", dpi: int = 120) 
     -------
     Path
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
     from matplotlib.collections import PolyCollection
+
+    plt = pyplot()
 
     tri = scene.triangles
     lo, hi = scene.bounds
