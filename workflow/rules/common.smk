@@ -1,9 +1,12 @@
 # Shared definitions: config validation, the campaign folder, datasets, helpers.
 import csv
 import os
+import sys
 
 import yaml
 from snakemake.utils import validate
+
+from waveforest import config as waveforest_config
 
 
 SCHEMA = "../schemas/config.schema.yaml"
@@ -54,6 +57,13 @@ def _typed_overrides(values, overrides, schema, path=()):
 
 with open(os.path.join(workflow.current_basedir, SCHEMA)) as _fh:
     _typed_overrides(config, dict(workflow.config_settings.config), yaml.safe_load(_fh))
+# A bad config ends in one line naming the key path and what was expected (the CLI's check),
+# not in Snakemake's dump of the schema.
+_sources = [str(f) for f in (getattr(workflow.config_settings, "configfiles", None) or [])]
+try:
+    waveforest_config.validate(config, source=", ".join(_sources) or "config")
+except waveforest_config.ConfigError as _exc:
+    sys.exit(f"waveforest: error: {_exc}")
 validate(config, schema=SCHEMA)
 
 RESULTS = "results"
