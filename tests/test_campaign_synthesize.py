@@ -265,3 +265,19 @@ def test_las_files_do_not_depend_on_the_thread_count(base, tmp_path):
         numba.set_num_threads(before)
     for name in [f"{d}.las" for d in SMALL["datasets"]] + ["truth_pulses.parquet"]:
         assert (base[0] / name).read_bytes() == (tmp_path / "serial" / name).read_bytes(), name
+
+
+def test_out_that_is_not_a_folder_is_refused_at_once(tmp_path):
+    """A FIFO (or device, or file) named as the campaign folder is refused before any work."""
+    import os
+    import stat
+
+    from click.testing import CliRunner
+
+    from waveforest.cli import cli
+
+    fifo = tmp_path / "campaign"
+    os.mkfifo(fifo)
+    res = CliRunner().invoke(cli, ["synthesize", "--out", str(fifo), "--quiet"])
+    assert res.exit_code != 0 and "not a folder" in str(res.exception or res.output)
+    assert stat.S_ISFIFO(os.stat(fifo).st_mode) and sorted(p.name for p in tmp_path.iterdir()) == ["campaign"]

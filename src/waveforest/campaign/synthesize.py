@@ -178,6 +178,8 @@ def run(cfg: dict, out_dir: str | os.PathLike, effects=None, seed: int | None = 
     """
     t_start = time.perf_counter()
     out = Path(out_dir)
+    if out.exists() and not out.is_dir():  # before the minutes of generation, not after
+        raise SynthesizeError(f"{out}: exists and is not a folder; refusing to replace it (give a folder path)")
     seed = int(cfg["seed"] if seed is None else seed)
     camp = cfg["campaign"]
     eff = resolve_effects(cfg, effects)
