@@ -102,8 +102,8 @@ def test_changing_one_datasets_input_reruns_only_what_depends_on_it(workdir):
     data.mkdir()
     names = ["2010_12_1", "2012_10_1"]
     (data / "datasets.csv").write_text(
-        "dataset,year,las_file,trajectory_file\n"
-        + "".join(f"{d},{d[:4]},{d}.las,{d}_trajectory.csv\n" for d in names))
+        "dataset,year,mean_range_m,pulse_width_fwhm_ns,footprint_diameter_m,sampling_ns,las_file,trajectory_file\n"
+        + "".join(f"{d},{d[:4]},1200,7.2,0.18,1,{d}.las,{d}_trajectory.csv\n" for d in names))
     for f in ["fields.csv", "targets.csv"] + [f"{d}.las" for d in names] + [f"{d}_trajectory.csv" for d in names]:
         (data / f).write_text("stand-in: only modification times matter in a dry run\n")
     t0 = time.time() - 10_000
@@ -194,3 +194,19 @@ def test_reference_dataset_comes_from_the_config(workdir):
     jobs = _jobs_files(out)
     studies = [inputs for inputs, outputs in jobs if "results/sensitivity/sensitivity.csv" in outputs]
     assert studies and "results/calibration/2012_10_1.parquet" in studies[0], studies
+
+
+def test_bad_user_campaign_is_one_line(workdir, tmp_path):
+    """`data:` naming a folder without datasets.csv, or with a datasets.csv that fails its
+    checks, stops planning with one line naming the file, not a traceback."""
+    res = _snakemake("-n", "--cores", "2", "--config", f"data={tmp_path / 'nowhere'}", cwd=workdir)
+    said = res.stdout + res.stderr
+    errors = [line for line in said.splitlines() if line.startswith("waveforest: error:")]
+    assert res.returncode != 0 and len(errors) == 1 and "nowhere/datasets.csv: no such file" in errors[0], said
+    assert "Traceback" not in said and 'File "' not in said
+    (tmp_path / "datasets.csv").write_text("dataset,year\n2010_12_1,2010\n")
+    res = _snakemake("-n", "--cores", "2", "--config", f"data={tmp_path}", cwd=workdir)
+    said = res.stdout + res.stderr
+    errors = [line for line in said.splitlines() if line.startswith("waveforest: error:")]
+    assert res.returncode != 0 and len(errors) == 1 and "missing column(s) mean_range_m" in errors[0], said
+    assert not (workdir / "results").exists()

@@ -1,5 +1,4 @@
 # Shared definitions: config validation, the campaign folder, datasets, helpers.
-import csv
 import os
 import sys
 
@@ -7,6 +6,8 @@ import yaml
 from snakemake.utils import validate
 
 from waveforest import config as waveforest_config
+from waveforest.errors import WaveforestError
+from waveforest.io.tables import read_datasets
 
 
 SCHEMA = "../schemas/config.schema.yaml"
@@ -107,15 +108,20 @@ def write_config(path):
 
 
 def _user_datasets():
-    """Rows of the user's datasets.csv by dataset name (real data only)."""
+    """Rows of the user's datasets.csv by dataset name (real data only), checked by the one
+    reader of the table; a bad table stops the workflow with one line."""
     path = os.path.join(CAMPAIGN, "datasets.csv")
-    if not os.path.exists(path):
-        raise ValueError(f"{path}: no such file (config key 'data' names a campaign folder)")
-    with open(path, newline="") as fh:
-        rows = {row["dataset"]: row for row in csv.DictReader(fh)}
+    try:
+        table = read_datasets(path)
+    except WaveforestError as exc:
+        sys.exit(f"waveforest: error: {exc} (config key 'data' names the campaign folder)")
+    rows = {str(row["dataset"]): row for row in table.to_dict("records")}
     missing = [d for d in DATASETS if d not in rows]
     if missing:
-        raise ValueError(f"{path}: dataset(s) {', '.join(missing)} of the config are not listed")
+        sys.exit(f"waveforest: error: {path}: dataset(s) {', '.join(missing)} of the config are not listed")
+    for column in ("las_file", "trajectory_file"):
+        if column not in table.columns:
+            sys.exit(f"waveforest: error: {path}: no column {column} (the dataset's file in the campaign folder)")
     return rows
 
 
