@@ -211,7 +211,7 @@ def feature_table(pulses: pa.Table, noise: Mapping, params: FeatureParams | None
 
     Parameters
     ----------
-    pulses : pa.Table with the pulse schema (io.tables), optionally the ``select`` columns.
+    pulses : pa.Table with the pulse schema (:mod:`waveforest.io.pulses`), optionally the ``select`` columns.
     noise : mapping dataset -> calibration dict (noise_mean, noise_sd[, fwhm_ns]) or
         (mean, sd[, fwhm_ns]) tuple or NoiseStats.
     params : FeatureParams.  cfd : CFDParams, or a mapping dataset -> CFDParams, for pulses

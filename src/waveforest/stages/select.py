@@ -161,7 +161,7 @@ def select_pulses(pulses: pa.Table, fields: pd.DataFrame, year: int, rules: Sele
     Parameters
     ----------
     pulses : pa.Table
-        Pulse table (io.tables.PULSE_SCHEMA) of one dataset.
+        Pulse table (waveforest.io.pulses.PULSE_SCHEMA) of one dataset.
     fields : DataFrame
         ``fields.csv`` (all years; only ``year`` is used).
     year : int
