@@ -116,3 +116,19 @@ def test_trace_species_equals_the_same_scene_as_ply(tmp_path, capsys):
     np.testing.assert_allclose(a["time_ns"], b["time_ns"], rtol=0, atol=1e-6)
     code, cap = _run(["trace", "--species", "raspberry", "--out", str(tmp_path / "x.csv")], capsys)
     assert code == 1 and "--height" in cap.err
+
+
+def test_trace_takes_the_sampler_and_roulette_from_the_config(plane_ply, tmp_path):
+    """mcrt.sampler and mcrt.roulette reach the tracer: on a plane every estimator is exact, and
+    the written metadata names the estimator used."""
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("mcrt: {sampler: sobol, roulette: 0.5}\n")
+    out = tmp_path / "sigma.parquet"
+    try:
+        main(["trace", str(plane_ply), "--out", str(out), "--rays", "1024", "--orders", "3", "--config", str(cfg)])
+    except SystemExit as exc:
+        assert exc.code in (0, None)
+    t = pq.read_table(out)
+    meta = json.loads(t.schema.metadata[b"waveforest.trace"])
+    assert meta["sampler"] == "sobol" and meta["roulette"] == 0.5
+    assert t.column("sigma").to_numpy().sum() == pytest.approx(0.3 / math.pi, rel=1e-5)

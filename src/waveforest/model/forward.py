@@ -125,17 +125,20 @@ class MCRTSetup:
     bin_ns: float = 0.05
     viewed_diameter_m: float = 5.0
     effects: dict = field(default_factory=dict)
+    sampler: str = "random"
+    roulette: float = 0.0
 
     @classmethod
     def from_config(cls, cfg: dict, n_rays: int | None = None, effects: dict | None = None) -> MCRTSetup:
         m = cfg["mcrt"]
         return cls(n_rays=int(n_rays or m["n_rays"]), max_order=int(m["max_order"]),
                    bin_ns=float(m["bin_ns"]), viewed_diameter_m=float(m["viewed_diameter_m"]),
-                   effects=dict(effects or {}))
+                   effects=dict(effects or {}), sampler=str(m["sampler"]), roulette=float(m["roulette"]))
 
     def kwargs(self) -> dict:
         return dict(n_rays=self.n_rays, max_order=self.max_order, bin_ns=self.bin_ns,
-                    viewed_diameter_m=self.viewed_diameter_m, **self.effects)
+                    viewed_diameter_m=self.viewed_diameter_m, sampler=self.sampler, roulette=self.roulette,
+                    **self.effects)
 
 
 @dataclass

@@ -112,7 +112,8 @@ def run(scene_path: str | Path | None, out: str | Path, *, species: str | None =
         azimuth_deg: float = 0.0, footprint_m: float | None = None, divergence_mrad: float | None = None,
         target=(0.0, 0.0, 0.0), n_rays: int = 30000, max_order: int = 10, bin_ns: float = 0.05,
         viewed_diameter_m: float = 5.0, window_ns: float = DEFAULT_WINDOW_NS, seed: int = 0,
-        effects=None, plot: str | Path | None = None, vegetation_options: dict | None = None) -> TraceResult:
+        sampler: str = "random", roulette: float = 0.0, effects=None, plot: str | Path | None = None,
+        vegetation_options: dict | None = None) -> TraceResult:
     """Trace one pulse through one scene and write its sigma(t) (and a plot).
 
     Parameters
@@ -127,7 +128,7 @@ def run(scene_path: str | Path | None, out: str | Path, *, species: str | None =
         Collimated 1/e footprint, or divergence of a diverging beam (default 0.15 mrad).
     target : (3,) float
         Point on the beam axis at ``range_m`` (scene coordinates, m).
-    n_rays, max_order, bin_ns, viewed_diameter_m, window_ns, seed
+    n_rays, max_order, bin_ns, viewed_diameter_m, window_ns, seed, sampler, roulette
         As :func:`waveforest.mcrt.trace`.
     effects : list of "NAME=VALUE" or mapping, optional
         ``specular`` and/or ``hotspot``.
@@ -152,7 +153,7 @@ def run(scene_path: str | Path | None, out: str | Path, *, species: str | None =
                              float(azimuth_deg), footprint_m=footprint_m, divergence_mrad=divergence_mrad)
         result = trace_pulses(scene, beams, n_rays=n_rays, max_order=max_order, bin_ns=bin_ns,
                        viewed_diameter_m=viewed_diameter_m, seed=seed, window_ns=window_ns,
-                       by_order=True, specular=fx.get("specular", CATALOGUE["specular"].off),
+                       sampler=sampler, roulette=roulette, by_order=True, specular=fx.get("specular", CATALOGUE["specular"].off),
                        hotspot=fx.get("hotspot", CATALOGUE["hotspot"].off))
     except ValueError as exc:
         if isinstance(exc, WaveforestError):
@@ -163,7 +164,7 @@ def run(scene_path: str | Path | None, out: str | Path, *, species: str | None =
         "sensor_xyz": beams.origin[0].tolist(), "dir_xyz": beams.direction[0].tolist(),
         "footprint_m": float(beams.footprint_m[0]), "range_m": float(range_m),
         "t0_ns": float(result.t0_ns[0]), "bin_ns": result.bin_ns, "n_rays": n_rays,
-        "max_order": max_order, "seed": seed, "effects": fx,
+        "max_order": max_order, "seed": seed, "sampler": sampler, "roulette": roulette, "effects": fx,
         "order_totals": result.order_totals[0].tolist(), "sigma_dropped": float(result.sigma_dropped[0]),
         "first_hit_counts": result.first_hit_counts[0].tolist(),
     }
@@ -216,7 +217,7 @@ def trace(scene, out, species, height, range_m, scan_zenith, azimuth, footprint,
         n_rays=rays if rays is not None else m["n_rays"],
         max_order=orders if orders is not None else m["max_order"],
         bin_ns=m["bin_ns"], viewed_diameter_m=m["viewed_diameter_m"], window_ns=m["window_ns"],
-        seed=cfg["seed"], effects=list(effects), plot=plot,
+        seed=cfg["seed"], sampler=m["sampler"], roulette=m["roulette"], effects=list(effects), plot=plot,
         vegetation_options={k: veg[k] for k in ("ground_rho", "lai_jitter")},
     )
     dt = time.perf_counter() - t
