@@ -13,7 +13,8 @@ from sklearn.metrics import confusion_matrix as sk_confusion
 from waveforest import config
 from waveforest.cli import main
 from waveforest.io.paper import table4 as paper_table4
-from waveforest.stages.classify import classification_rows, classify_dataset, table4
+from waveforest.report.build import table4
+from waveforest.stages.classify import classification_rows, classify_dataset
 from waveforest.stats import lda
 
 GROUPS = ["conifer", "broadleaf", "low_green", "low_barren_abiotic"]

@@ -216,30 +216,6 @@ def run(features_path, out_path, cfg: dict, select_paths=()) -> dict:
     return result
 
 
-def table4(results: list[dict], paper: pd.DataFrame | None = None) -> pd.DataFrame:
-    """The Table 4 analogue from classify results, the paper's values beside ours.
-
-    Columns: dataset, one_pulse_correct_pct, one_pulse_kappa, mean_of_sample_correct_pct,
-    mean_of_sample_kappa, pulses_per_sample (resubstitution, as the paper), the same four
-    figures cross-validated (``cv_*``), n_pulses, n_samples, and ``paper_*`` columns.
-    """
-    rows = []
-    for r in results:
-        m = r["main"]
-        row = {"dataset": r["dataset"], "n_pulses": r["n_pulses"], "n_samples": r["n_samples"],
-               "pulses_per_sample": round(r["pulses_per_sample"], 2)}
-        for level, key in (("one_pulse", "one_pulse"), ("mean_of_sample", "mean_of_sample")):
-            block = m.get(level)
-            for scheme, prefix in (("resubstitution", ""), ("cross_validated", "cv_")):
-                s = block.get(scheme) if block else None
-                row[f"{prefix}{key}_correct_pct"] = 100.0 * s["accuracy"] if s else np.nan
-                row[f"{prefix}{key}_kappa"] = s["kappa"] if s else np.nan
-        rows.append(row)
-    table = pd.DataFrame(rows)
-    if paper is not None and not table.empty:
-        p = paper.rename(columns={c: f"paper_{c}" for c in paper.columns if c != "dataset"})
-        table = table.merge(p, on="dataset", how="left")
-    return table
 
 
 @click.command("classify", cls=MultiValueCommand)
