@@ -163,8 +163,8 @@ def test_readme_override_of_a_nested_value(workdir):
     typo = _snakemake("-n", "--cores", "2", "--config", 'mcrt={"n_rayz": 5}', cwd=workdir)
     said = typo.stdout + typo.stderr
     errors = [line for line in said.splitlines() if line.startswith("waveforest: error:")]
-    assert typo.returncode != 0 and errors == ["waveforest: error: config: mcrt/n_rayz: unknown key; expected one "
-                                               "of n_rays, max_order, bin_ns, viewed_diameter_m, window_ns"], said
+    assert typo.returncode != 0 and len(errors) == 1, said
+    assert errors[0].startswith("waveforest: error: config: mcrt/n_rayz: unknown key; expected one of n_rays, "), said
     assert "Traceback" not in said and "schema" not in said  # one line, not Snakemake's dump of the schema
 
 
