@@ -118,7 +118,7 @@ JobAcctGatherType=jobacct_gather/none
 # One line per finished job (JobId, JobName = Snakemake's run id, state, times, node).
 JobCompType=jobcomp/filetxt
 JobCompLoc=$LOG_DIR/jobcomp.log
-# Keep finished jobs visible to `squeue --states=all` for an hour: Snakemake's status polling
+# Keep finished jobs visible to "squeue --states=all" for an hour: Snakemake's status polling
 # (and a look at the run afterwards) reads them there.
 MinJobAge=3600
 ReturnToService=2
