@@ -34,6 +34,8 @@ from waveforest.io.las.format import (
     HEADER_SIZE,
     LAS_SIGNATURE,
     LASF_SPEC,
+    LASZIP_RECORD_ID,
+    LASZIP_USER_ID,
     VLR_HEADER,
     WAVEFORM_HEADER_SIZE,
     WAVEFORM_POINT_FORMATS,
@@ -106,6 +108,8 @@ class LasWaveformFile:
     extra_dimension_names: tuple[str, ...]
     header_bytes: bytes | None = None
     """The header and VLR bytes laspy reads in place of the file's (text fields patched), or None."""
+    compressed: bool = False
+    """The point records are LAZ-compressed (LASzip; decompressed by laspy's lazrs backend)."""
 
     def descriptor_tables(self) -> dict[str, np.ndarray]:
         """Per descriptor index (0..255) lookup arrays: n_samples, sample_bytes, spacing_ps, gain, offset."""
@@ -164,7 +168,8 @@ def open_waveform_las(path: str | os.PathLike) -> LasWaveformFile:
     """Check a LAS waveform file and describe it; raise :class:`LasWaveformError` if unusable.
 
     Checked here, before laspy sees a byte: LAS signature and version (1.3 or 1.4), a
-    waveform point format (4, 5, 9, 10), not LAZ-compressed, finite non-zero scale factors
+    waveform point format (4, 5, 9, 10) (LAZ-compressed points need a LASzip VLR and a LAZ
+    backend; see :func:`_laz_end_of_points`), finite non-zero scale factors
     and finite offsets, the header size, the VLR count and every VLR's length against the
     header geometry (each VLR header is 54 bytes and all lie between the end of the header
     and ``offset_to_point_data``), the EVLR start and count against the file size (each
@@ -183,10 +188,12 @@ def open_waveform_las(path: str | os.PathLike) -> LasWaveformFile:
         raise fail(path, "no such file")
     file_size = path.stat().st_size
     hdr, version = _read_header(path)
-    point_format, record_length, core_length = _point_layout(path, hdr)
+    point_format, record_length, core_length, compressed = _point_layout(path, hdr)
     scales, offsets = _scales_offsets(path, hdr)
     offset_to_points = int(hdr["offset_to_point_data"])
     prefix, vlrs = _read_vlrs(path, hdr, version, file_size)
+    if compressed:
+        _check_laz(path, vlrs)
     prefix, fixed = _utf8_text_fields(prefix, vlrs)
     if fixed:
         warn(f"{path}: non-UTF-8 bytes in {', '.join(fixed)} replaced by '?'; reading on")
@@ -199,8 +206,11 @@ def open_waveform_las(path: str | os.PathLike) -> LasWaveformFile:
         by_return = np.asarray(hdr["points_by_return"], dtype=np.int64)
     dim_names, extra_names = _laspy_dimensions(path, prefix, point_format, record_length)
 
-    end_of_points = offset_to_points + n_points * record_length
-    if end_of_points > file_size:
+    if compressed:
+        end_of_points = _laz_end_of_points(path, offset_to_points, file_size)
+    else:
+        end_of_points = offset_to_points + n_points * record_length
+    if not compressed and end_of_points > file_size:
         have = (file_size - offset_to_points) // record_length
         raise fail(
             path,
@@ -208,10 +218,12 @@ def open_waveform_las(path: str | os.PathLike) -> LasWaveformFile:
             f"{offset_to_points}, but the file has {file_size} bytes (room for {have} points)",
         )
     evlrs = _evlr_headers(path, hdr, file_size, end_of_points) if version == "1.4" else []
-    _check_point_count(path, hdr, n_points, record_length, file_size, evlrs)
+    if not compressed:  # LAZ: the compressed size says nothing about the count; the reader checks it
+        _check_point_count(path, hdr, n_points, record_length, file_size, evlrs)
     descriptors, evlr_waveform = _descriptors(path, prefix, vlrs, evlrs)
 
-    waveform = _locate_waveform_data(path, file_size, int(hdr["global_encoding"]), int(hdr["start_of_waveform_data"]), evlr_waveform, end_of_points)
+    waveform = _locate_waveform_data(path, file_size, int(hdr["global_encoding"]), int(hdr["start_of_waveform_data"]),
+                                     evlr_waveform, end_of_points, compressed)
     return LasWaveformFile(
         path=path,
         file_size=file_size,
@@ -234,6 +246,7 @@ def open_waveform_las(path: str | os.PathLike) -> LasWaveformFile:
         dimension_names=dim_names,
         extra_dimension_names=extra_names,
         header_bytes=prefix if fixed else None,
+        compressed=compressed,
     )
 
 
@@ -256,14 +269,14 @@ def _read_header(path: Path) -> tuple[np.void, str]:
     return np.frombuffer(raw[: dtype.itemsize], dtype)[0], version
 
 
-def _point_layout(path: Path, hdr: np.void) -> tuple[int, int, int]:
-    """``(point_format, record_length, core_length)``: the waveform point format, the
-    header's record length and the format's own length, bytes (the rest is extra bytes).
-    Raises :class:`LasWaveformError` for LAZ, a format without waveform packets, or a
-    record shorter than its format."""
+def _point_layout(path: Path, hdr: np.void) -> tuple[int, int, int, bool]:
+    """``(point_format, record_length, core_length, compressed)``: the waveform point format,
+    the header's record length and the format's own length, bytes (the rest is extra bytes),
+    and whether the point records are LAZ-compressed (bit 7 or 6 of the format byte).
+    Raises :class:`LasWaveformError` for a format without waveform packets, or a record
+    shorter than its format."""
     fmt_byte = int(hdr["point_format"])
-    if fmt_byte & 0xC0:
-        raise fail(path, f"point data are LAZ-compressed (format byte {fmt_byte}); decompress to LAS first (e.g. laszip)")
+    compressed = bool(fmt_byte & 0xC0)
     point_format = fmt_byte & 0x3F
     if point_format not in WAVEFORM_POINT_FORMATS:
         raise fail(
@@ -275,7 +288,34 @@ def _point_layout(path: Path, hdr: np.void) -> tuple[int, int, int]:
     core_length = point_dtype(point_format).itemsize
     if record_length < core_length:
         raise fail(path, f"point record length {record_length} is shorter than point format {point_format} ({core_length} bytes)")
-    return point_format, record_length, core_length
+    return point_format, record_length, core_length, compressed
+
+
+def _check_laz(path: Path, vlrs: list[tuple[int, np.void]]) -> None:
+    """A LAZ file must carry the LASzip VLR (``laszip encoded``, record id 22204), and laspy
+    needs a LAZ backend (lazrs, a dependency of waveforest, or laszip)."""
+    if not any(bytes(h["user_id"]).rstrip(b"\0") == LASZIP_USER_ID and int(h["record_id"]) == LASZIP_RECORD_ID
+               for _, h in vlrs):
+        raise fail(path, "point data are LAZ-compressed (bit 7 of the point format byte) but the file has no LASzip VLR "
+                         "('laszip encoded', record id 22204); the LAZ file is corrupt")
+    if not laspy.LazBackend.detect_available():
+        raise fail(path, "point data are LAZ-compressed and no LAZ backend is installed; "
+                         "pip install 'laspy[lazrs]' (or decompress to LAS first)")
+
+
+def _laz_end_of_points(path: Path, offset_to_points: int, file_size: int) -> int:
+    """The first byte after a LAZ file's compressed points, as far as the file says it.
+
+    LASzip writes the position of its chunk table in the 8 bytes at ``offset_to_point_data``;
+    the table follows the compressed points, so that position bounds them. A position of -1
+    (a streaming writer that never came back) or one outside the file gives the start of the
+    points; then only the reader can tell where they end.
+    """
+    raw = _read_at(path, offset_to_points, 8)
+    if len(raw) < 8:
+        raise fail(path, f"truncated LAZ file: no compressed point data at byte {offset_to_points} ({file_size} bytes)")
+    table = int(np.frombuffer(raw, "<i8")[0])
+    return table if offset_to_points + 8 <= table <= file_size else offset_to_points + 8
 
 
 def _scales_offsets(path: Path, hdr: np.void) -> tuple[np.ndarray, np.ndarray]:
@@ -622,8 +662,16 @@ class _PatchedFile(io.RawIOBase):
 
 
 def _locate_waveform_data(
-    path: Path, file_size: int, ge: int, start_field: int, evlr_pos: int | None, end_of_points: int
+    path: Path, file_size: int, ge: int, start_field: int, evlr_pos: int | None, end_of_points: int,
+    compressed: bool = False,
 ) -> WaveformData:
+    """Where the packets are: a ``.wdp`` beside the file, or the file's own waveform record.
+
+    In a LAZ file an internal waveform record follows the compressed points, where the
+    header's ``start_of_waveform_data`` (or an EVLR) says; its 60-byte record header must be
+    well formed there, since a stale pointer (a LAZ writer that dropped the waveforms) would
+    otherwise decode compressed point bytes as samples.
+    """
     external, internal = bool(ge & GE_WAVEFORM_EXTERNAL), bool(ge & GE_WAVEFORM_INTERNAL)
     wdp = find_wdp(path)
     internal_pos = None
@@ -657,6 +705,8 @@ def _locate_waveform_data(
             )
         return WaveformData(wdp, 0, size, "external", ok, int(h["record_length"]) if ok else 0)
     if internal_pos is None:
+        if compressed:
+            raise fail(path, _LAZ_NO_RECORD.format(start=start_field))
         raise fail(path, "waveform data are internal (global encoding bit 1) but the file has no waveform data packet record")
     if internal_pos < end_of_points:
         raise fail(path, f"the waveform data record (byte {internal_pos}) overlaps the point records (end at byte {end_of_points})")
@@ -664,9 +714,19 @@ def _locate_waveform_data(
         raise fail(path, f"truncated file: the waveform data record should start at byte {internal_pos}, but the file has {file_size} bytes")
     h = _record_header(path, internal_pos, file_size)
     ok = _is_waveform_header(h, file_size - internal_pos)
+    if not ok and compressed:
+        raise fail(path, _LAZ_NO_RECORD.format(start=internal_pos))
     if not ok:
         warn(f"{path}: malformed waveform record header at byte {internal_pos}; trusting the points' byte offsets and packet sizes")
     return WaveformData(path, internal_pos, file_size - internal_pos, "internal", ok, int(h["record_length"]) if ok else 0)
+
+
+_LAZ_NO_RECORD = (
+    "waveform data are internal (global encoding bit 1), but there is no waveform data packet record "
+    "(60-byte header LASF_Spec / 65535) at byte {start}, where start_of_waveform_data points; in a LAZ file the "
+    "record must follow the compressed points. Put the waveforms in a .wdp file beside the LAZ (same stem), "
+    "or read the uncompressed LAS"
+)
 
 
 def resolve_attribute(las: LasWaveformFile, name: str | None) -> str | None:

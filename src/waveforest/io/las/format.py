@@ -46,6 +46,9 @@ WPD_INDEX_OFFSET = 99
 """Descriptor index = record id - 99 (1..255)."""
 EXTRA_BYTES_RECORD_ID = 4
 WKT_RECORD_ID = 2112
+LASZIP_USER_ID = b"laszip encoded"
+LASZIP_RECORD_ID = 22204
+"""The LASzip VLR that every LAZ file carries (compressor, chunk size, items)."""
 
 WAVEFORM_HEADER_SIZE = 60
 """Bytes of the Waveform Data Packet Record header (an EVLR header)."""

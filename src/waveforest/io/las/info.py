@@ -110,7 +110,8 @@ def format_summary(s: LasSummary) -> str:
         f"system identifier:     {las.system_identifier}",
         f"generating software:   {las.generating_software}",
         f"creation (day, year):  {las.creation[0]}, {las.creation[1]}",
-        f"point format:          {las.point_format} (record length {las.record_length} bytes{extra})",
+        f"point format:          {las.point_format} (record length {las.record_length} bytes{extra}"
+        f"{'; LAZ-compressed' if las.compressed else ''})",
         f"points:                {_n(s.n_points)} (header: {_n(las.n_points)})",
         f"global encoding:       {ge} ({', '.join(bits) or 'no waveform bits'})",
         f"waveform storage:      {storage}",
