@@ -1,11 +1,13 @@
 """The study report: one self-contained HTML page and a Markdown twin.
 
-Everything a run produced under the results folder is gathered in the order of the paper:
-calibration, selection, real vs simulated (Table 3, Figs. 6-7), sensitivity (Fig. 8), sensor
+The report leads with the results: a summary (:mod:`.summary`: Table 3 and Table 4 beside the
+paper's, the Fig. 9 trend, the diagnosis verdict and its detection limits). Then the details in
+the order of the paper: real vs simulated (Table 3, Figs. 6-7), sensitivity (Fig. 8), sensor
 study (Fig. 9), classification (Table 4, built here from ``classify/*.json`` with the paper's
-values beside ours), the diagnosis, and then every other table (CSV) and figure (PNG) found,
-so nothing a run wrote is left out. Then where the time went (Snakemake benchmark files),
-the config used (YAML) and the software versions.
+values beside ours), the diagnosis; then how the data were prepared (calibration, selection),
+and every other table (CSV) and figure (PNG) found, so nothing a run wrote is left out. Then
+where the time went (Snakemake benchmark files), the config used (YAML) and the software
+versions. No table cell is blank: a missing value is ``—``, in the summary with its reason.
 
 HTML embeds figures as base64 PNG (one file to send); Markdown links them relatively.
 """
@@ -30,6 +32,7 @@ import yaml
 from waveforest.atomic import atomic_path
 from waveforest.io import paper
 from waveforest.report.markdown import format_value, to_markdown
+from waveforest.report.summary import read_csv, summary_parts
 
 MAX_TABLE_ROWS = 400
 """Longest table shown in full; longer ones are cut (the CSV holds all rows)."""
@@ -60,7 +63,7 @@ def _csv_if_present(sec: Section, used: set, path: Path, caption: str) -> None:
     """Add the CSV at ``path`` as a table of ``sec`` (and to ``used``) if it exists."""
     if path.exists():
         used.add(path)
-        sec.table(caption, _read_csv(path))
+        sec.table(caption, read_csv(path))
 
 
 def _figure_if_present(sec: Section, used: set, path: Path, caption: str) -> None:
@@ -86,13 +89,6 @@ def versions() -> dict:
         except metadata.PackageNotFoundError:
             out[name] = "not installed"
     return out
-
-
-def _read_csv(path: Path) -> pd.DataFrame:
-    try:
-        return pd.read_csv(path)
-    except (pd.errors.EmptyDataError, pd.errors.ParserError):
-        return pd.DataFrame()
 
 
 def _calibration(results: Path, used: set) -> Section | None:
@@ -164,7 +160,7 @@ def _compare(results: Path, used: set) -> Section | None:
     if not (d / "table3.csv").exists():
         return None
     sec = Section("Real vs simulated features (Table 3, Figs. 6-7; docs/method.md §(i1))")
-    t3 = _read_csv(d / "table3.csv")
+    t3 = read_csv(d / "table3.csv")
     used.add(d / "table3.csv")
     used.add(d / "table3.md")
     sec.text("Delta % = (sim - real) / real x 100. `paper_*` are the values of Hovi & Korpela (2014) Table 3. "
@@ -196,7 +192,7 @@ def _sensitivity(results: Path, used: set) -> Section | None:
              "0.4 -> 0.5 raises it ~55 -> 70 DN; leaf-area scale 0.5 -> 1.5 ~50 -> 80 DN.")
     _csv_if_present(sec, used, d / "sensitivity_baseline.csv",
                     "Baseline: the birch model as is (spherical LAD, rho 0.47, tau 0.50, leaf-area scale 1)")
-    sec.table("Sensitivity", _read_csv(d / "sensitivity.csv"))
+    sec.table("Sensitivity", read_csv(d / "sensitivity.csv"))
     _figure_if_present(sec, used, d / "fig8.png", "Fig. 8 analogue")
     return sec
 
@@ -207,7 +203,7 @@ def _sensor_study(results: Path, used: set) -> Section | None:
         return None
     sec = Section("Sensor parameters and three-species classification (Fig. 9; docs/method.md §(i3))")
     used.add(d / "sensor_study.csv")
-    t = _read_csv(d / "sensor_study.csv")
+    t = read_csv(d / "sensor_study.csv")
     sec.text("Simulated birch, raspberry, fireweed at 1200 m; LDA on Apeak, FWHM, E. `resubstitution` = "
              "training set used for validation (the paper's scheme); `cross_validated` = folds never split a "
              "vegetation instance. Paper: accuracy rises with footprint up to 0.30-0.36 m, then saturates "
@@ -288,7 +284,7 @@ def _diagnose(results: Path, used: set) -> Section | None:
         sec.text(f"`{p.name}`:\n\n```\n{p.read_text().strip()}\n```")
     for p in sorted(d.glob("*.csv")):
         used.add(p)
-        sec.table(p.name, _read_csv(p))
+        sec.table(p.name, read_csv(p))
     for p in sorted(d.glob("*.png")):
         used.add(p)
         sec.figure(p.name, p)
@@ -302,7 +298,7 @@ def _others(results: Path, used: set) -> Section | None:
         if not p.is_file() or p in used or rel.parts[0] in SKIP_DIRS or rel.parts[0] == "benchmarks":
             continue
         if p.suffix == ".csv":
-            sec.table(str(rel), _read_csv(p))
+            sec.table(str(rel), read_csv(p))
         elif p.suffix == ".png":
             sec.figure(str(rel), p)
     return sec if sec.items else None
@@ -336,18 +332,20 @@ def _benchmarks(results: Path) -> Section | None:
 
 
 def collect(results: str | Path, cfg: dict | None, out_dir: Path) -> list[Section]:
-    """All sections of the report of a results folder."""
+    """All sections of the report of a results folder, the summary first."""
     results = Path(results)
     used: set = set()
-    sections = []
-    for make in (_calibration, _selection, _compare, _sensitivity, _sensor_study):
+    summary = Section("Summary: the results beside the paper's")
+    summary.items.extend(summary_parts(results, cfg))
+    sections = [summary]
+    for make in (_compare, _sensitivity, _sensor_study):
         s = make(results, used)
         if s:
             sections.append(s)
     s = _classify(results, used, out_dir)
     if s:
         sections.append(s)
-    for make in (_diagnose, _others):
+    for make in (_diagnose, _calibration, _selection, _others):
         s = make(results, used)
         if s:
             sections.append(s)

@@ -5,18 +5,24 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
+NO_VALUE = "—"
+"""A cell without a value (the summary adds the reason: ``— (reason)``)."""
+
 
 def format_value(value, digits: int = 3) -> str:
-    """A cell as text: integers as is, floats with ``digits`` significant decimals, NaN empty."""
+    """A cell as text: integers as is, floats with ``digits`` significant decimals; no value
+    (None, NaN, empty text) is ``—``, never an empty cell."""
     if value is None:
-        return ""
+        return NO_VALUE
     if isinstance(value, (bool, np.bool_)):
         return "yes" if value else "no"
     if isinstance(value, (int, np.integer)):
         return str(int(value))
     if isinstance(value, (float, np.floating)):
-        if not np.isfinite(value):
-            return ""
+        if np.isnan(value):
+            return NO_VALUE
+        if np.isinf(value):
+            return "inf" if value > 0 else "-inf"
         if value == int(value) and abs(value) < 1e6:
             return f"{value:.1f}" if digits else str(int(value))
         mag = abs(value)
@@ -25,7 +31,8 @@ def format_value(value, digits: int = 3) -> str:
         if mag >= 10:
             return f"{value:.2f}"
         return f"{value:.{digits}f}"
-    return str(value).replace("|", "\\|")
+    text = str(value).replace("|", "\\|").replace("\n", " ")
+    return text if text.strip() else NO_VALUE
 
 
 def to_markdown(df: pd.DataFrame, digits: int = 3) -> str:
