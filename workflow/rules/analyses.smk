@@ -79,10 +79,14 @@ rule sensor_study:
         "--threads {threads} --config {input.config} > {log} 2>&1"
 
 
+# Table 1's rule: a species with >= select.min_pulses single-echo pulses in at least one
+# processed dataset enters every dataset's classification set, so each dataset's job reads the
+# select tables of all datasets.
 rule classify:
     input:
         config=stage_config("classify", "classify", "select", "seed"),
         features=result("features", "{dataset}_real.parquet"),
+        selected=expand(result("select", "{dataset}.parquet"), dataset=DATASETS),
     output:
         result("classify", "{dataset}.json"),
     log:
@@ -93,4 +97,5 @@ rule classify:
         ENV
     threads: 1
     shell:
-        "waveforest classify {input.features} --out {output} --config {input.config} > {log} 2>&1"
+        "waveforest classify {input.features} --select {input.selected} --out {output} "
+        "--config {input.config} > {log} 2>&1"

@@ -11,10 +11,14 @@ A pulse belongs to a field sample of the dataset's year when its first DR echo
 When several samples qualify, the nearest one (horizontal distance) wins. The search is a
 KD-tree query over all pulses at once (no loop over pulses).
 
-Three flags mark the subsets the later stages use:
+Flags mark the subsets the later stages use:
 
-* ``classification_set`` (docs/method.md §(i4)): pulses with exactly one DR echo, of species with at
-  least ``min_pulses`` such pulses in the dataset;
+* ``single_echo_set`` (docs/method.md §(i4)): pulses with exactly one DR echo (not in
+  ``below_crown_set``): the per-pulse part of the classification rule;
+* ``classification_set`` (docs/method.md §(i4)): ``single_echo_set`` pulses of species with at
+  least ``min_pulses`` such pulses in this dataset: Table 1's rule applied to this dataset
+  alone. ``classify``, given every dataset's selection, applies the rule as Table 1 states it
+  (at least ``min_pulses`` in at least one dataset) from ``single_echo_set``;
 * ``comparison_set`` (docs/method.md §(i1)): pulses of the modelled species (``simulate.species``), for
   species with a height window (birch: trees of 2.5-5 m) only samples inside it;
 * ``below_crown_set`` (beyond the paper, for ``diagnose``): pulses whose first echo lies
@@ -46,7 +50,7 @@ from waveforest.io.tables import dataset_row, read_datasets, read_fields
 SELECT_COLUMNS = (
     "sample_id", "species", "functional_group", "ground_z", "sample_x", "sample_y",
     "height_m", "is_tree", "sample_distance_m", "first_echo_h_m",
-    "classification_set", "comparison_set", "below_crown_set",
+    "single_echo_set", "classification_set", "comparison_set", "below_crown_set",
 )
 """Columns that :func:`select_pulses` appends to the pulse table (documented in run())."""
 
@@ -206,6 +210,7 @@ def select_pulses(pulses: pa.Table, fields: pd.DataFrame, year: int, rules: Sele
         "is_tree": pa.array(s["is_tree"].to_numpy(bool), pa.bool_()),
         "sample_distance_m": pa.array(dist[keep], pa.float64()),
         "first_echo_h_m": pa.array(echo[keep, 2] - ground_z, pa.float64()),
+        "single_echo_set": pa.array(single, pa.bool_()),
         "classification_set": pa.array(classification, pa.bool_()),
         "comparison_set": pa.array(comparison, pa.bool_()),
         "below_crown_set": pa.array(below, pa.bool_()),
@@ -251,8 +256,8 @@ def run(pulses_path, fields_path, datasets_path, out_path, cfg: dict) -> SelectS
         Output Parquet: the selected pulse rows with the columns of :data:`SELECT_COLUMNS`
         (sample_id, species, functional_group, ground_z (m), sample_x/_y (m), height_m (field
         max height, m), is_tree, sample_distance_m (first echo to sample, horizontal, m),
-        first_echo_h_m (first echo above ground_z, m), classification_set, comparison_set,
-        below_crown_set).
+        first_echo_h_m (first echo above ground_z, m), single_echo_set, classification_set,
+        comparison_set, below_crown_set).
     cfg : dict
         Loaded study config (sections ``select`` and ``simulate``).
     """
@@ -289,7 +294,9 @@ def select(pulses, fields, datasets, out, cfg):
 
     PULSES is the AGC-normalised pulse table of one dataset (results/agc/{dataset}.parquet).
     Adds sample_id, species, functional_group, ground_z, height_m and the flags
-    classification_set (single DR echo, species with >= select.min_pulses pulses) and
+    single_echo_set (one DR echo), classification_set (single DR echo, species with
+    >= select.min_pulses such pulses in this dataset; classify re-applies the rule across
+    datasets), and
     comparison_set (modelled species, birch 2.5-5 m), and below_crown_set: pulses under a
     comparison tree's crown whose first echo is lower than select.tree_min_echo_h_m (for
     diagnose only).

@@ -177,13 +177,23 @@ def cross_validated(x, y, groups, n_folds: int = 5, seed: int = 0) -> np.ndarray
 
 
 def evaluate(x, y, groups, labels=None, n_folds: int = 5, seed: int = 0) -> dict:
-    """Resubstitution and cross-validated scores as a JSON-ready dict."""
+    """Resubstitution and cross-validated scores as a JSON-ready dict.
+
+    Keys resubstitution and cross_validated (:meth:`Scores.to_dict`), and
+    cross_validated_reason: None, or why cross_validated is None (fewer than 2 folds).
+    """
     x, y = _check(x, y)
     if labels is None:
         labels = sorted(set(y))
     out = {"resubstitution": scores(y, resubstitution(x, y), labels).to_dict()}
     pred = cross_validated(x, y, groups, n_folds, seed)
     out["cross_validated"] = None if pred is None else scores(y, pred, labels).to_dict()
+    out["cross_validated_reason"] = None
+    if pred is None:
+        largest = int(pd.Series(y).value_counts().max()) if len(y) else 0
+        out["cross_validated_reason"] = (
+            f"fewer than 2 folds: {len(pd.unique(np.asarray(groups, dtype=object)))} unit(s) that a fold "
+            f"keeps whole (field samples or instances), largest class {largest} item(s)")
     return out
 
 
