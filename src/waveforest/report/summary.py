@@ -146,7 +146,10 @@ def table3_summary(ours: pd.DataFrame | None, run_datasets=(), paper_t3: pd.Data
 
 def _range_text(v: pd.Series, fmt: str, unit: str) -> str:
     v = v[np.isfinite(v)]
-    return f"{format(v.min(), fmt)} to {format(v.max(), fmt)}{unit}" if len(v) else missing("no values")
+    if not len(v):
+        return missing("no values")
+    lo, hi = format(v.min(), fmt), format(v.max(), fmt)
+    return f"{lo}{unit}" if lo == hi else f"{lo} to {hi}{unit}"
 
 
 def table3_sentences(ours: pd.DataFrame | None, order: pd.DataFrame | None,
