@@ -95,10 +95,12 @@ def _fit_predict(x_train, y_train, x_test) -> np.ndarray:
     classes = np.unique(y_train)
     if len(classes) == 1:  # a fold with one class: LDA is undefined, predict that class
         return np.full(len(x_test), classes[0], dtype=object)
-    if len(y_train) <= len(classes):
-        # too few items for a pooled covariance: nearest class mean (what LDA with an identity
-        # covariance would do); only tiny folds of tiny data sets get here
-        means = np.array([x_train[y_train == c].mean(axis=0) for c in classes])
+    means = np.array([x_train[y_train == c].mean(axis=0) for c in classes])
+    spread = x_train - means[np.searchsorted(classes, y_train)]
+    if len(y_train) <= len(classes) or not np.any(spread):
+        # too few items for a pooled covariance, or no spread within any class (e.g. one
+        # sample-level value per class): nearest class mean (what LDA with an identity
+        # covariance would do); only tiny or degenerate folds get here
         d = ((x_test[:, None, :] - means[None, :, :]) ** 2).sum(axis=2)
         return classes[np.argmin(d, axis=1)].astype(object)
     with warnings.catch_warnings():
