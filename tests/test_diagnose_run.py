@@ -15,8 +15,10 @@ from click.testing import CliRunner
 from fixtures.study import SyntheticStudy
 
 from waveforest.constants import RANGE_PER_NS
+from waveforest.diagnose import catalogue as cat
 from waveforest.diagnose.missing_effects import find_missing_effects
 from waveforest.diagnose.model import model_dict, read_model, write_model
+from waveforest.diagnose.power import LIMIT_COLUMNS, PowerSettings, detection_limits
 from waveforest.diagnose.search import NamedEffect, SearchSettings
 from waveforest.effects import CATALOGUE
 from waveforest.errors import WaveforestError
@@ -29,8 +31,9 @@ def _synthetic_outputs(tmp_path, effects):
     study = SyntheticStudy(samples_per_species=12, pulses_per_sample=8, seed=1)
     settings = SearchSettings(rounds=2, n_boot=100)
     result, gap, cand, sigs = find_missing_effects(study.keys, study.real(effects), study.simulate, settings, seed=5)
-    paths = write_outputs(tmp_path, result, gap, cand, sigs, settings=settings, base_effects={},
-                          datasets=sorted(study.datasets), keys=study.keys, seconds=1.0)
+    limits, curve = detection_limits(study.keys, study.simulate, settings, PowerSettings(replicates=2, values=3), 5)
+    paths = write_outputs(tmp_path, result, gap, cand, sigs, limits=limits, curve=curve, settings=settings,
+                          base_effects={}, datasets=sorted(study.datasets), keys=study.keys, seconds=1.0)
     return result, paths
 
 
@@ -203,6 +206,21 @@ def test_outputs_when_nothing_is_named(tmp_path):
     assert m["verdict"] == "none" and m["effects"] == []
     gap = pd.read_csv(paths["gap"])
     assert (gap["reduction"] == 0).all()  # after = before
+    # detection_limits.csv: the report's contract; every candidate, a number or an empty cell
+    limits = pd.read_csv(paths["limits"])
+    assert list(limits.columns) == list(LIMIT_COLUMNS)
+    assert limits["effect"].tolist() == list(CATALOGUE) and (limits["replicates"] == 2).all()
+    assert (limits["power"] == 0.8).all() and limits["unit"].notna().all()
+    assert (limits["upper_bound"] != [CATALOGUE[e].off for e in limits["effect"]]).all()
+    assert limits["smallest_detectable"].notna().sum() >= 5  # the toy's signatures are large
+    found = limits.dropna(subset=["smallest_detectable"])
+    strength = [abs(cat.to_u(e, v) - cat.off_u(e)) for e, v in zip(found["effect"], found["smallest_detectable"])]
+    reach = [abs(cat.to_u(e, v) - cat.off_u(e)) for e, v in zip(found["effect"], found["upper_bound"])]
+    assert all(0 < s <= r for s, r in zip(strength, reach))
+    curve = pd.read_csv(paths["curve"])
+    assert set(curve["effect"]) == set(CATALOGUE) and (curve["power"].between(0, 1)).all()
+    md = paths["markdown"].read_text()
+    assert "**Verdict: none: no effect larger than " in md and "What these data could have seen" in md
 
 
 def test_model_yaml_round_trip_and_checks(tmp_path):

@@ -18,6 +18,8 @@ rule diagnose:
         gap=result("diagnose", "gap_before_after.csv"),
         figure=result("diagnose", "gap.png"),
         signatures=result("diagnose", "signatures.csv"),
+        limits=result("diagnose", "detection_limits.csv"),
+        curve=result("diagnose", "detection_curve.csv"),
         summary=result("diagnose", "diagnose.md"),
     params:
         out=output_dir,

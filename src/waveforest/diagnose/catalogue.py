@@ -37,6 +37,13 @@ VEGETATION_EFFECTS = tuple(n for n, e in CATALOGUE.items() if e.stage == "vegeta
 INVERSE_SCALE = {"nonlinearity", "clumping"}
 """Effects searched on u = lower bound / value (off value 0 = infinitely far)."""
 
+UNITS: dict[str, str] = {
+    "understory": "LAI", "clumping": "m", "xy_error": "m", "specular": "share of rho", "hotspot": "factor",
+    "lad_shift": "deg", "leaf_albedo": "factor", "noise_autocorr": "AR(1)", "nonlinearity": "DN",
+    "trigger_loss": "share of sigma",
+}
+"""Unit of each effect's value (:mod:`waveforest.effects` states them in words)."""
+
 
 def effect(name: str) -> Effect:
     """The catalogue entry of ``name``; an unknown name is an error naming the choices."""

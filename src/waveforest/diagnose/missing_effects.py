@@ -23,7 +23,9 @@ import pandas as pd
 
 from waveforest.diagnose import catalogue as cat
 from waveforest.diagnose.before_after import before_after
+from waveforest.diagnose.power import verdict_with_limits
 from waveforest.diagnose.search import SearchResult, SearchSettings, search
+from waveforest.diagnose.simulations import simulate_all
 from waveforest.effects import CATALOGUE
 from waveforest.errors import WaveforestError
 
@@ -62,14 +64,6 @@ def signatures(result: SearchResult, settings: SearchSettings) -> pd.DataFrame:
     return pd.concat(parts, ignore_index=True) if parts else pd.DataFrame()
 
 
-def _simulate_all(simulate, keys: pd.DataFrame, effects: dict, seed: int, replicates: int) -> pd.DataFrame:
-    parts = []
-    for r in range(replicates):
-        s = int(np.random.SeedSequence([seed, r]).generate_state(1)[0])
-        parts.append(simulate(keys.assign(replicate=r), dict(effects), s))
-    return pd.concat(parts, ignore_index=True)
-
-
 def find_missing_effects(keys: pd.DataFrame, real: pd.DataFrame, simulate, settings: SearchSettings, seed: int, *,
              progress=None, fit_keys: pd.DataFrame | None = None
              ) -> tuple[SearchResult, pd.DataFrame, pd.DataFrame, pd.DataFrame]:
@@ -88,8 +82,8 @@ def find_missing_effects(keys: pd.DataFrame, real: pd.DataFrame, simulate, setti
     """
     s_search, s_after, s_boot = np.random.SeedSequence([int(seed), 8]).generate_state(3)
     result = search(keys, real, simulate, settings, seed=int(s_search), progress=progress, fit_keys=fit_keys)
-    before = _simulate_all(simulate, keys, {}, int(s_after), settings.replicates)
-    after = before if not result.named else _simulate_all(simulate, keys, result.effects, int(s_after),
+    before = simulate_all(simulate, keys, {}, int(s_after), settings.replicates)
+    after = before if not result.named else simulate_all(simulate, keys, result.effects, int(s_after),
                                                           settings.replicates)
     gap = before_after(real, before, after, n_boot=settings.n_boot, seed=int(s_boot), alpha=settings.alpha,
                             **settings.gap_kw)
@@ -119,13 +113,13 @@ def _fmt(x: float, nd: int = 3) -> str:
 
 def summary_markdown(result: SearchResult, gap: pd.DataFrame, cand: pd.DataFrame, *, datasets, n_pulses: int,
                      n_samples: int, seconds: float, settings: SearchSettings, base_effects: dict,
-                     n_fit_pulses: int | None = None) -> str:
-    """A short human summary (``diagnose.md``)."""
+                     limits: pd.DataFrame, curve: pd.DataFrame, n_fit_pulses: int | None = None) -> str:
+    """A short human summary (``diagnose.md``); ``limits``, ``curve``: :func:`.power.detection_limits`."""
     tot = gap[gap["level"] == "total"].iloc[0]
     lines = [
         "# Diagnosis: where simulation and measurement disagree",
         "",
-        f"**Verdict: {result.verdict}.** {result.reason}.",
+        f"**Verdict: {verdict_with_limits(result.verdict, limits)}.** {result.reason}.",
         "",
         f"Datasets {', '.join(datasets)}; {n_pulses} real pulses from {n_samples} field samples; "
         f"base model effects {base_effects or 'none (the paper model)'}; {result.n_simulations} half-sample "
@@ -171,7 +165,28 @@ def summary_markdown(result: SearchResult, gap: pd.DataFrame, cand: pd.DataFrame
                          f"{_fmt(r['reduction_ci_high'])}] | {_fmt(r['relative_reduction'], 2)} | "
                          f"{'yes' if r['significant'] else 'no'}{' (fit at a bound)' if r['at_bound'] else ''} |")
         lines.append("")
+    lines += _limits_markdown(limits, curve)
     lines += ["Files: model.yaml (the extended model), candidates.csv (all candidates, ranked), "
               "gap_before_after.csv (per cell, feature and total), gap.png, signatures.csv (how each "
-              "candidate moves the features), this summary.", ""]
+              "candidate moves the features), detection_limits.csv and detection_curve.csv (what these "
+              "data could have seen), this summary.", ""]
     return "\n".join(lines)
+
+
+def _limits_markdown(limits: pd.DataFrame, curve: pd.DataFrame) -> list[str]:
+    """The ``diagnose.md`` section on detection limits."""
+    reps = int(limits["replicates"].iloc[0]) if len(limits) else 0
+    off = curve[curve["strength"] == 0]
+    false_alarms = float(off["power"].iloc[0]) if len(off) else math.nan
+    lines = ["## What these data could have seen", "",
+             f"Each candidate simulated at a ladder of values as pseudo-real data of these pulses, {reps} "
+             "replicate(s), tested as the base model's gap is (above the noise floor at the same alpha, same "
+             "cluster bootstrap); the smallest value detected in at least "
+             f"{_fmt(float(limits['power'].iloc[0]) * 100 if len(limits) else math.nan)} % of the replicates "
+             f"(src/waveforest/diagnose/power.py). With no effect the test fired in {_fmt(false_alarms * 100)} % "
+             "of them.", "",
+             "| effect | smallest detectable | tried up to |", "|---|---|---|"]
+    for r in limits.itertuples():
+        found = "not within the bounds" if pd.isna(r.smallest_detectable) else f"{_fmt(r.smallest_detectable)} {r.unit}"
+        lines.append(f"| {r.effect} | {found} | {_fmt(r.upper_bound)} {r.unit} |")
+    return lines + [""]

@@ -46,15 +46,8 @@ class SimulationCache:
         """Simulated features of ``half`` under ``effects`` (all replicates, cached)."""
         key = (half, tuple(sorted((k, round(float(v), 12)) for k, v in effects.items())))
         if key not in self.cache:
-            keys = self.halves[half]
-            reps = []
-            for r in range(self.replicates):
-                seed = int(np.random.SeedSequence([self.seeds[half], r]).generate_state(1)[0])
-                out = self.simulate(keys.assign(replicate=r), dict(effects), seed)
-                if not isinstance(out, pd.DataFrame):
-                    raise WaveforestError("diagnose: the simulator must return a pandas DataFrame")
-                reps.append(out)
-            self.cache[key] = pd.concat(reps, ignore_index=True)
+            self.cache[key] = simulate_all(self.simulate, self.halves[half], effects, self.seeds[half],
+                                           self.replicates)
             self.calls += 1
             if self.progress is not None:
                 self.progress(f"{half} {dict(effects)}")
@@ -63,3 +56,16 @@ class SimulationCache:
     def all(self, effects: dict[str, float]) -> pd.DataFrame:
         """Simulated features of all samples (both halves) under ``effects``."""
         return pd.concat([self.get(h, effects) for h in HALVES if len(self.halves[h])], ignore_index=True)
+
+
+def simulate_all(simulate: Simulator, keys: pd.DataFrame, effects: dict, seed: int, replicates: int) -> pd.DataFrame:
+    """All of ``keys`` simulated under ``effects`` in one go (no halves, no cache): replicate r
+    with seed ``SeedSequence([seed, r])``, as :meth:`SimulationCache.get` draws them."""
+    parts = []
+    for r in range(replicates):
+        s = int(np.random.SeedSequence([seed, r]).generate_state(1)[0])
+        out = simulate(keys.assign(replicate=r), dict(effects), s)
+        if not isinstance(out, pd.DataFrame):
+            raise WaveforestError("diagnose: the simulator must return a pandas DataFrame")
+        parts.append(out)
+    return pd.concat(parts, ignore_index=True)

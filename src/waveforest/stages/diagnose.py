@@ -15,8 +15,11 @@ the campaign's datasets.csv, targets.csv and fields.csv. Steps:
 2. **Diagnosis** (:func:`.diagnose.missing_effects.find_missing_effects`) with the study's
    simulation chain (:class:`.diagnose.simulator.StudySimulator`) on top of
    ``simulate.effects`` (the base model): search, before/after, signatures.
-3. **Outputs** in ``out_dir`` (:data:`OUTPUT_NAMES`): ``model.yaml``, ``candidates.csv``,
-   ``gap_before_after.csv``, ``gap.png``, ``signatures.csv``, ``diagnose.md``.
+3. **Detection limits** (:func:`.diagnose.power.detection_limits`, ``diagnose.power``): the
+   smallest value of each candidate that these pulses would detect, with the same simulator.
+4. **Outputs** in ``out_dir`` (:data:`OUTPUT_NAMES`): ``model.yaml``, ``candidates.csv``,
+   ``gap_before_after.csv``, ``gap.png``, ``signatures.csv``, ``detection_limits.csv``,
+   ``detection_curve.csv``, ``diagnose.md``.
 
 Errors: :class:`waveforest.errors.WaveforestError` for missing or duplicate inputs.
 """
@@ -41,6 +44,7 @@ from waveforest.cliutil import (
 from waveforest.diagnose.figures import gap_figure
 from waveforest.diagnose.missing_effects import find_missing_effects, summary_markdown
 from waveforest.diagnose.model import model_dict, write_model
+from waveforest.diagnose.power import PowerSettings, detection_limits, verdict_with_limits
 from waveforest.diagnose.search import SearchResult, SearchSettings
 from waveforest.diagnose.simulator import StudySimulator
 from waveforest.diagnose.strata import (
@@ -66,6 +70,8 @@ OUTPUT_NAMES = {
     "gap": "gap_before_after.csv",
     "figure": "gap.png",
     "signatures": "signatures.csv",
+    "limits": "detection_limits.csv",
+    "curve": "detection_curve.csv",
     "markdown": "diagnose.md",
 }
 """Files written by :func:`run` (keys of :class:`DiagnoseOutputs`)."""
@@ -84,6 +90,7 @@ class DiagnoseOutputs:
     n_samples: int
     n_simulations: int
     seconds: float
+    limits: pd.DataFrame
 
 
 def diagnosed_datasets(cfg: dict) -> list[str]:
@@ -95,9 +102,11 @@ def diagnosed_datasets(cfg: dict) -> list[str]:
 
 
 def write_outputs(out_dir, result: SearchResult, gap: pd.DataFrame, cand: pd.DataFrame, sigs: pd.DataFrame, *,
-                  settings: SearchSettings, base_effects: dict, datasets, keys: pd.DataFrame,
-                  seconds: float, n_fit_pulses: int | None = None) -> dict:
-    """Write the six outputs of :data:`OUTPUT_NAMES` into ``out_dir`` (atomically); returns their paths."""
+                  limits: pd.DataFrame, curve: pd.DataFrame, settings: SearchSettings, base_effects: dict, datasets,
+                  keys: pd.DataFrame, seconds: float, n_fit_pulses: int | None = None) -> dict:
+    """Write the outputs of :data:`OUTPUT_NAMES` into ``out_dir`` (atomically); returns their paths.
+
+    ``limits`` and ``curve`` are :func:`.diagnose.power.detection_limits`' tables."""
     out_dir = Path(out_dir)
     base = dict(base_effects)
     tot = gap[gap["level"] == "total"].iloc[0]
@@ -117,7 +126,8 @@ def write_outputs(out_dir, result: SearchResult, gap: pd.DataFrame, cand: pd.Dat
     )
     out_dir.mkdir(parents=True, exist_ok=True)
     write_model(paths["model"], model)
-    for key, table in (("candidates", cand), ("gap", gap), ("signatures", sigs)):
+    for key, table in (("candidates", cand), ("gap", gap), ("signatures", sigs), ("limits", limits),
+                       ("curve", curve)):
         with atomic_path(paths[key]) as tmp:
             table.to_csv(tmp, index=False, float_format="%.6g")
 
@@ -125,7 +135,7 @@ def write_outputs(out_dir, result: SearchResult, gap: pd.DataFrame, cand: pd.Dat
     gap_figure(gap, cand, paths["figure"], title=f"verdict: {result.verdict}" + (f" ({named})" if named else ""))
     md = summary_markdown(result, gap, cand, datasets=list(datasets), n_pulses=len(keys),
                           n_samples=int(keys["sample_id"].nunique()), seconds=seconds, settings=settings,
-                          base_effects=base, n_fit_pulses=n_fit_pulses)
+                          base_effects=base, n_fit_pulses=n_fit_pulses, limits=limits, curve=curve)
     with atomic_path(paths["markdown"]) as tmp:
         tmp.write_text(md)
     return paths
@@ -283,19 +293,23 @@ def run(selected_paths, real_paths, calibration_paths, out_dir, cfg: dict, *, da
         from tqdm import tqdm
 
         bar = tqdm(desc="diagnose: simulations", unit="sim")
+    tick = (lambda label: bar.update(1)) if bar is not None else None
     result, gap, cand, sigs = find_missing_effects(keys, real, simulator, settings, int(cfg["seed"]), fit_keys=fit_keys,
-                                       progress=(lambda label: bar.update(1)) if bar is not None else None)
+                                                   progress=tick)
+    limits, curve = detection_limits(keys, simulator, settings, PowerSettings.from_config(cfg), int(cfg["seed"]),
+                                     progress=tick)
     if bar is not None:
         bar.close()
     seconds = time.perf_counter() - t_start
-    paths = write_outputs(out_dir, result, gap, cand, sigs, settings=settings, base_effects=base,
-                          datasets=sorted(selected), keys=keys, seconds=seconds,
+    paths = write_outputs(out_dir, result, gap, cand, sigs, limits=limits, curve=curve, settings=settings,
+                          base_effects=base, datasets=sorted(selected), keys=keys, seconds=seconds,
                           n_fit_pulses=None if fit_keys is None else len(fit_keys))
     tot = gap[gap["level"] == "total"].iloc[0]
     return DiagnoseOutputs(paths=paths, verdict=result.verdict, effects=result.effects,
                            gap_before=float(tot["gap_before"]), gap_after=float(tot["gap_after"]),
                            n_pulses=int(len(keys)), n_samples=int(keys["sample_id"].nunique()),
-                           n_simulations=int(result.n_simulations), seconds=time.perf_counter() - t_start)
+                           n_simulations=int(result.n_simulations), seconds=time.perf_counter() - t_start,
+                           limits=limits)
 
 
 @click.command("diagnose", cls=MultiValueCommand)
@@ -319,7 +333,7 @@ def run(selected_paths, real_paths, calibration_paths, out_dir, cfg: dict, *, da
                    "sample positions).")
 @click.option("--out", "out", type=OUT_DIR, required=True,
               help="Output folder: model.yaml, candidates.csv, gap_before_after.csv, gap.png, "
-                   "signatures.csv, diagnose.md.")
+                   "signatures.csv, detection_limits.csv, detection_curve.csv, diagnose.md.")
 @stage_options
 def diagnose(selected, features_real, calibration, system, agc, datasets, targets, fields, out, cfg):
     """Find where simulation and measurement disagree, name the missing effect, show the gap shrink.
@@ -335,3 +349,4 @@ def diagnose(selected, features_real, calibration, system, agc, datasets, target
     click.echo(f"diagnose: verdict {res.verdict} ({named}); gap {res.gap_before:.3g} -> {res.gap_after:.3g}; "
                f"{res.n_pulses} pulses, {res.n_samples} samples, {res.n_simulations} simulations, "
                f"{res.seconds:.0f} s -> {out}")
+    click.echo(f"diagnose: {verdict_with_limits(res.verdict, res.limits)}")

@@ -1,0 +1,112 @@
+"""Detection limits of waveforest.diagnose (power analysis) on the cheap synthetic study."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pandas as pd
+import pytest
+from fixtures.study import SyntheticStudy
+
+from waveforest.diagnose import catalogue as cat
+from waveforest.diagnose.power import (
+    CURVE_COLUMNS,
+    LIMIT_COLUMNS,
+    PowerSettings,
+    _crossing,
+    detection_limits,
+    ladder,
+    verdict_with_limits,
+)
+from waveforest.diagnose.search import SearchSettings
+from waveforest.effects import CATALOGUE
+from waveforest.errors import WaveforestError
+
+SETTINGS = SearchSettings(n_boot=100, candidates=("hotspot", "understory"))
+POWER = PowerSettings(replicates=3, values=4, power=0.8)
+
+
+def limits_of(study, simulate=None, settings=SETTINGS, power=POWER, seed=3):
+    return detection_limits(study.keys, simulate or study.simulate, settings, power, seed)
+
+
+def test_ladder_runs_from_off_to_the_bound_on_the_test_values_side():
+    assert [cat.from_u("hotspot", u) for u in ladder("hotspot", 4)] == pytest.approx([1.125, 1.25, 1.5, 2.0])
+    assert [cat.from_u("clumping", u) for u in ladder("clumping", 3)] == pytest.approx([0.2, 0.1, 0.05])
+    assert [cat.from_u("leaf_albedo", u) for u in ladder("leaf_albedo", 2)] == pytest.approx([0.8, 0.6])
+    assert [cat.from_u("lad_shift", u) for u in ladder("lad_shift", 2)] == pytest.approx([15.0, 30.0])
+    for name in CATALOGUE:  # every effect has a unit, and its test value is inside its ladder's range
+        assert cat.UNITS[name]
+        u0, u = cat.off_u(name), ladder(name, 3)
+        assert np.all(np.diff(np.abs(u - u0)) > 0)
+        assert abs(cat.to_u(name, CATALOGUE[name].test_value) - u0) <= abs(u[-1] - u0) + 1e-12
+
+
+def test_crossing_is_exact_for_a_gap_quadratic_in_strength():
+    a, c = 3.0, 0.02  # LB(s) = a s^2 - c crosses 0 at sqrt(c / a)
+    for lo, hi in ((0.0, 0.25), (0.05, 0.2)):
+        assert _crossing(lo, a * lo**2 - c, hi, a * hi**2 - c) == pytest.approx(math.sqrt(c / a))
+    assert _crossing(0.1, 0.01, 0.2, 0.05) == 0.1  # detected at the weaker value already
+    assert math.isnan(_crossing(0.1, -0.01, 0.2, -0.001))
+
+
+def test_large_signature_gives_a_monotone_curve_and_a_finite_limit():
+    study = SyntheticStudy(samples_per_species=12, pulses_per_sample=8, seed=1)
+    limits, curve = limits_of(study)
+    assert list(limits.columns) == list(LIMIT_COLUMNS) and list(curve.columns) == list(CURVE_COLUMNS)
+    assert limits["effect"].tolist() == ["hotspot", "understory"]
+    for name in ("hotspot", "understory"):
+        row = limits.set_index("effect").loc[name]
+        c = curve[curve["effect"] == name].sort_values("strength")
+        assert c["strength"].iloc[0] == 0 and c["power"].iloc[0] == 0  # no effect: no detection (these seeds)
+        assert np.all(np.diff(c["power"].to_numpy()) >= 0), c  # monotone detection curve
+        assert np.all(np.diff(c["excess_ci_low"].to_numpy()) > 0)
+        # finite, inside the range, and bracketed by the ladder: detected with power at the next stronger
+        # value evaluated, not at the next weaker one (or that one is off)
+        v = row["smallest_detectable"]
+        s = abs(cat.to_u(name, v) - cat.off_u(name))
+        assert 0 < s <= 1 and row["upper_bound"] == CATALOGUE[name].bounds[1]
+        above, below = c[c["strength"] >= s - 1e-12], c[c["strength"] < s - 1e-12]
+        assert above["power"].iloc[0] >= POWER.power and (below["power"].iloc[-1] < POWER.power
+                                                          or below["strength"].iloc[-1] == 0)
+        assert v < CATALOGUE[name].test_value  # the realistic value is well visible in this toy
+
+
+def test_more_field_samples_see_smaller_effects():
+    few = limits_of(SyntheticStudy(samples_per_species=5, pulses_per_sample=8, seed=1))[0]
+    many = limits_of(SyntheticStudy(samples_per_species=20, pulses_per_sample=8, seed=1))[0]
+    assert (many["smallest_detectable"] < few["smallest_detectable"]).all(), (few, many)
+
+
+def test_bounds_too_small_to_see_give_an_empty_limit():
+    """hotspot made a thousand times weaker: nothing within its bounds (1-2) is detected, the
+    ladder stops at the bound, and the limit is empty; understory is untouched."""
+    study = SyntheticStudy(samples_per_species=12, pulses_per_sample=8, seed=1)
+
+    def damped(pulses, effects, seed):
+        eff = dict(effects)
+        if "hotspot" in eff:
+            eff["hotspot"] = 1.0 + 1e-3 * (eff["hotspot"] - 1.0)
+        return study.simulate(pulses, eff, seed)
+
+    limits, curve = limits_of(study, damped)
+    hot = limits.set_index("effect").loc["hotspot"]
+    assert math.isnan(hot["smallest_detectable"]) and hot["upper_bound"] == 2.0
+    assert curve.loc[curve["effect"] == "hotspot", "value"].tolist() == [1.0, 2.0]  # off, then the bound only
+    assert np.isfinite(limits.set_index("effect").loc["understory", "smallest_detectable"])
+    text = verdict_with_limits("none", limits)
+    assert text.startswith("none: no effect larger than understory ")
+    assert text.endswith("not detectable within the bounds: hotspot (up to 2 factor)")
+    assert verdict_with_limits("named", limits).startswith("named: detection limits understory ")
+
+
+def test_power_settings_are_checked_and_read_from_the_config():
+    from waveforest import config
+
+    assert PowerSettings.from_config(config.load()) == PowerSettings()
+    assert PowerSettings(replicates=3, power=0.8).needed == 3 and PowerSettings(replicates=5, power=0.8).needed == 4
+    with pytest.raises(WaveforestError, match="diagnose.power"):
+        PowerSettings(replicates=0)
+    with pytest.raises(WaveforestError, match="no pulse"):
+        detection_limits(pd.DataFrame(columns=["dataset", "sample_id", "species"]), None, SETTINGS, POWER, 1)
