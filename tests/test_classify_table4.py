@@ -123,6 +123,8 @@ def test_max_h_is_the_sample_maximum_and_not_normalised():
             assert with_h[level][scheme]["accuracy"] == 1.0
     assert only_h["mean_of_sample"]["resubstitution"]["n"] == 12  # one mean per sample
     assert r["main"]["one_pulse"]["cross_validated"]["accuracy"] < 0.9
+    main_cv = r["main"]["one_pulse"]["cross_validated"]["accuracy"]
+    assert only_h["gain_pp"]["one_pulse"]["cross_validated"] == pytest.approx(100 * (1 - main_cv))
 
 
 def test_lda_known_answer_with_class_frequency_priors():
@@ -171,6 +173,7 @@ def test_degenerate_input_says_why():
     assert r["main"]["groups_missing"] == ["broadleaf", "low_green", "low_barren_abiotic"]
     assert r["pulses_per_group"] == {"conifer": 18, "broadleaf": 0, "low_green": 0, "low_barren_abiotic": 0}
     assert all(e["reason"] and e["one_pulse"] is None for e in r["extra"])
+    assert r["extra"][0]["gain_pp"]["mean_of_sample"]["resubstitution"] is None
     ts = r["three_species"]
     assert ts["one_pulse"] is None and "0 pulses: birch, raspberry, fireweed" in ts["reason"]
     # nothing passes the rule

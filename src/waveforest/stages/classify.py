@@ -197,6 +197,19 @@ def _levels(df: pd.DataFrame, features, labels, folds: int, seed: int) -> dict:
     return out
 
 
+def _with_gain(block: dict, main: dict) -> dict:
+    """Add ``gain_pp``: the block's accuracy minus the main set's, percentage points, per level
+    and scheme (None where either is missing; the paper quotes its extras as such gains)."""
+    gain = {}
+    for level in ("one_pulse", "mean_of_sample"):
+        gain[level] = {}
+        for scheme in ("resubstitution", "cross_validated"):
+            a = (block.get(level) or {}).get(scheme)
+            b = (main.get(level) or {}).get(scheme)
+            gain[level][scheme] = 100.0 * (a["accuracy"] - b["accuracy"]) if a and b else None
+    return dict(block, gain_pp=gain)
+
+
 def _three_species(df: pd.DataFrame, species, group_size: int, folds: int, seed: int) -> dict:
     features = list(THREE_SPECIES_FEATURES)
     sub = df[df["species"].isin(list(species))]
@@ -295,7 +308,7 @@ def classify_dataset(features: pd.DataFrame, cfg: dict, selection: pd.DataFrame 
              "included": bool(r["included"])}
             for r in table.to_dict("records")],
         "main": main,
-        "extra": [_levels(lda_rows, s, labels, folds, seed) for s in extra],
+        "extra": [_with_gain(_levels(lda_rows, s, labels, folds, seed), main) for s in extra],
         "three_species": _three_species(rows, list(c["three_species"]), int(c["group_size"]), folds, seed),
     }
     return result
