@@ -26,6 +26,7 @@ COMMANDS = {
     "ingest": "waveforest.stages.ingest:ingest",
     "agc": "waveforest.stages.agc:agc",
     "calibrate": "waveforest.stages.calibrate:calibrate",
+    "tune-cfd": "waveforest.stages.tune_cfd:tune_cfd_command",
     "select": "waveforest.stages.select:select",
     "vegetation": "waveforest.stages.vegetation:vegetation",
     "trace": "waveforest.stages.trace:trace",
