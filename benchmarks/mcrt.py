@@ -137,9 +137,13 @@ METHODS = {
     "sobol_rr_16k_low": dict(n_rays=16384, sampler="sobol", roulette=0.5, quality="low"),
     "sobol_rr_24k": dict(n_rays=24576, sampler="sobol", roulette=0.5, quality="medium"),
     "sobol_rr_32k": dict(n_rays=32768, sampler="sobol", roulette=0.5, quality="medium"),
+    "random_1500": dict(n_rays=1500, quality="medium"),
+    "sobol_rr_512": dict(n_rays=512, sampler="sobol", roulette=0.5, quality="medium"),
+    "sobol_rr_768": dict(n_rays=768, sampler="sobol", roulette=0.5, quality="medium"),
 }
 """Estimators of the error section: ``trace`` keywords, and the BVH quality a one-pulse
-instance gets (``quality``). ``random_30k`` is today's default."""
+instance gets (``quality``). ``random_30k`` was the default before ``sobol_rr_16k``;
+``random_1500`` was the virtual campaign's own tracing before ``sobol_rr_512``."""
 
 QUICK_METHODS = ("random_30k", "sobol_16k", "sobol_rr_12k", "sobol_rr_16k")
 
@@ -357,8 +361,14 @@ def bench_error(prefix: str, scene, beams, args, methods) -> dict:
         out(f"{m}_err_fwhm", err_fwhm, "ns")
         out(f"{m}_cpu_ms_per_pulse", t * 1e3, "ms", ".1f")
         out(f"{m}_embree_rays_per_pulse", rays[m] / (args.seeds * n), "rays", ".0f")
-    e0, t0, b0 = found["random_30k"]
+    base = "random_30k" if "random_30k" in found else "random_1500" if "random_1500" in found else None
+    if base is None:
+        return found
+    e0, t0, b0 = found[base]
     for m, (e, t, b) in found.items():
+        if base != "random_30k":
+            out(f"{m}_efficiency_vs_{base}", (e0**2 * t0) / (e**2 * t), "x", ".2f")
+            continue
         out(f"{m}_efficiency_vs_random_30k", (e0**2 * t0) / (e**2 * t), "x", ".2f")
         out(f"{m}_ms_per_pulse_amortised_1", (t + b) * 1e3, "ms", ".1f")
         out(f"{m}_efficiency_amortised_1", (e0**2 / e**2 * t0 + b0) / (t + b), "x", ".2f")
@@ -382,6 +392,8 @@ def main() -> None:
                     help="tracer settings of the speed section (default: today's default)")
     ap.add_argument("--seeds", type=int, default=16, help="seeds per method in the error section")
     ap.add_argument("--error-pulses", type=int, default=4, help="fixed pulses per scene in the error section")
+    ap.add_argument("--methods", nargs="+", choices=list(METHODS), default=None,
+                    help="estimators of the error section (default: all, or QUICK_METHODS with --quick)")
     ap.add_argument("--quick", action="store_true",
                     help="error section only, canopy only, the methods of QUICK_METHODS")
     args = ap.parse_args()
@@ -402,7 +414,7 @@ def main() -> None:
         from waveforest.vegetation import build_scene
 
         scenes.update({f"{sp}_": build_scene(sp, SPECIES[sp], args.seed) for sp in args.species})
-    methods = {m: METHODS[m] for m in (QUICK_METHODS if args.quick else METHODS)}
+    methods = {m: METHODS[m] for m in (args.methods or (QUICK_METHODS if args.quick else METHODS))}
     for prefix, scene in scenes.items():
         if "speed" in args.sections:
             bench_scene(prefix, scene, beams, args, full=True)

@@ -1,9 +1,15 @@
-"""Assertions on the outputs of the smoke workflow (run by .ci/run after snakemake).
+"""Assertions on the outputs of a study (run by .ci/run after the smoke workflow).
 
-Usage: python tests/smoke_check.py RESULTS_DIR CONFIG_YAML
-Checks that every table is complete (each dataset, species and feature present), that
-accuracies and kappas lie in [0, 1] (kappa in [-1, 1]), and that no table holds NaN where a
-value is required. Exits non-zero with a list of every failure.
+Usage: python tests/smoke_check.py RESULTS_DIR CONFIG_YAML [--paper-scale]
+
+Checks that every table is complete (each dataset, species and feature present), that every
+classify JSON holds all functional groups with pulses and numeric accuracies, that every
+compared dataset x species has >= MIN_COMPARED real and simulated pulses, that accuracies and
+kappas lie in [0, 1] (kappa in [-1, 1]), and that no table holds NaN where a value is required.
+``--paper-scale`` (the default study: ``python tests/smoke_check.py results config/config.yaml
+--paper-scale``) adds the paper's scale: Table 3's real pulse counts within +-25 % of the
+paper's (table3_counts.csv), >= 30 pulses in a group of every dataset's Table 4, and the
+studies' pulses and rays at the paper's fidelity. Exits non-zero with a list of every failure.
 """
 
 from __future__ import annotations
@@ -17,9 +23,16 @@ import pandas as pd
 import yaml
 
 FEATURES = ["H", "Npeaks", "Apeak", "FWHM", "E"]
+MIN_COMPARED = 10
+"""Fewest real and simulated pulses of a compared dataset x species (Table 3 cell)."""
+PAPER_COUNT_TOLERANCE = 0.25
+"""Largest relative difference of a Table 3 real pulse count from the paper's (--paper-scale)."""
+PAPER_RAYS = 16384
+"""Fewest rays per pulse at the paper's fidelity: Sobol' + roulette at 16384 rays has the error
+of the paper's 30,000 random rays (docs/validation.md, MCRT variance reduction)."""
 
 
-def check(results: Path, cfg: dict) -> list[str]:
+def check(results: Path, cfg: dict, paper_scale: bool = False) -> list[str]:
     fails: list[str] = []
 
     def need(path: Path) -> bool:
@@ -47,6 +60,7 @@ def check(results: Path, cfg: dict) -> list[str]:
             if "NaN" in text:
                 fails.append(f"{cls}: contains NaN")
             c = json.loads(text)
+            fails += _check_groups(cls, c, cfg, paper_scale)
             for key, value in _walk(c):
                 leaf = key.rsplit(".", 1)[-1]
                 if leaf in ("accuracy", "overall_accuracy") and not (0.0 <= value <= 1.0):
@@ -61,7 +75,14 @@ def check(results: Path, cfg: dict) -> list[str]:
             for sp in cfg["simulate"]["species"]:
                 sub = t[(t["dataset"].astype(str) == d) & (t["species"] == sp)]
                 if sub.empty:
-                    continue  # a species without enough pulses in a tiny campaign
+                    fails.append(f"{t3}: no row for {d}/{sp}")
+                    continue
+                for col in ["n_real", "n_sim"]:
+                    if sub[col].min() < MIN_COMPARED:
+                        fails.append(f"{t3}: {d}/{sp} has {int(sub[col].min())} {col[2:]} pulses "
+                                     f"(expected >= {MIN_COMPARED})")
+                if paper_scale:
+                    fails += _check_paper_count(t3, d, sp, int(sub["n_real"].max()))
                 missing = set(FEATURES) - set(sub["feature"])
                 if missing:
                     fails.append(f"{t3}: {d}/{sp} lacks features {sorted(missing)}")
@@ -85,6 +106,9 @@ def check(results: Path, cfg: dict) -> list[str]:
             if num.isna().any().any():
                 fails.append(f"{p}: NaN in {list(num.columns[num.isna().any()])}")
 
+    if paper_scale:
+        fails += _check_fidelity(cfg)
+
     model = results / "diagnose/model.yaml"
     if need(model):
         m = yaml.safe_load(model.read_text())
@@ -96,6 +120,54 @@ def check(results: Path, cfg: dict) -> list[str]:
     html = results / "report/report.html"
     if need(html) and "Table 3" not in html.read_text():
         fails.append(f"{html}: no Table 3")
+    return fails
+
+
+def _check_groups(path: Path, c: dict, cfg: dict, paper_scale: bool) -> list[str]:
+    """Every functional group has pulses and both levels of the main LDA have numbers."""
+    fails = []
+    groups = list(cfg["classify"]["groups"])
+    per_group = c.get("pulses_per_group") or {}
+    least = int(cfg["select"]["min_pulses"]) if paper_scale else 1
+    for g in groups:
+        if int(per_group.get(g, 0)) < least:
+            fails.append(f"{path}: group {g} has {int(per_group.get(g, 0))} pulses (expected >= {least})")
+    main = c.get("main") or {}
+    for level in ("one_pulse", "mean_of_sample"):
+        lv = main.get(level) or {}
+        for scheme in ("resubstitution", "cross_validated"):
+            acc = (lv.get(scheme) or {}).get("accuracy")
+            if not isinstance(acc, (int, float)) or isinstance(acc, bool) or not math.isfinite(acc):
+                fails.append(f"{path}: main.{level}.{scheme}.accuracy is {acc!r} (expected a number)")
+    return fails
+
+
+def _check_paper_count(path: Path, dataset: str, species: str, n_real: int) -> list[str]:
+    from waveforest.io.paper import table3_counts
+
+    paper = table3_counts()
+    row = paper[(paper["dataset"].astype(str) == dataset) & (paper["species"] == species)]
+    if row.empty:
+        return []
+    n = int(row["N"].iloc[0])
+    if abs(n_real - n) > PAPER_COUNT_TOLERANCE * n:
+        return [f"{path}: {dataset}/{species} compares {n_real} real pulses; the paper {n} "
+                f"(expected within +-{PAPER_COUNT_TOLERANCE:.0%})"]
+    return []
+
+
+def _check_fidelity(cfg: dict) -> list[str]:
+    """The studies' pulses and rays at the paper's fidelity (docs/method.md §(i2), (i3))."""
+    fails = []
+    m = cfg["mcrt"]
+    for study, pulses in (("sensitivity", 200), ("sensor_study", 500)):
+        c = cfg[study]
+        rays = int(c["n_rays"] or m["n_rays"])
+        enough = rays >= (PAPER_RAYS if m["sampler"] == "sobol" and m["roulette"] > 0 else 30000)
+        if not enough:
+            fails.append(f"config {study}: {rays} rays ({m['sampler']}) is below the paper's fidelity")
+        if int(c["pulses"]) < pulses:
+            fails.append(f"config {study}.pulses: {c['pulses']} (the paper's scale: >= {pulses})")
     return fails
 
 
@@ -115,7 +187,7 @@ def main(argv: list[str]) -> int:
     from waveforest import config
 
     cfg = config.load(cfg_path)
-    fails = check(results, cfg)
+    fails = check(results, cfg, paper_scale="--paper-scale" in argv[3:])
     for f in fails:
         print(f"FAIL {f}")
     print(f"smoke check: {len(fails)} failure(s)")

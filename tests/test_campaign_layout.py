@@ -85,9 +85,7 @@ def test_layout_follows_table1_and_method(layout, species):
     assert set(f.loc[f["year"] == 2010, "radius_m"]) == {0.5} and set(f.loc[f["year"] == 2012, "radius_m"]) == {1.0}
     info = species.set_index("slug")
     lo, hi = info.loc[f["species"], "min_h"].to_numpy(), info.loc[f["species"], "max_h"].to_numpy()
-    birch = (f["species"] == "birch").to_numpy()
-    assert np.all(f["height_m"][~birch].between(lo[~birch] - 0.005, hi[~birch] + 0.005))
-    assert f.loc[birch, "height_m"].between(2.5, 5.0).all()
+    assert np.all(f["height_m"].between(lo - 0.005, hi + 0.005))
     assert np.array_equal(f["is_tree"].to_numpy(), info.loc[f["species"], "is_tree"].to_numpy().astype(int))
     assert set(f.loc[f["year"] == 2012, "design"]) == {"S12"}
     assert set(f.loc[f["year"] == 2010, "design"]) <= {"P10", "S10"}
@@ -171,3 +169,18 @@ def test_pulses_cover_every_site_at_the_dataset_density(layout, name):
     assert np.abs(pos - p[["sensor_x", "sensor_y", "sensor_z"]].to_numpy()).max() < 1e-4
     # azimuths alternate 160 / 340
     assert [s.azimuth_deg for s in plan.strips][:2] == [160.0, 340.0]
+
+
+def test_the_default_layout_has_table1_design_counts_and_keeps_samples_apart(species):
+    """samples_per_species None: P10 + S10 samples per species in 2010, S12 in 2012 (Table 1)."""
+    lay = build_layout(species, None, SEED)
+    counts = load_design_counts().set_index("slug").fillna(0)
+    got = lay.fields.groupby(["year", "species"]).size()
+    for slug, row in counts.iterrows():
+        assert got.get((2010, slug), 0) == int(row["P10"] + row["S10"]), slug
+        assert got.get((2012, slug), 0) == int(row["S12"]), slug
+    assert len(lay.fields) > 7000
+    for _, f in lay.fields.groupby("stand_id"):
+        assert pdist(f[["s", "w"]].to_numpy()).min() >= MIN_SAMPLE_DISTANCE_M
+    heights = lay.fields.loc[lay.fields["species"] == "birch", "height_m"]
+    assert heights.min() >= 1.5 and heights.max() <= 7.5 and heights.between(2.5, 5.0).mean() < 0.6

@@ -239,15 +239,22 @@ def site_pulses(plan: FlightPlan, sites: pd.DataFrame, layout: dict, seed: int,
     margin = float(fl["coverage_margin_m"])
     jit = float(fl["scan_jitter"])
     tan_max = np.tan(np.radians(plan.max_zenith_deg))
-    frames = []
+    ids = sites["site"].astype(str).to_numpy(object)
+    s_, w_ = sites["s"].to_numpy(np.float64), sites["w"].to_numpy(np.float64)
+    z_, r_ = sites["ground_z"].to_numpy(np.float64), sites["disc_m"].to_numpy(np.float64)
+    parts = []
     for st in plan.strips:
-        for _, site in sites.iterrows():
-            f = _strip_site_pulses(plan, st, site, seed, tan_max, margin, jit)
+        covered = np.abs(w_ - st.w_line) <= (st.z_fly - z_) * tan_max - st.sway_amp - margin - r_
+        for k in np.flatnonzero(covered):
+            f = _strip_site_pulses(plan, st, ids[k], s_[k], w_[k], z_[k], r_[k], seed, jit)
             if f is not None:
-                frames.append(f)
-    if not frames:
+                parts.append(f)
+    if not parts:
         return pd.DataFrame({c: [] for c in PULSE_COLUMNS})
-    df = pd.concat(frames, ignore_index=True)
+    cols = list(zip(*parts))
+    df = pd.DataFrame({"strip": np.concatenate(cols[0]), "site": np.concatenate(cols[1]),
+                       "gps_time": np.concatenate(cols[2]), "gs": np.concatenate(cols[3]),
+                       "gw": np.concatenate(cols[4]), "ground_z": np.concatenate(cols[5])})
     if max_per_site is not None:
         rng = stream_generator(seed, "cap", plan.dataset)
         u = rng.random(len(df))
@@ -257,21 +264,19 @@ def site_pulses(plan: FlightPlan, sites: pd.DataFrame, layout: dict, seed: int,
     return _pulse_geometry(plan, df)
 
 
-def _strip_site_pulses(plan: FlightPlan, st, site, seed: int, tan_max: float, margin: float,
-                       jit: float) -> pd.DataFrame | None:
-    """The pulses of strip ``st`` within ``site["disc_m"]`` of a site (None if none).
+def _strip_site_pulses(plan: FlightPlan, st, site: str, cs: float, cw: float, gz: float, r: float, seed: int,
+                       jit: float) -> tuple | None:
+    """The pulses of strip ``st`` within ``r`` (m) of a site at frame (cs, cw), ground ``gz``
+    (None if none); the caller has checked that the strip's swath covers the site.
 
     Scan lines every ``st.delta`` along track, pulses every ``delta`` across with a uniform
     phase per line, both jittered by N(0, jit x delta); the GPS time follows the sweep
-    (alternating direction). Stream ("scan", dataset, strip, site). Columns strip, site,
-    gps_time, gs, gw (frame, m), ground_z.
+    (alternating direction). Stream ("scan", dataset, strip, site). Returns the arrays strip,
+    site, gps_time, gs, gw (frame, m), ground_z.
     """
     delta = st.delta
     line_t = delta / st.speed
-    cs, cw, gz, r = float(site["s"]), float(site["w"]), float(site["ground_z"]), float(site["disc_m"])
-    if abs(cw - st.w_line) > (st.z_fly - gz) * tan_max - st.sway_amp - margin - r:
-        return None
-    rng = stream_generator(seed, "scan", plan.dataset, st.index, str(site["site"]))
+    rng = stream_generator(seed, "scan", plan.dataset, st.index, site)
     j = np.arange(np.ceil((cs - r - st.scan_phase) / delta), np.floor((cs + r - st.scan_phase) / delta) + 1)
     if j.size == 0:
         return None
@@ -293,8 +298,8 @@ def _strip_site_pulses(plan: FlightPlan, st, site, seed: int, tan_max: float, ma
     q = np.clip((wn + st.half_swath) / (2 * st.half_swath), 0.0, 1.0)
     q = np.where(jj.astype(np.int64) % 2 == 0, q, 1.0 - q)
     t = t_line + (q - 0.5) * line_t
-    return pd.DataFrame({"strip": st.index, "site": site["site"], "gps_time": t, "gs": sj, "gw": wj,
-                         "ground_z": gz})
+    n = len(t)
+    return (np.full(n, st.index, np.int64), np.full(n, site, object), t, sj, wj, np.full(n, gz))
 
 
 def _pulse_geometry(plan: FlightPlan, df: pd.DataFrame) -> pd.DataFrame:

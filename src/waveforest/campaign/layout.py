@@ -24,7 +24,7 @@ so a sample's position does not depend on the dataset selection; only the years 
 generated datasets are written.
 
 Field-sample rules (docs/method.md §(a)): species of Table 1 per year (P10/S10 -> 2010, S12 -> 2012),
-``samples_per_species`` each; heights uniform in the species' [min_h, max_h] (birch 2.5-5 m,
+Table 1's design counts each (P10 + S10 in 2010, S12 in 2012; or ``samples_per_species`` each); heights uniform in the species' [min_h, max_h] of Table 1 (the comparison takes birches of 2.5-5 m,
 the comparison range of docs/method.md §(i1)); radius 0.5 m (2010) / 1.0 m (2012); trees carry
 ``is_tree = 1``; 2010 trees belong to the P10 plots with Table 1's share P10 / (P10 + S10).
 Coordinates are "GNSS" values written to mm; they are the true positions of the plants.
@@ -197,7 +197,17 @@ def _merge_species(species: pd.DataFrame) -> pd.DataFrame:
     return counts.merge(species[list(need)], on="slug", how="left")
 
 
-def build_layout(species: pd.DataFrame, samples_per_species: int, seed: int) -> Layout:
+def sample_counts(sp: pd.DataFrame, year: int, samples_per_species: int | None) -> pd.Series:
+    """Field samples per species slug in ``year``: Table 1's design counts (P10 + S10 for 2010,
+    S12 for 2012) when ``samples_per_species`` is None, else that many for every species of the year."""
+    ys = species_for_year(sp, year)
+    if samples_per_species is not None:
+        return pd.Series(int(samples_per_species), index=ys["slug"].to_numpy())
+    designs = [d for d, y in DESIGN_YEAR.items() if y == year]
+    return pd.Series(ys[designs].fillna(0).sum(axis=1).round().astype(int).to_numpy(), index=ys["slug"].to_numpy())
+
+
+def build_layout(species: pd.DataFrame, samples_per_species: int | None, seed: int) -> Layout:
     """Draw stands, field samples and targets of both campaign years.
 
     Parameters
@@ -205,8 +215,9 @@ def build_layout(species: pd.DataFrame, samples_per_species: int, seed: int) -> 
     species : DataFrame
         One row per species with columns slug, functional_group, min_h, max_h, is_tree
         (:func:`waveforest.vegetation.species_table`).
-    samples_per_species : int
-        Field samples per species and year (config ``campaign.samples_per_species``).
+    samples_per_species : int or None
+        Field samples per species and year (config ``campaign.samples_per_species``); None =
+        Table 1's design counts (:func:`sample_counts`).
     seed : int
         Master seed.
 
@@ -214,7 +225,7 @@ def build_layout(species: pd.DataFrame, samples_per_species: int, seed: int) -> 
     -------
     Layout
     """
-    if samples_per_species < 1:
+    if samples_per_species is not None and samples_per_species < 1:
         raise CampaignParamsError("campaign.samples_per_species: expected >= 1")
     lay = load_layout()
     frame = area_frame(lay)
@@ -244,7 +255,7 @@ def _place_stands(rng, lay: dict, sp: pd.DataFrame, samples_per_species: int, n_
     total = sum(n_stands[y] for y in YEARS)
     spacing = float(st["sample_spacing_m"])
     # samples per stand (the species' samples of a year dealt round-robin to its stands)
-    n_year = {y: samples_per_species * len(species_for_year(sp, y)) for y in YEARS}
+    n_year = {y: int(sample_counts(sp, y, samples_per_species).sum()) for y in YEARS}
     counts = [len(range(k, n_year[y], n_stands[y])) for y in YEARS for k in range(n_stands[y])]
     half = _half_extents(counts, spacing)
 
@@ -255,7 +266,8 @@ def _place_stands(rng, lay: dict, sp: pd.DataFrame, samples_per_species: int, n_
         return bool(np.all(np.max(gap, axis=1) >= spacing))
 
     centres = _place(rng, total, half_s, half_w, float(st["min_separation_m"]), np.empty((0, 2)), 0.0,
-                     f"stands of {samples_per_species} samples per species and year", stands_clear,
+                     "stands of " + ("Table 1's design counts" if samples_per_species is None
+                                     else f"{samples_per_species} samples per species and year"), stands_clear,
                      "lower campaign.samples_per_species, enlarge the area or lower the separation")
     return centres, half
 
@@ -293,8 +305,8 @@ def _draw_samples(rng, lay: dict, frame, sp: pd.DataFrame, samples_per_species: 
     stand_rows, field_rows = [], []
     k0 = 0
     for year in YEARS:
-        ys = species_for_year(sp, year)
-        slugs = np.repeat(ys["slug"].to_numpy(), samples_per_species)
+        counts = sample_counts(sp, year, samples_per_species)
+        slugs = np.repeat(counts.index.to_numpy(), counts.to_numpy())
         order = rng.permutation(len(slugs))
         slugs = slugs[order]
         nst = n_stands[year]

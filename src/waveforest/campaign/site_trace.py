@@ -58,6 +58,9 @@ class TraceSettings:
     """True sensor of each dataset, by dataset index."""
     bvh_quality: str = "medium"
     """Embree BVH build quality of the site scenes (config ``campaign.bvh_quality``)."""
+    sampler: str = "sobol"
+    roulette: float = 0.5
+    """MCRT estimator (config ``mcrt.sampler``, ``mcrt.roulette``: the model's)."""
 
 
 @dataclass(frozen=True)
@@ -163,7 +166,8 @@ def trace_site(job: SiteJob, st: TraceSettings, threads: int | None = None) -> S
     beams = Beams.from_divergence(job.origin, job.direction, job.divergence_mrad, job.range_m)
     res = trace(prepared, beams, n_rays=n_rays, max_order=st.max_order, bin_ns=BIN_NS,
                 viewed_diameter_m=st.viewed_diameter_m, seed=stream_seed31(st.seed, "trace", job.site),
-                specular=st.specular, hotspot=st.hotspot, threads=threads)
+                specular=st.specular, hotspot=st.hotspot, threads=threads, sampler=st.sampler,
+                roulette=st.roulette)
     cover = None
     if job.kind == "sample":
         fh = res.first_hit_counts.astype(np.float64)

@@ -65,6 +65,8 @@ from waveforest.vegetation import species_table
 VEGETATION_EFFECTS = ("understory", "clumping", "lad_shift", "leaf_albedo")
 MCRT_EFFECTS = ("specular", "hotspot")
 SENSOR_EFFECTS = ("noise_autocorr", "nonlinearity", "trigger_loss")
+XY_ERROR_MARGIN_SD = 3.5
+"""SDs of the hidden xy_error added to the pulse-disc margin (:func:`disc_margin`)."""
 
 DIGITIZER_GAIN, DIGITIZER_OFFSET = 1.0, 0.0
 """Waveform packet descriptor: volts per DN and volts at DN 0 (the ALS60's are not published)."""
@@ -188,11 +190,13 @@ def run(cfg: dict, out_dir: str | os.PathLike, effects=None, seed: int | None = 
         raise SynthesizeError("config datasets: no dataset to generate")
     sensors = {row["dataset"]: TruthSensor.from_row(row) for _, row in datasets.iterrows()}
     lay = load_layout()
-    layout = build_layout(species_table(), int(camp["samples_per_species"]), seed)
+    per_species = camp["samples_per_species"]
+    layout = build_layout(species_table(), None if per_species is None else int(per_species), seed)
     fields, targets = _campaign_sites(layout, sorted(set(int(y) for y in datasets["year"])), camp["species"])
 
     # 3. pulses of every dataset near its sites
-    plans, pulses = _plan_pulses(datasets, fields, targets, layout, lay, cfg, seed)
+    margin = disc_margin(camp, eff)
+    plans, pulses = _plan_pulses(datasets, fields, targets, layout, lay, cfg, seed, margin)
     timings = {"plan": time.perf_counter() - t_start, "sites_wall": 0.0, "scenes": 0.0, "trace": 0.0,
                "record_write": 0.0}
     allp = pd.concat(pulses.values(), ignore_index=True)
@@ -201,7 +205,7 @@ def run(cfg: dict, out_dir: str | os.PathLike, effects=None, seed: int | None = 
     allp["row"] = np.concatenate([np.arange(len(p)) for p in pulses.values()])
 
     # 4. trace every site once
-    site_info = _site_info(fields, targets, float(camp["disc_margin_m"]))
+    site_info = _site_info(fields, targets, margin)
     for p in pulses.values():
         p["kind"] = p["site"].map(site_info["kind"]).to_numpy()
     a0, batches, cover_true = _trace_sites(allp, site_info, datasets, sensors, cfg, eff, seed, timings, progress)
@@ -257,12 +261,18 @@ def _campaign_sites(layout, years: list[int], only) -> tuple[pd.DataFrame, pd.Da
     return fields, targets
 
 
+def disc_margin(camp: dict, eff: dict) -> float:
+    """Margin of a site's pulse disc beyond its selection radius, m: ``campaign.disc_margin_m``
+    plus 3.5 SDs of the hidden ``xy_error`` (a pulse recorded inside the radius then exists
+    unless its error exceeds 3.5 SDs per axis)."""
+    return float(camp["disc_margin_m"]) + XY_ERROR_MARGIN_SD * float(eff.get("xy_error", 0.0))
+
+
 def _plan_pulses(datasets: pd.DataFrame, fields: pd.DataFrame, targets: pd.DataFrame, layout, lay: dict,
-                 cfg: dict, seed: int) -> tuple[dict, dict]:
+                 cfg: dict, seed: int, margin: float) -> tuple[dict, dict]:
     """Per dataset, its flight plan (:func:`.flight.plan_flight`) and the pulses near its year's
     sites (:func:`.flight.site_pulses`, with columns ``dataset`` first and ``year``)."""
     camp = cfg["campaign"]
-    margin = float(camp["disc_margin_m"])
     tree_r = float(cfg["select"]["tree_radius_m"])
     cap = camp["max_pulses_per_site"]
     plans, pulses = {}, {}
@@ -349,7 +359,8 @@ def _trace_sites(allp: pd.DataFrame, site_info: pd.DataFrame, datasets: pd.DataF
         hotspot=float(eff["hotspot"]), trigger_loss=float(eff["trigger_loss"]),
         ground_rho=float(vcfg["ground_rho"]), lai_jitter=float(vcfg["lai_jitter"]),
         vegetation_effects=tuple((k, float(eff[k])) for k in VEGETATION_EFFECTS),
-        sensors=tuple(sensors[ds] for ds in names), bvh_quality=str(camp["bvh_quality"]))
+        sensors=tuple(sensors[ds] for ds in names), bvh_quality=str(camp["bvh_quality"]),
+        sampler=str(cfg["mcrt"]["sampler"]), roulette=float(cfg["mcrt"]["roulette"]))
     groups = allp.groupby("site", sort=False).indices
     sites = [s for s in site_info.index if s in groups]
     jobs = []

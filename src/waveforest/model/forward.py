@@ -120,13 +120,13 @@ class SensorSetup:
 class MCRTSetup:
     """Keyword arguments of ``waveforest.mcrt.trace`` (config section ``mcrt`` plus effects)."""
 
-    n_rays: int = 30000
+    n_rays: int = 16384
     max_order: int = 10
     bin_ns: float = 0.05
     viewed_diameter_m: float = 5.0
     effects: dict = field(default_factory=dict)
-    sampler: str = "random"
-    roulette: float = 0.0
+    sampler: str = "sobol"
+    roulette: float = 0.5
 
     @classmethod
     def from_config(cls, cfg: dict, n_rays: int | None = None, effects: dict | None = None) -> MCRTSetup:

@@ -110,9 +110,9 @@ def plot_sigma(result: TraceResult, path: str | Path, i: int = 0, title: str = "
 def run(scene_path: str | Path | None, out: str | Path, *, species: str | None = None,
         height: float | None = None, range_m: float = 1200.0, scan_zenith_deg: float = 0.0,
         azimuth_deg: float = 0.0, footprint_m: float | None = None, divergence_mrad: float | None = None,
-        target=(0.0, 0.0, 0.0), n_rays: int = 30000, max_order: int = 10, bin_ns: float = 0.05,
+        target=(0.0, 0.0, 0.0), n_rays: int = 16384, max_order: int = 10, bin_ns: float = 0.05,
         viewed_diameter_m: float = 5.0, window_ns: float = DEFAULT_WINDOW_NS, seed: int = 0,
-        sampler: str = "random", roulette: float = 0.0, effects=None, plot: str | Path | None = None,
+        sampler: str = "sobol", roulette: float = 0.5, effects=None, plot: str | Path | None = None,
         vegetation_options: dict | None = None) -> TraceResult:
     """Trace one pulse through one scene and write its sigma(t) (and a plot).
 
