@@ -1,4 +1,5 @@
-"""The ``report`` stage: every table and figure of a run in one HTML page and its Markdown twin."""
+"""The ``report`` stage: every table and figure of a run in one HTML page and its Markdown twin,
+led by a summary of the results beside the paper's (:mod:`waveforest.report.summary`)."""
 
 from __future__ import annotations
 
@@ -49,6 +50,10 @@ def run(results, out_html, cfg: dict | None, out_md=None, title: str = "wavefore
 @stage_options
 def report(inputs, results, out, markdown, cfg):
     """One HTML page and a Markdown twin with every table and figure of a run.
+
+    The report opens with a summary: Table 3 and Table 4 beside the paper's values, the Fig. 9
+    trend and the diagnosis verdict with its detection limits; a missing value says why in
+    place. Details follow, calibration after the results.
 
     INPUTS are result files the report must find (the workflow passes the tables of the stages
     it reports on; a missing one is an error). The report shows everything under --results.
