@@ -38,6 +38,7 @@ COMMANDS = {
     "classify": "waveforest.stages.classify:classify",
     "diagnose": "waveforest.stages.diagnose:diagnose",
     "report": "waveforest.stages.report:report",
+    "quicklook": "waveforest.stages.quicklook:quicklook",
 }
 
 
