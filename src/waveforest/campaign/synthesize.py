@@ -65,8 +65,6 @@ from waveforest.vegetation import species_table
 VEGETATION_EFFECTS = ("understory", "clumping", "lad_shift", "leaf_albedo")
 MCRT_EFFECTS = ("specular", "hotspot")
 SENSOR_EFFECTS = ("noise_autocorr", "nonlinearity", "trigger_loss")
-XY_ERROR_MARGIN_SD = 3.5
-"""SDs of the hidden xy_error added to the pulse-disc margin (:func:`disc_margin`)."""
 
 DIGITIZER_GAIN, DIGITIZER_OFFSET = 1.0, 0.0
 """Waveform packet descriptor: volts per DN and volts at DN 0 (the ALS60's are not published)."""
@@ -195,7 +193,7 @@ def run(cfg: dict, out_dir: str | os.PathLike, effects=None, seed: int | None = 
     fields, targets = _campaign_sites(layout, sorted(set(int(y) for y in datasets["year"])), camp["species"])
 
     # 3. pulses of every dataset near its sites
-    margin = disc_margin(camp, eff)
+    margin = float(camp["disc_margin_m"])
     plans, pulses = _plan_pulses(datasets, fields, targets, layout, lay, cfg, seed, margin)
     timings = {"plan": time.perf_counter() - t_start, "sites_wall": 0.0, "scenes": 0.0, "trace": 0.0,
                "record_write": 0.0}
@@ -259,13 +257,6 @@ def _campaign_sites(layout, years: list[int], only) -> tuple[pd.DataFrame, pd.Da
             raise SynthesizeError(f"campaign.species: unknown species {', '.join(unknown)}")
         fields = fields[fields["species"].isin(only)].reset_index(drop=True)
     return fields, targets
-
-
-def disc_margin(camp: dict, eff: dict) -> float:
-    """Margin of a site's pulse disc beyond its selection radius, m: ``campaign.disc_margin_m``
-    plus 3.5 SDs of the hidden ``xy_error`` (a pulse recorded inside the radius then exists
-    unless its error exceeds 3.5 SDs per axis)."""
-    return float(camp["disc_margin_m"]) + XY_ERROR_MARGIN_SD * float(eff.get("xy_error", 0.0))
 
 
 def _plan_pulses(datasets: pd.DataFrame, fields: pd.DataFrame, targets: pd.DataFrame, layout, lay: dict,
