@@ -67,6 +67,8 @@ def test_summary_first_with_both_tables_and_paper_values(tmp_path):
     old = [ln for ln in body.splitlines() if ln.startswith("| 2012_05_1 | 12 (3)")][0]
     assert "— (0 pulses of conifer, broadleaf, low_barren_abiotic; LDA needs 2 groups with pulses)" in old
     assert "76.1 (κ 0.66)" in old
+    assert ("our 1-pulse accuracy is 100.0 % by resubstitution and 100.0 % cross-validated; the paper's for the "
+            "same datasets 76.1 to 83.1 % (all 9: 68.1 to 86.7 %)") in body
     assert "— (detection limits not computed" in body
     # no empty cell anywhere in the report, summary or details
     for _, b in sections:
@@ -91,6 +93,8 @@ def test_missing_values_explained_from_new_style_json_and_detection_limits(tmp_p
     lim = {ln.split("|")[1].strip(): [c.strip() for c in ln.split("|")[1:-1]]
            for ln in body.splitlines() if ln.startswith(("| understory", "| clumping"))}
     assert lim["understory"][1] == "0.4" and lim["clumping"][1] == "— (nothing up to 3 m is detectable)"
+    assert ("Detection limits (power 0.80): understory from 0.4 would have been detected; 1 of 2 effects are not "
+            "detectable within their bounds.") in body
     assert "verdict" in body  # model.yaml of the fixture has none: said so in place
     assert "— (model.yaml holds no verdict)" in body
     cells = _cells(body)

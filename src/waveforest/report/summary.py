@@ -261,6 +261,29 @@ def table4_summary(results: list[dict], run_datasets=(), paper_t4: pd.DataFrame 
     return pd.DataFrame(rows)
 
 
+def table4_sentence(results: list[dict], paper_t4: pd.DataFrame | None = None) -> str:
+    """Ranges of our 1-pulse accuracy (resubstitution and CV) against the paper's, same datasets."""
+    head = ("Table 4 (four functional groups on E and Apeak; percent correct (κ kappa); `resub` = "
+            "resubstitution, the paper's scheme; `CV` = folds that never split a field sample): ")
+    paper_t4 = paper.table4() if paper_t4 is None else paper_t4
+    acc = {"resubstitution": [], "cross_validated": []}
+    for r in results:
+        block = (r.get("main") or {}).get("one_pulse") or {}
+        for scheme, v in acc.items():
+            sc = block.get(scheme)
+            if isinstance(sc, dict) and np.isfinite(_num(sc.get("accuracy"))):
+                v.append(100 * _num(sc["accuracy"]))
+    if not acc["resubstitution"]:
+        return head + missing("no dataset classified")
+    p = paper_t4[paper_t4["dataset"].astype(str).isin({str(r.get("dataset")) for r in results})]
+    paper_text = (_range_text(p["one_pulse_correct_pct"].astype(float), ".1f", " %") if len(p)
+                  else missing("none of our datasets is in the paper"))
+    return (head + f"our 1-pulse accuracy is {_range_text(pd.Series(acc['resubstitution']), '.1f', ' %')} by "
+            f"resubstitution and {_range_text(pd.Series(acc['cross_validated'], dtype=float), '.1f', ' %')} "
+            f"cross-validated; the paper's for the same datasets {paper_text} "
+            f"(all {len(paper_t4)}: {_range_text(paper_t4['one_pulse_correct_pct'].astype(float), '.1f', ' %')}).")
+
+
 # -- Fig. 9 -----------------------------------------------------------------------------------
 
 def _trend(x: np.ndarray, y: np.ndarray) -> str:
@@ -419,6 +442,17 @@ def detection_limits(d: Path) -> pd.DataFrame | None:
     return pd.DataFrame(rows, columns=["effect", "smallest detectable", "upper bound", "power", "replicates"])
 
 
+def detection_sentence(dl: pd.DataFrame) -> str:
+    """What the diagnosis could have seen, in words, from :func:`detection_limits`'s table."""
+    seen = dl[~dl["smallest detectable"].str.startswith(NO_VALUE)]
+    text = (f"Detection limits (power {', '.join(sorted(set(dl['power'])))}): "
+            + (", ".join(f"{e} from {v}" for e, v in zip(seen["effect"], seen["smallest detectable"]))
+               + " would have been detected" if len(seen) else "no effect is detectable within its bounds"))
+    if 0 < len(seen) < len(dl):
+        text += f"; {len(dl) - len(seen)} of {len(dl)} effects are not detectable within their bounds"
+    return text + "."
+
+
 # -- the section ------------------------------------------------------------------------------
 
 def _classify_results(results: Path) -> list[dict]:
@@ -445,8 +479,7 @@ def summary_parts(results: str | Path, cfg: dict | None) -> list[tuple]:
     items: list[tuple] = [("text", table3_sentences(t3, order))]
     items.append(("table", "Table 3 in brief: Δ % = (sim − real) / real × 100 per feature, ours and the paper's; "
                   "N = pulses (ours: real / simulated)", fill_blanks(table3_summary(t3, run_datasets))))
-    items.append(("text", "Table 4: percent correct (κ kappa) of the four functional groups on E and Apeak; "
-                  "`resub` = resubstitution, the paper's scheme; `CV` = folds that never split a field sample."))
+    items.append(("text", table4_sentence(cls)))
     items.append(("table", "Table 4 in brief: ours beside the paper's",
                   fill_blanks(table4_summary(cls, run_datasets))))
     ss = read_csv(results / "sensor_study" / "sensor_study.csv")
@@ -454,10 +487,6 @@ def summary_parts(results: str | Path, cfg: dict | None) -> list[tuple]:
     items.append(("text", fig9_sentences(ss, range_m)))
     d = results / "diagnose"
     items.append(("text", diagnosis_text(d)))
-    gap = gap_summary(d)
-    if gap is not None:
-        items.append(("table", "Diagnosis: gap per feature and in total, before and after the named effects",
-                      fill_blanks(gap)))
     dl = detection_limits(d) if d.exists() else None
     if dl is None:
         items.append(("text", "Detection limits: " + missing("detection limits not computed: "
@@ -465,7 +494,11 @@ def summary_parts(results: str | Path, cfg: dict | None) -> list[tuple]:
     elif dl.empty:
         items.append(("text", "Detection limits: " + missing("detection_limits.csv has no rows")))
     else:
-        items.append(("text", "Detection limits: the smallest value of each effect that the diagnosis detects "
-                      "with the stated power."))
+        items.append(("text", detection_sentence(dl)))
+    gap = gap_summary(d)
+    if gap is not None:
+        items.append(("table", "Diagnosis: gap per feature and in total, before and after the named effects",
+                      fill_blanks(gap)))
+    if dl is not None and not dl.empty:
         items.append(("table", "Detection limits of the diagnosis", fill_blanks(dl)))
     return items
