@@ -32,7 +32,7 @@ import yaml
 from waveforest.atomic import atomic_path
 from waveforest.io import paper
 from waveforest.report.markdown import format_value, to_markdown
-from waveforest.report.summary import read_csv, summary_parts
+from waveforest.report.summary import missing, read_csv, summary_parts
 
 MAX_TABLE_ROWS = 400
 """Longest table shown in full; longer ones are cut (the CSV holds all rows)."""
@@ -250,7 +250,9 @@ def _classify(results: Path, used: set, out_dir: Path) -> Section | None:
                         extra_rows.append({"dataset": r["dataset"], "features": "+".join(e["features"]),
                                            "level": level, "scheme": scheme,
                                            "correct_pct": 100 * s["accuracy"], "kappa": s["kappa"],
-                                           "gain_pp": np.nan if gain is None else gain})
+                                           "gain_pp": gain if gain is not None else missing(
+                                               "main set has no score" if "gain_pp" in e else
+                                               "classify JSON without gain_pp")})
         ts = r.get("three_species")
         for key, what in (("reason", "1-pulse"), ("multi_pulse_reason", "multi-pulse")):
             if ts and ts.get(key) and not (key == "multi_pulse_reason" and ts.get("reason") == ts[key]):
@@ -268,7 +270,7 @@ def _classify(results: Path, used: set, out_dir: Path) -> Section | None:
     if extra_rows:
         sec.table("Other feature sets; gain_pp = accuracy minus the main set's, percentage points "
                   "(paper: adding FWHM gains < 1 pp, max H per sample +0.4 to +7.8 pp)",
-                  pd.DataFrame(extra_rows).dropna(axis=1, how="all"))  # older JSONs carry no gain_pp
+                  pd.DataFrame(extra_rows))
     if three_rows:
         sec.table("Three-species LDA on real data, Apeak + FWHM + E (paper: 78.6-88.3 % 1-pulse, "
                   "89.6-95.8 % 5-pulse)", pd.DataFrame(three_rows))
