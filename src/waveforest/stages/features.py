@@ -33,6 +33,7 @@ from waveforest.sensor.calibration import Calibration, load_calibration
 from waveforest.sensor.cfd import detect_echoes
 from waveforest.sensor.features import FEATURE_NAMES, feature_table
 from waveforest.sensor.params import CFDParams, FeatureParams
+from waveforest.stages.tune_cfd import stream_pulses
 
 
 def run(pulse_paths, calibration_paths, out_path, cfg: dict, *, batch_rows: int = 65536,
@@ -123,10 +124,11 @@ def _cfd_columns(batch: pa.Table, cal: Calibration, cfd: CFDParams, max_echoes: 
     }
 
 
-def run_cfd(pulse_paths, cfd_path, out_path, cfg: dict, *, batch_rows: int = 65536, progress: bool = True) -> CFDFeatures:
+def run_cfd(pulse_paths, cfd_path, out_path, cfg: dict, *, batch_rows: int = 8192, progress: bool = True) -> CFDFeatures:
     """First-echo features and every CFD echo of pulse tables, with the JSON of ``tune-cfd``.
 
-    Streams: one batch of pulses and one Parquet row group at a time, whatever the table's size.
+    Streams: one batch of ``batch_rows`` pulses and one Parquet row group at a time, whatever the
+    table's size (8192 pulses of 256 samples take ~100 MB while they are processed).
     The first echo is the first DR echo where the pulse has one (§(h)), else the first CFD echo;
     the features columns are those of :func:`waveforest.sensor.features.feature_table`, then
     ``echo_x``, ``echo_y`` (first-echo position, m), ``n_cfd_echoes`` and :data:`CFD_COLUMNS`.
@@ -156,7 +158,7 @@ def run_cfd(pulse_paths, cfd_path, out_path, cfg: dict, *, batch_rows: int = 655
                 total = pq.read_metadata(path).num_rows
                 with tqdm(total=total, unit="pulse", unit_scale=True, disable=not progress, file=sys.stderr,
                           desc=f"features {path.name}") as bar:
-                    for batch in iter_pulses(path, batch_rows):
+                    for batch in stream_pulses(path, batch_rows):
                         batch = check_pulses(batch, path)
                         names = set(np.unique(batch.column("dataset").to_numpy(zero_copy_only=False).astype(str)))
                         if names - {name}:
