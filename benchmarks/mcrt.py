@@ -138,6 +138,7 @@ METHODS = {
     "sobol_rr_24k": dict(n_rays=24576, sampler="sobol", roulette=0.5, quality="medium"),
     "sobol_rr_32k": dict(n_rays=32768, sampler="sobol", roulette=0.5, quality="medium"),
     "random_1500": dict(n_rays=1500, quality="medium"),
+    "sobol_rr_256": dict(n_rays=256, sampler="sobol", roulette=0.5, quality="medium"),
     "sobol_rr_512": dict(n_rays=512, sampler="sobol", roulette=0.5, quality="medium"),
     "sobol_rr_768": dict(n_rays=768, sampler="sobol", roulette=0.5, quality="medium"),
 }

@@ -12,7 +12,9 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def test_empty_config_gets_every_default():
     cfg = config.load()
-    assert cfg["mcrt"]["n_rays"] == 30000
+    # Sobol' + roulette at 16384 rays: the sigma(t) error of 30,000 random rays (docs/validation.md)
+    assert (cfg["mcrt"]["n_rays"], cfg["mcrt"]["sampler"], cfg["mcrt"]["roulette"]) == (16384, "sobol", 0.5)
+    assert cfg["campaign"]["samples_per_species"] is None  # Table 1's design counts
     assert cfg["mcrt"]["max_order"] == 10
     assert cfg["vegetation"]["ground_rho"] == pytest.approx(0.30)
     assert cfg["sensor"]["cfd"]["fraction"] == pytest.approx(0.5)
