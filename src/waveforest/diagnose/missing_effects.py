@@ -165,7 +165,7 @@ def summary_markdown(result: SearchResult, gap: pd.DataFrame, cand: pd.DataFrame
                          f"{_fmt(r['reduction_ci_high'])}] | {_fmt(r['relative_reduction'], 2)} | "
                          f"{'yes' if r['significant'] else 'no'}{' (fit at a bound)' if r['at_bound'] else ''} |")
         lines.append("")
-    lines += _limits_markdown(limits, curve)
+    lines += _limits_markdown(limits, curve, result.baseline.noise_floor)
     lines += ["Files: model.yaml (the extended model), candidates.csv (all candidates, ranked), "
               "gap_before_after.csv (per cell, feature and total), gap.png, signatures.csv (how each "
               "candidate moves the features), detection_limits.csv and detection_curve.csv (what these "
@@ -173,18 +173,21 @@ def summary_markdown(result: SearchResult, gap: pd.DataFrame, cand: pd.DataFrame
     return "\n".join(lines)
 
 
-def _limits_markdown(limits: pd.DataFrame, curve: pd.DataFrame) -> list[str]:
-    """The ``diagnose.md`` section on detection limits."""
+def _limits_markdown(limits: pd.DataFrame, curve: pd.DataFrame, real_floor: float) -> list[str]:
+    """The ``diagnose.md`` section on detection limits (``real_floor``: the real data's noise floor)."""
     reps = int(limits["replicates"].iloc[0]) if len(limits) else 0
     off = curve[curve["strength"] == 0]
     false_alarms = float(off["power"].iloc[0]) if len(off) else math.nan
+    off_floor = float(off["noise_floor"].iloc[0]) if len(off) else math.nan
     lines = ["## What these data could have seen", "",
              f"Each candidate simulated at a ladder of values as pseudo-real data of these pulses, {reps} "
              "replicate(s), tested as the base model's gap is (above the noise floor at the same alpha, same "
              "cluster bootstrap); the smallest value detected in at least "
              f"{_fmt(float(limits['power'].iloc[0]) * 100 if len(limits) else math.nan)} % of the replicates "
              f"(src/waveforest/diagnose/power.py). With no effect the test fired in {_fmt(false_alarms * 100)} % "
-             "of them.", "",
+             f"of them. Noise floor of the pseudo-real data without effect {_fmt(off_floor)}, of the real data "
+             f"{_fmt(real_floor)}: a real floor well above the pseudo-real one means more spread between real "
+             "plants than between simulated ones, and limits that are too small.", "",
              "| effect | smallest detectable | tried up to |", "|---|---|---|"]
     for r in limits.itertuples():
         found = "not within the bounds" if pd.isna(r.smallest_detectable) else f"{_fmt(r.smallest_detectable)} {r.unit}"
