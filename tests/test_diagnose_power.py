@@ -108,5 +108,8 @@ def test_power_settings_are_checked_and_read_from_the_config():
     assert PowerSettings(replicates=3, power=0.8).needed == 3 and PowerSettings(replicates=5, power=0.8).needed == 4
     with pytest.raises(WaveforestError, match="diagnose.power"):
         PowerSettings(replicates=0)
+    study = SyntheticStudy(samples_per_species=3, pulses_per_sample=2)
+    limits, curve = detection_limits(study.keys, None, SearchSettings(candidates=()), POWER, 1)  # all in the model
+    assert limits.empty and list(limits.columns) == list(LIMIT_COLUMNS) and verdict_with_limits("none", limits) == "none"
     with pytest.raises(WaveforestError, match="no pulse"):
         detection_limits(pd.DataFrame(columns=["dataset", "sample_id", "species"]), None, SETTINGS, POWER, 1)

@@ -171,6 +171,8 @@ def detection_limits(keys: pd.DataFrame, simulate: Simulator, settings: SearchSe
     """
     if keys.empty:
         raise WaveforestError("diagnose: no pulse for the power analysis")
+    if not settings.candidates:
+        return pd.DataFrame(columns=list(LIMIT_COLUMNS)), pd.DataFrame(columns=list(CURVE_COLUMNS))
     keys = keys.assign(sample_id=keys["sample_id"].astype(str))
     universe = sample_universe(keys)
     seeds = np.random.SeedSequence([int(seed), 9]).generate_state(power.replicates)
@@ -222,4 +224,4 @@ def verdict_with_limits(verdict: str, limits: pd.DataFrame) -> str:
     if len(blind):
         parts.append("not detectable within the bounds: " + ", ".join(
             f"{r.effect} (up to {r.upper_bound:.3g} {r.unit})" for r in blind.itertuples()))
-    return f"{verdict}: " + "; ".join(parts)
+    return f"{verdict}: " + "; ".join(parts) if parts else verdict
