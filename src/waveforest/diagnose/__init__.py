@@ -12,6 +12,7 @@ Beyond Hovi & Korpela (2014), docs/method.md §(j); the ``diagnose`` stage
 * :mod:`.strata` — the pulses compared, selection rules, the stratum under the crowns;
 * :mod:`.simulator` — the study's simulation chain as ``simulate(pulses, effects, seed)``;
 * :mod:`.missing_effects` — search, fresh before/after, signatures, the markdown summary;
+* :mod:`.power` — detection limits: the smallest value of each candidate these data would detect;
 * :mod:`.model` — ``model.yaml``, written and read back;
 * :mod:`.figures` — ``gap.png``.
 """
