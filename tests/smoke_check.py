@@ -69,6 +69,11 @@ def check(results: Path, cfg: dict, paper_scale: bool = False) -> list[str]:
                     fails.append(f"{cls}: {key} = {value} outside [-1, 1]")
 
     t3 = results / "compare/table3.csv"
+    paper_counts = None
+    if paper_scale:
+        from waveforest.io.paper import table3_counts
+
+        paper_counts = table3_counts()
     if need(t3):
         t = pd.read_csv(t3)
         for d in compare:
@@ -81,8 +86,8 @@ def check(results: Path, cfg: dict, paper_scale: bool = False) -> list[str]:
                     if sub[col].min() < MIN_COMPARED:
                         fails.append(f"{t3}: {d}/{sp} has {int(sub[col].min())} {col[2:]} pulses "
                                      f"(expected >= {MIN_COMPARED})")
-                if paper_scale:
-                    fails += _check_paper_count(t3, d, sp, int(sub["n_real"].max()))
+                if paper_counts is not None:
+                    fails += _check_paper_count(t3, paper_counts, d, sp, int(sub["n_real"].max()))
                 missing = set(FEATURES) - set(sub["feature"])
                 if missing:
                     fails.append(f"{t3}: {d}/{sp} lacks features {sorted(missing)}")
@@ -142,10 +147,7 @@ def _check_groups(path: Path, c: dict, cfg: dict, paper_scale: bool) -> list[str
     return fails
 
 
-def _check_paper_count(path: Path, dataset: str, species: str, n_real: int) -> list[str]:
-    from waveforest.io.paper import table3_counts
-
-    paper = table3_counts()
+def _check_paper_count(path: Path, paper: pd.DataFrame, dataset: str, species: str, n_real: int) -> list[str]:
     row = paper[(paper["dataset"].astype(str) == dataset) & (paper["species"] == species)]
     if row.empty:
         return []
