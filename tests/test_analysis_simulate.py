@@ -66,9 +66,9 @@ def _cal():
     return Calibration(gaussian_system_waveform(7.2, S_PEAK), 10.0, 1.5)
 
 
-def _sim(cfg, chunk=0, chunks=1, effects=None, builder=plate_scene):
+def _sim(cfg, chunk=0, chunks=1, effects=None, builder=plate_scene, threads=None):
     table, summary = simulate_pulses(_selected(), _info(), _cal(), cfg, chunk=chunk, chunks=chunks,
-                                     effects=effects, progress=False, scene_builder=builder)
+                                     effects=effects, progress=False, scene_builder=builder, threads=threads)
     return table, summary
 
 
@@ -181,6 +181,56 @@ def test_same_seed_same_table_and_chunks_do_not_matter():
     assert _same(_sorted(pa.concat_tables(parts)), _sorted(a))
     c, _ = _sim(_cfg() | {"seed": 6})
     assert not _sorted(c).column("samples").equals(_sorted(a).column("samples"))
+
+
+def test_worker_threads_do_not_change_the_table():
+    """Groups shared over worker threads (finishing in any order) give the serial table, row for row."""
+    cfg = _cfg()
+    serial, _ = _sim(cfg, threads=1)
+    assert serial.num_rows > 4
+    assert _same(_sim(cfg, threads=2)[0], serial)
+    assert _same(_sim(cfg, threads=3)[0], serial)
+
+
+def _birch_samples(n_samples: int, per_sample: int) -> pa.Table:
+    """``per_sample`` identical nadir pulses over each of ``n_samples`` 3-m birch samples (0.4 m
+    east of the stem, 1.5 m up): their features differ only by the plant instance and noise."""
+    n = n_samples * per_sample
+    k = np.repeat(np.arange(n_samples), per_sample)
+    x, y, gz, h = 1000.0 + 20.0 * k, np.full(n, 500.0), np.full(n, 40.0), np.full(n, 3.0)
+    df = pulse_table("2010_12_1", [[(xi + 0.4, yi, zi + 1.5)] for xi, yi, zi in zip(x, y, gz)],
+                     pulse_ids=np.arange(n) * 5 + 1).to_pandas()
+    df[["dir_x", "dir_y", "dir_z"]] = [0.0, 0.0, -1.0]
+    df["sensor_x"], df["sensor_y"], df["sensor_z"] = x + 0.4, y, gz + ALTITUDE
+    for c, v in (("sample_id", [f"B{i}" for i in k]), ("species", "birch"), ("sample_x", x), ("sample_y", y),
+                 ("ground_z", gz), ("height_m", h), ("functional_group", "broadleaf"), ("is_tree", True),
+                 ("comparison_set", True), ("classification_set", True)):
+        df[c] = v
+    return pa.Table.from_pandas(df, preserve_index=False)
+
+
+def test_an_instance_pool_keeps_the_between_instance_variance_of_a_new_instance_per_pulse():
+    """Identical beams over many samples: the spread of sigma_total is the vegetation's
+    between-instance variance. A pool of 2 instances per sample (5 pulses each) must give the
+    spread and mean of the paper's rule (an instance per pulse); reusing one plant everywhere
+    would collapse the spread to the Monte Carlo noise, which the paired pulses measure."""
+    sel = _birch_samples(24, 5)
+    runs = {}
+    for k in (None, 2):
+        cfg = config.load(overrides={"seed": 9, "mcrt": {"n_rays": 400, "max_order": 3},
+                                     "simulate": {"instances_per_sample": k, "max_pulses": None}})
+        t, _ = simulate_pulses(sel, _info(), _cal(), cfg, progress=False)
+        runs[k] = t.select(["sample_id", "sim_instance", "sigma_total"]).to_pandas()
+    fresh, pool = runs[None]["sigma_total"], runs[2]
+    assert len(fresh) >= 110 and len(pool) >= 110
+    assert pool.groupby("sample_id")["sim_instance"].nunique().max() == 2
+    ratio = pool["sigma_total"].var() / fresh.var()
+    assert 0.5 < ratio < 2.0, ratio
+    se = np.sqrt(fresh.var() / len(fresh) + pool["sigma_total"].var() / (2 * 24))
+    assert abs(pool["sigma_total"].mean() - fresh.mean()) < 4 * se
+    # the test's power: pulses sharing an instance differ only by Monte Carlo noise
+    mc = pool.groupby(["sample_id", "sim_instance"])["sigma_total"].var().mean()
+    assert mc < 0.1 * fresh.var()
 
 
 def test_plan_cap_and_instances():

@@ -6,24 +6,18 @@ traced in a single batched :func:`waveforest.mcrt.trace` call. Per dataset, the 
 its pulses is trimmed to the bins that hold light (float32) and the noise-free unit-gain
 analog peak of each pulse (what the AGC loop scales) is computed.
 
-Parallelism: the sites are shared over ``workers`` threads, each running single-threaded
-MCRT and Numba kernels, so that the scene building and BVH builds of one site overlap with
-the tracing of another on every core. The heavy parts release the GIL (Embree through
-ctypes, ``nogil`` Numba kernels, most of NumPy); threads rather than processes need no
-start-up, no pickling and no ``__main__`` guard in a caller's script. The result does not depend on the number
-of workers or on the order in which the sites finish: a site's scene seed and MCRT key
-derive only from the master seed and the site id (:mod:`.rng`), and the MCRT result does not
-depend on threads (:mod:`waveforest.mcrt.tracer`).
+Parallelism: the sites are shared over worker threads (:func:`waveforest.workers.unordered_map`).
+The result does not depend on the number of workers or on the order in which the sites
+finish: a site's scene seed and MCRT key derive only from the master seed and the site id
+(:mod:`.rng`), and the MCRT result does not depend on threads (:mod:`waveforest.mcrt.tracer`).
 """
 
 from __future__ import annotations
 
 import sys
 import time
-from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 from tqdm import tqdm
 
@@ -32,12 +26,10 @@ from waveforest.campaign.truth_sensor import TruthSensor, unit_gain_peaks
 from waveforest.constants import BIN_NS
 from waveforest.mcrt import Beams, prepare, trace
 from waveforest.rng import stream_seed31
+from waveforest.workers import unordered_map
 
 SIGMA_TRIM_REL = 1e-6
 """sigma(t) bins at the ends of a site's batch below this fraction of its largest bin are not kept."""
-
-QUEUE_PER_WORKER = 2
-"""Sites queued per worker thread at a time (bounds the memory of scenes in flight)."""
 
 
 @dataclass(frozen=True)
@@ -183,13 +175,6 @@ def trace_site(job: SiteJob, st: TraceSettings, threads: int | None = None) -> S
     return SiteResult(job.site, parts, cover, t_trace - t_start, time.perf_counter() - t_trace)
 
 
-def _work(job: SiteJob, settings: TraceSettings) -> SiteResult:
-    """A site on a worker thread: serial Numba kernels (the thread count is thread-local)."""
-
-    numba.set_num_threads(1)
-    return trace_site(job, settings, threads=1)
-
-
 def trace_sites(jobs: list[SiteJob], settings: TraceSettings, workers: int = 1, *,
                 progress: bool = True) -> dict[str, SiteResult]:
     """Trace every site (module docstring).
@@ -212,37 +197,13 @@ def trace_sites(jobs: list[SiteJob], settings: TraceSettings, workers: int = 1, 
     if workers < 1:
         raise ValueError(f"workers: expected >= 1, got {workers}")
     bar = tqdm(total=len(jobs), desc="synthesize: sites", unit="site", file=sys.stderr, disable=not progress)
-    out: dict[str, SiteResult] = {}
     # the largest sites first: the workers finish together
-    order = sorted(range(len(jobs)), key=lambda i: -len(jobs[i]))
+    order = sorted(jobs, key=len, reverse=True)
+    out: dict[str, SiteResult] = {}
     try:
-        if workers == 1 or len(jobs) < 2:
-            for i in order:
-                r = trace_site(jobs[i], settings)
-                out[r.site] = r
-                bar.update()
-            return out
-        with ThreadPoolExecutor(max_workers=min(workers, len(jobs)), thread_name_prefix="waveforest-site") as pool:
-            pending = set()
-            todo = iter(order)
-            try:
-                for i in todo:
-                    pending.add(pool.submit(_work, jobs[i], settings))
-                    if len(pending) >= QUEUE_PER_WORKER * workers:
-                        break
-                while pending:
-                    done, pending = wait(pending, return_when=FIRST_COMPLETED)
-                    for f in done:
-                        r = f.result()
-                        out[r.site] = r
-                        bar.update()
-                        nxt = next(todo, None)
-                        if nxt is not None:
-                            pending.add(pool.submit(_work, jobs[nxt], settings))
-            except BaseException:
-                for f in pending:
-                    f.cancel()
-                raise
+        for _, r in unordered_map(lambda job: trace_site(job, settings), order, workers):
+            out[r.site] = r
+            bar.update()
         return out
     finally:
         bar.close()

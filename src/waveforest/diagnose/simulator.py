@@ -39,6 +39,7 @@ calibration, and when no twin has an echo. Measured costs: docs/validation.md (S
 from __future__ import annotations
 
 import copy
+import threading
 from collections import OrderedDict
 from dataclasses import replace
 
@@ -96,6 +97,7 @@ class _SceneCache:
         self.scenes: OrderedDict = OrderedDict()
         self.built = 0
         self.hits = 0
+        self.lock = threading.Lock()
 
     def __call__(self, species, height, seed, **kwargs):
 
@@ -103,17 +105,21 @@ class _SceneCache:
         if kw.get("understory", 0.0) and not _is_tree_model(str(species)):
             kw.pop("understory")  # grows under trees only (vegetation.build_scene): same plant
         key = (str(species), float(height), int(seed), tuple(sorted(kw.items())))
-        if key in self.scenes:
-            self.scenes.move_to_end(key)
-            self.hits += 1
-            return self.scenes[key]
+        with self.lock:
+            if key in self.scenes:
+                self.scenes.move_to_end(key)
+                self.hits += 1
+                return self.scenes[key]
+        # built outside the lock (simulate_pulses' worker threads build concurrently)
         scene = prepare(build_scene(species, height, seed, **kwargs), quality="medium")
-        self.built += 1
-        self.scenes[key] = scene
-        self.triangles += len(scene.scene)
-        while len(self.scenes) > 1 and (len(self.scenes) > self.size or self.triangles > self.max_triangles):
-            _, old = self.scenes.popitem(last=False)
-            self.triangles -= len(old.scene)
+        with self.lock:
+            self.built += 1
+            if key not in self.scenes:
+                self.scenes[key] = scene
+                self.triangles += len(scene.scene)
+            while len(self.scenes) > 1 and (len(self.scenes) > self.size or self.triangles > self.max_triangles):
+                _, old = self.scenes.popitem(last=False)
+                self.triangles -= len(old.scene)
         return scene
 
 

@@ -62,6 +62,7 @@ from waveforest.errors import WaveforestError
 from waveforest.io.pulses import PULSE_SCHEMA, padded_to_list, read_pulses, write_pulses
 from waveforest.io.tables import dataset_row, divergence_mrad, read_datasets, read_fields
 from waveforest.mcrt import Beams
+from waveforest.mcrt.threads import default_threads
 from waveforest.model.forward import MCRTSetup, SensorSetup, split_effects, trace_and_render
 from waveforest.rng import hash_ids, hashed_seed63, hashed_sequence, stable_hash
 from waveforest.sensor._checks import gain_or_one
@@ -69,6 +70,7 @@ from waveforest.sensor.agc import GAIN_COLUMN
 from waveforest.sensor.calibration import Calibration, load_calibration
 from waveforest.stages.select import dataset_of
 from waveforest.vegetation import build_scene
+from waveforest.workers import unordered_map
 
 SIM_COLUMNS = ("sim_instance", "sigma_total")
 """Columns a simulated pulse table has beyond the pulse schema and the select columns."""
@@ -171,7 +173,10 @@ def simulate_pulses(selected: pa.Table, dataset_info: pd.Series, calibration: Ca
     progress : bool
         tqdm bar over the chunk's pulses (stderr).
     threads : int, optional
-        Threads of each MCRT call.
+        Worker threads (default: Numba's thread count); with more than one, the (sample,
+        instance) groups are shared over them, each built and traced serially
+        (:func:`waveforest.workers.unordered_map`), so that builds overlap with tracing.
+        The table does not depend on it.
     scene_builder : callable, optional
         ``f(species, height, seed, **kwargs) -> Scene``; default
         :func:`waveforest.vegetation.build_scene`.
@@ -207,15 +212,16 @@ def simulate_pulses(selected: pa.Table, dataset_info: pd.Series, calibration: Ca
     mcrt = MCRTSetup.from_config(cfg, effects=mcrt_fx)
     veg = cfg["vegetation"]
     div = divergence_mrad(dataset_info)
-    pieces = []
     n_no_echo = 0
-    groups = list(p.groupby("group", sort=True))
+    groups = [g for _, g in p.groupby("group", sort=True)]
     bar = None
     if progress:
         from tqdm import tqdm
 
         bar = tqdm(total=len(p), desc=f"simulate {dataset} chunk {chunk}", unit="pulse", leave=False)
-    for _, g in groups:
+    workers = threads if threads is not None else default_threads()
+
+    def unit(g: pd.DataFrame):
         d = scal.loc[g.sort_values("pulse_id").index.to_numpy()]
         first = d.iloc[0]
         sample_id, inst = str(first["sample_id"]), int(g["instance"].iloc[0])
@@ -223,12 +229,16 @@ def simulate_pulses(selected: pa.Table, dataset_info: pd.Series, calibration: Ca
                               hashed_seed63(seed, "scene", sample_id, inst),
                               ground_rho=float(veg["ground_rho"]), lai_jitter=float(veg["lai_jitter"]), **veg_fx)
         ss = hashed_sequence(seed, dataset, "pulses", sample_id, inst, *((int(stream),) if stream else ()))
-        piece, lost = _simulate_group(d, scene, ss, inst, div, xy_error, mcrt, setup, threads, carry)
+        return _simulate_group(d, scene, ss, inst, div, xy_error, mcrt, setup, 1 if workers > 1 else threads, carry)
+
+    done: dict[int, pa.Table] = {}
+    for i, (piece, lost) in unordered_map(unit, groups, workers):
         n_no_echo += lost
         if piece is not None:
-            pieces.append(piece)
+            done[i] = piece
         if bar is not None:
-            bar.update(len(g))
+            bar.update(len(groups[i]))
+    pieces = [done[i] for i in sorted(done)]
     if bar is not None:
         bar.close()
     table = pa.concat_tables(pieces) if pieces else _empty(carry)
