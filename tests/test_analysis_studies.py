@@ -62,9 +62,11 @@ def test_sensitivity_apeak_is_linear_in_rho(tmp_path):
     assert not t.reset_index().select_dtypes("number").isna().any().any()  # no NaN (smoke check)
     base = pd.read_csv(tmp_path / "sensitivity_baseline.csv")
     assert len(base) == 1 and base.loc[0, "mean_apeak"] == pytest.approx(plane_dn * 0.47 / 0.34, rel=0.03)
-    # same seed -> same table
-    again = sensitivity.run(tmp_path / "b", cfg, progress=False, scene_builder=plate_scene)
+    # same seed -> same table, whatever the worker threads
+    again = sensitivity.run(tmp_path / "b", cfg, progress=False, scene_builder=plate_scene, threads=1)
     assert pd.read_csv(again.table).equals(pd.read_csv(out.table))
+    pulses = pd.read_parquet(out.pulses_table)
+    assert pd.read_parquet(again.pulses_table).equals(pulses) and pulses["instance"].nunique() == 3
 
 
 def test_sensor_study_is_separable_and_conserves_energy(tmp_path):
@@ -85,6 +87,8 @@ def test_sensor_study_is_separable_and_conserves_energy(tmp_path):
     assert (apk.loc[5.0] > 1.6 * apk.loc[10.0]).all()  # half the width, about twice the peak
     fw = f[f.parameter == "pulse_width_ns"].pivot(index="value", columns="species", values="mean_FWHM")
     assert fw.loc[10.0].to_numpy() == pytest.approx(10.0, rel=0.05)
+    serial = sensor_study.run(tmp_path / "serial", cfg, progress=False, scene_builder=species_plates, threads=1)
+    assert pd.read_csv(serial.features_table).equals(f)  # worker threads do not change the result
 
 
 def test_cli_with_a_calibrated_system(tmp_path):

@@ -70,6 +70,44 @@ def test_pulses_under_the_crowns_are_a_stratum_with_the_mirror_rule():
     assert out["E"].isna().tolist() == [True, False, False, False]
 
 
+def test_max_pulses_keeps_whole_samples_the_same_in_every_dataset_and_nested():
+    """diagnose.max_pulses: whole field samples per dataset x species, in one seeded order of the
+    samples for every dataset, at most the cap of pulses (at least one sample); a smaller cap
+    keeps a subset of a larger one's samples; null keeps every comparison pulse."""
+    from waveforest import config
+    from waveforest.diagnose.strata import pulse_keys
+
+    rng = np.random.default_rng(3)
+    sizes = rng.integers(1, 9, 40)
+    tables = {}
+    for ds in ("2012_05_1", "2012_10_1"):
+        rows, pid = [], 0
+        for k, n in enumerate(sizes):
+            for _ in range(int(n)):
+                rows.append(dict(dataset=ds, pulse_id=pid, sample_id=f"s{k}", species="raspberry", is_tree=False,
+                                 comparison_set=True, below_crown_set=False))
+                pid += 1
+        tables[ds] = _select_table(rows)
+
+    def keys(cap):
+        return pulse_keys(tables, config.load(overrides={"diagnose": {"max_pulses": cap}}))
+
+    every = keys(None)
+    assert len(every) == 2 * sizes.sum()
+    samples = {}
+    for cap in (1, 12, 30, 60):
+        k = keys(cap)
+        by = k.groupby("dataset")
+        assert (by.size() <= max(cap, sizes.max())).all()
+        per_ds = [set(g["sample_id"]) for _, g in by]
+        assert per_ds[0] == per_ds[1]  # the same samples in both datasets (same pulses per sample here)
+        counts = k.groupby(["dataset", "sample_id"]).size()
+        assert (counts.to_numpy() == sizes[[int(s[1:]) for _, s in counts.index]]).all()  # whole samples
+        samples[cap] = per_ds[0]
+    assert samples[1] <= samples[12] <= samples[30] <= samples[60] and len(samples[1]) == 1
+    assert len(samples[60]) < 40
+
+
 def test_real_below_crown_echoes_are_found_as_a_twins_are():
     """own_cfd_echoes arms the CFD on the recorded noise, SD / AGC gain, as render_sigma does
     for a twin: a weak early return under the arming level at gain 1 is the first echo at

@@ -156,6 +156,21 @@ def own_cfd_echoes(pulses: pa.Table, calibration, cfg: dict) -> pa.Table:
 
 
 
+def _whole_samples(df: pd.DataFrame, cap: int, seed: int) -> pd.DataFrame:
+    """Rows of whole field samples, in a seeded order of the samples (the same in every dataset),
+    per species x stratum, while their pulses number at most ``cap`` (at least one sample).
+    A smaller cap keeps a subset of a larger one's samples."""
+    codes, uniq = pd.factorize(df["sample_id"].astype(str))
+    rank = np.array([stable_hash(seed, "diagnose sample", u) for u in uniq], np.int64)[codes]
+    df = df.assign(_rank=rank).sort_values(["_rank", "sample_id", "pulse_id"])
+    size = df.groupby(["species", "stratum", "sample_id"], sort=False)["pulse_id"].transform("size")
+    first = ~df.duplicated(["species", "stratum", "sample_id"])
+    total = (size * first).groupby([df["species"], df["stratum"]], sort=False).cumsum()
+    keep_sample = (total <= cap) | (total == size)  # within the cap, or the first sample of its cell
+    keep = keep_sample.where(first).groupby([df["species"], df["stratum"], df["sample_id"]], sort=False).transform("first")
+    return df[keep.astype(bool)].drop(columns="_rank")
+
+
 def pulse_keys(selected: dict, cfg: dict, cap: int | None = None) -> pd.DataFrame:
     """The pulses the diagnosis simulates (module docstring).
 
@@ -167,7 +182,8 @@ def pulse_keys(selected: dict, cfg: dict, cap: int | None = None) -> pd.DataFram
         Loaded study config.
     cap : int, optional
         At most this many pulses per dataset x species x stratum (a seeded random subset: a
-        smaller cap gives a subset of a larger one); None = all.
+        smaller cap gives a subset of a larger one); None = all. Applied after
+        ``diagnose.max_pulses`` (whole field samples, :func:`_whole_samples`).
 
     Returns
     -------
@@ -189,6 +205,8 @@ def pulse_keys(selected: dict, cfg: dict, cap: int | None = None) -> pd.DataFram
         df = df[(df["comparison_set"].fillna(False).astype(bool) | below) & df["species"].astype(str).isin(species)]
         df = df.assign(stratum=np.where(below[df.index], BELOW_CROWN, "")).drop(
             columns=["comparison_set", "below_crown_set"])
+        if cfg["diagnose"]["max_pulses"] is not None:
+            df = _whole_samples(df, int(cfg["diagnose"]["max_pulses"]), int(cfg["seed"]))
         if cap is not None:
             rank = hash_ids(stable_hash(int(cfg["seed"]), ds, "diagnose"), df["pulse_id"].to_numpy(np.int64))
             df = df.assign(_rank=rank).sort_values(["_rank", "pulse_id"])

@@ -31,11 +31,13 @@ from waveforest.cliutil import reference_sensor_options
 from waveforest.constants import RANGE_PER_NS
 from waveforest.io.pulses import write_table
 from waveforest.mcrt import Beams
+from waveforest.mcrt.threads import default_threads
 from waveforest.model.forward import MCRTSetup, SensorSetup, trace_and_render
 from waveforest.report import plots
 from waveforest.rng import hashed_seed63, hashed_sequence
 from waveforest.sensor.reference import reference_sensor
 from waveforest.vegetation import build_scene
+from waveforest.workers import unordered_map
 
 PARAMETERS = ("mean_leaf_angle_deg", "leaf_rho", "leaf_tau", "leaf_area_scale")
 """Swept parameters (config keys of ``sensitivity``) in the order of Fig. 8."""
@@ -80,6 +82,9 @@ def simulate_setting(build_kwargs: dict, geom: Geometry, setup: SensorSetup, mcr
                      threads: int | None = None, scene_builder=None) -> pd.DataFrame:
     """Simulate every pulse of one setting; one row per pulse (instance, Apeak, FWHM, E, Npeaks, H).
 
+    The instances are shared over ``threads`` worker threads (:func:`waveforest.workers.unordered_map`);
+    the rows do not depend on it.
+
     ``scene_builder``: ``f(species, height, seed, **kwargs) -> Scene`` (default
     :func:`waveforest.vegetation.build_scene`).
     """
@@ -88,8 +93,9 @@ def simulate_setting(build_kwargs: dict, geom: Geometry, setup: SensorSetup, mcr
 
     s = cfg["sensitivity"]
     seed = int(cfg["seed"])
-    frames = []
-    for k in np.unique(geom.instance):
+    workers = threads if threads is not None else default_threads()
+
+    def instance(k):
         idx = np.flatnonzero(geom.instance == k)
         scene = scene_builder("birch", float(s["height_m"]), hashed_seed63(seed, "sensitivity", "scene", int(k)),
                             ground=False, lai_jitter=float(cfg["vegetation"]["lai_jitter"]), **build_kwargs)
@@ -98,15 +104,17 @@ def simulate_setting(build_kwargs: dict, geom: Geometry, setup: SensorSetup, mcr
         ss = hashed_sequence(seed, "sensitivity", "pulses", int(k))
         trace_seed = int(ss.generate_state(1, dtype=np.uint64)[0] >> np.uint64(1))
         sim, _ = trace_and_render(scene, beams, geom.range_m[idx], mcrt, setup, trace_seed,
-                                  np.random.default_rng(ss), threads)
+                                  np.random.default_rng(ss), 1 if workers > 1 else threads)
         f = sim.features(setup)
         first = sim.echo_times_ns[:, 0]
         h = geom.origin[idx, 2] + geom.direction[idx, 2] * (sim.first_sample_ns + first) * RANGE_PER_NS
-        frames.append(pd.DataFrame({
+        return pd.DataFrame({
             "pulse": idx, "instance": int(k), "n_echoes": sim.n_echoes.astype(int),
             "Apeak": f["Apeak"], "FWHM": f["FWHM"], "E": f["E"], "Npeaks": f["Npeaks"], "H": h,
             "sigma_total": sim.sigma_total,
-        }))
+        })
+
+    frames = [f for _, f in unordered_map(instance, list(np.unique(geom.instance)), workers)]
     out = pd.concat(frames, ignore_index=True).sort_values("pulse").reset_index(drop=True)
     has = out["n_echoes"] > 0
     out.loc[~has, ["Apeak", "FWHM", "E", "Npeaks", "H"]] = np.nan

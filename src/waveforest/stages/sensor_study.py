@@ -37,12 +37,14 @@ from waveforest.atomic import atomic_path
 from waveforest.cliutil import reference_sensor_options
 from waveforest.constants import RANGE_PER_NS
 from waveforest.mcrt import Beams, prepare, trace
+from waveforest.mcrt.threads import default_threads
 from waveforest.model.forward import MCRTSetup, SensorSetup, render_sigma
 from waveforest.report import plots
 from waveforest.rng import hashed_seed63, hashed_sequence, stable_hash
 from waveforest.sensor.reference import reference_sensor
 from waveforest.stats import lda
 from waveforest.vegetation import build_scene
+from waveforest.workers import unordered_map
 
 FEATURES = ("Apeak", "FWHM", "E")
 """Features of the LDA (docs/method.md §(i3))."""
@@ -106,7 +108,9 @@ def trace_species(sp: SpeciesPulses, divergences, mcrt: MCRTSetup, cfg: dict, th
     """sigma(t) of every pulse of a species at each beam divergence.
 
     Each instance is built and prepared once and traced at every divergence with the same
-    MCRT seed (common random numbers across the divergences).
+    MCRT seed (common random numbers across the divergences). The instances are shared over
+    ``threads`` worker threads (:func:`waveforest.workers.unordered_map`); the result does not
+    depend on it.
 
     ``scene_builder``: ``f(species, height, seed, **kwargs) -> Scene`` (default
     :func:`waveforest.vegetation.build_scene`).
@@ -120,17 +124,23 @@ def trace_species(sp: SpeciesPulses, divergences, mcrt: MCRTSetup, cfg: dict, th
     seed = int(cfg["seed"])
     veg = cfg["vegetation"]
     n = len(sp.instance)
-    out: dict = {}
-    for k in np.unique(sp.instance):
+    workers = threads if threads is not None else default_threads()
+
+    def instance(k):
         idx = np.flatnonzero(sp.instance == k)
         scene_seed = hashed_seed63(seed, "sensor_study", sp.species, "scene", int(k))
         scene = scene_builder(sp.species, float(sp.heights[k]), scene_seed,
                               ground_rho=float(veg["ground_rho"]), lai_jitter=float(veg["lai_jitter"]))
         prepared = prepare(scene)
-        for div in divergences:
-            beams = Beams.from_divergence(sp.origin[idx], sp.direction[idx], float(div), sp.range_m[idx])
-            res = trace(prepared, beams, seed=hashed_seed63(seed, "sensor_study", sp.species, "mcrt", int(k)),
-                        threads=threads, **mcrt.kwargs())
+        return idx, {div: trace(prepared, Beams.from_divergence(sp.origin[idx], sp.direction[idx], float(div),
+                                                                sp.range_m[idx]),
+                                seed=hashed_seed63(seed, "sensor_study", sp.species, "mcrt", int(k)),
+                                threads=1 if workers > 1 else threads, **mcrt.kwargs())
+                     for div in divergences}
+
+    out: dict = {}
+    for _, (idx, by_div) in unordered_map(instance, list(np.unique(sp.instance)), workers):
+        for div, res in by_div.items():
             if div not in out:
                 out[div] = (np.zeros((n, res.sigma.shape[1])), np.zeros(n), np.zeros(n))
             sigma, t0, total = out[div]
