@@ -167,6 +167,20 @@ def iter_pulses(path: str | Path, batch_rows: int = 65536, columns: list[str] | 
         yield pa.Table.from_batches([rb])
 
 
+def same_table(a: pa.Table, b: pa.Table) -> bool:
+    """Tables equal column by column, NaN equal to NaN (Arrow's ``equals`` says NaN != NaN)."""
+    if a.schema != b.schema or a.num_rows != b.num_rows:
+        return False
+    for name in a.column_names:
+        x, y = a.column(name), b.column(name)
+        if pa.types.is_floating(x.type):
+            if not np.array_equal(x.to_numpy(), y.to_numpy(), equal_nan=True):
+                return False
+        elif not x.equals(y):
+            return False
+    return True
+
+
 def list_to_padded(column: pa.ChunkedArray | pa.Array, fill: float = np.nan, dtype=np.float32) -> tuple[np.ndarray, np.ndarray]:
     """A list column as a padded 2-D array and the row lengths.
 
