@@ -61,6 +61,7 @@ from waveforest.io.las.write import write_waveform_las
 from waveforest.io.pulses import PULSE_SCHEMA, padded_to_list, write_table
 from waveforest.rng import stream_generator
 from waveforest.vegetation import species_table
+from waveforest.workers import unordered_map
 
 VEGETATION_EFFECTS = ("understory", "clumping", "lad_shift", "leaf_albedo")
 MCRT_EFFECTS = ("specular", "hotspot")
@@ -217,15 +218,22 @@ def run(cfg: dict, out_dir: str | os.PathLike, effects=None, seed: int | None = 
         summary = CampaignSummary(out_dir=out, effects=eff, timings=timings)
         truth_ds, truth_rows = {}, []
         wkt = _crs_wkt()
-        for _, row in datasets.iterrows():
+
+        def record(row):
             ds = row["dataset"]
             _, info_ds, rows_ds = _record_dataset(
                 row, sensors[ds], plans[ds], pulses[ds], a0[ds], batches[ds], eff, seed, lay, tmp, wkt)
+            batches[ds] = None  # free sigma
+            return ds, info_ds, rows_ds
+
+        rows = [row for _, row in datasets.iterrows()]  # datasets share the worker threads
+        done = dict(unordered_map(record, rows, max(1, int(numba.get_num_threads()))))
+        for i in range(len(rows)):  # dataset order, whatever order the workers finished in
+            ds, info_ds, rows_ds = done[i]
             truth_ds[ds] = info_ds
             truth_rows.append(rows_ds)
             summary.pulses[ds] = info_ds["n_pulses"]
             summary.points[ds] = info_ds["n_points"]
-            batches[ds] = None  # free sigma
         # 6. the tables, the truth and the README
         _write_tables(tmp, datasets, fields, targets, camp)
         write_table(pa.Table.from_pandas(pd.concat(truth_rows, ignore_index=True), preserve_index=False),

@@ -67,7 +67,7 @@ from waveforest.vegetation import build_scene, species_table
 SCENE_CACHE_SIZE = 512
 """Most prepared scenes kept (least recently used dropped first) ..."""
 
-SCENE_CACHE_TRIANGLES = 12_000_000
+SCENE_CACHE_TRIANGLES = 32_000_000
 """... and most triangles in them (a prepared scene with its Embree BVH takes roughly
 100 bytes per triangle; a low-species plot has ~200 000 triangles)."""
 
