@@ -67,8 +67,8 @@ class PowerSettings:
         Share of replicates that must detect a value for it to count as detectable.
     """
 
-    replicates: int = 2
-    values: int = 3
+    replicates: int = 1
+    values: int = 2
     power: float = 0.8
 
     def __post_init__(self) -> None:

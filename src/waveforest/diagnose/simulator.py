@@ -67,9 +67,11 @@ from waveforest.vegetation import build_scene, species_table
 SCENE_CACHE_SIZE = 512
 """Most prepared scenes kept (least recently used dropped first) ..."""
 
-SCENE_CACHE_TRIANGLES = 32_000_000
-"""... and most triangles in them (a prepared scene with its Embree BVH takes roughly
-100 bytes per triangle; a low-species plot has ~200 000 triangles)."""
+SCENE_CACHE_TRIANGLES = 24_000_000
+"""... and most triangles in them (a prepared scene with its Embree BVH takes ~300-400 bytes
+per triangle, so ~8 GB; a low-species plot has ~240 000 triangles). The scenes of the
+default study's capped diagnosis (diagnose.max_pulses) fit: a least-recently-used cache
+smaller than the scenes one simulation cycles through misses on every one."""
 
 
 def _is_tree_model(species: str) -> bool:
