@@ -33,7 +33,6 @@ from waveforest.sensor.calibration import Calibration, load_calibration
 from waveforest.sensor.cfd import detect_echoes
 from waveforest.sensor.features import FEATURE_NAMES, feature_table
 from waveforest.sensor.params import CFDParams, FeatureParams
-from waveforest.stages.tune_cfd import stream_pulses
 
 
 def run(pulse_paths, calibration_paths, out_path, cfg: dict, *, batch_rows: int = 65536,
@@ -158,7 +157,7 @@ def run_cfd(pulse_paths, cfd_path, out_path, cfg: dict, *, batch_rows: int = 819
                 total = pq.read_metadata(path).num_rows
                 with tqdm(total=total, unit="pulse", unit_scale=True, disable=not progress, file=sys.stderr,
                           desc=f"features {path.name}") as bar:
-                    for batch in stream_pulses(path, batch_rows):
+                    for batch in iter_pulses(path, batch_rows):
                         batch = check_pulses(batch, path)
                         names = set(np.unique(batch.column("dataset").to_numpy(zero_copy_only=False).astype(str)))
                         if names - {name}:

@@ -21,7 +21,7 @@ from waveforest.cliutil import EXISTING_FILE, OUT_DIR, stage_options, warnings_t
 from waveforest.constants import RANGE_PER_NS
 from waveforest.errors import WaveforestError
 from waveforest.io.las import format_summary, summarise
-from waveforest.io.pulses import list_to_padded
+from waveforest.io.pulses import iter_pulses, list_to_padded
 from waveforest.report.quicklook import (
     figure_uri,
     gallery_figure,
@@ -34,7 +34,6 @@ from waveforest.sensor.self_calibration import BIAS_LIMIT_M, PAPER_SHARE
 from waveforest.stages import features as features_stage
 from waveforest.stages import ingest as ingest_stage
 from waveforest.stages import tune_cfd as tune_stage
-from waveforest.stages.tune_cfd import stream_pulses
 
 HIST_FEATURES = ("Apeak", "FWHM", "E", "Npeaks", "echo_z")
 """First-echo features shown as histograms."""
@@ -58,7 +57,7 @@ def _scan_features(path: Path, seed: int, map_feature: str):
     sample = {k: [] for k in HIST_FEATURES}
     ext = np.array([np.inf, -np.inf, np.inf, -np.inf])
     ok, checked = [], []
-    for rb in stream_pulses(path, _READ, columns=cols):
+    for rb in iter_pulses(path, _READ, columns=cols):
         take = rng.random(rb.num_rows) < p
         for k in HIST_FEATURES:
             v = rb.column(k).to_numpy(zero_copy_only=False).astype(np.float64)
@@ -104,7 +103,7 @@ def _histograms_and_map(path: Path, sample: dict, ext, map_feature: str, cells: 
     nx, ny = max(1, int(np.ceil((x1 - x0) / size)) or 1), max(1, int(np.ceil((y1 - y0) / size)) or 1)
     s, c = np.zeros(nx * ny), np.zeros(nx * ny)
     cols = list(dict.fromkeys(["echo_x", "echo_y", map_feature, *edges]))
-    for rb in stream_pulses(path, _READ, columns=cols):
+    for rb in iter_pulses(path, _READ, columns=cols):
         for k, e in edges.items():
             v = rb.column(k).to_numpy(zero_copy_only=False).astype(np.float64)
             fin = np.isfinite(v)
@@ -138,7 +137,7 @@ def _gallery(pulses: Path, features: Path, ok, checked, k: int, seed: int) -> li
     want = set(rows.tolist())
     out: dict[int, dict] = {}
     start = 0
-    for rb in stream_pulses(features, _READ, columns=["pulse_id", "cfd_time_ns"]):
+    for rb in iter_pulses(features, _READ, columns=["pulse_id", "cfd_time_ns"]):
         idx = rows[(rows >= start) & (rows < start + rb.num_rows)] - start
         if idx.size:
             cfd, lens = list_to_padded(rb.column("cfd_time_ns").take(idx), dtype=np.float64)
@@ -147,7 +146,7 @@ def _gallery(pulses: Path, features: Path, ok, checked, k: int, seed: int) -> li
                 out[start + int(r)] = {"cfd_ns": cfd[j, :lens[j]].tolist(), "pulse_id": int(pid[j])}
         start += rb.num_rows
     start = 0
-    for batch in stream_pulses(pulses, _READ, columns=["samples", "sampling_ns", "echo_time_ns"]):
+    for batch in iter_pulses(pulses, _READ, columns=["samples", "sampling_ns", "echo_time_ns"]):
         idx = rows[(rows >= start) & (rows < start + batch.num_rows)] - start
         if idx.size:
             sub = batch.take(pa.array(idx))

@@ -11,7 +11,6 @@ and the plot.
 from __future__ import annotations
 
 import sys
-from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -23,7 +22,7 @@ import pyarrow.parquet as pq
 from waveforest.atomic import write_json
 from waveforest.cliutil import EXISTING_FILE, OUT_FILE, stage_options, warnings_to_stderr
 from waveforest.errors import WaveforestError
-from waveforest.io.pulses import PULSE_SCHEMA, TableError, list_to_padded
+from waveforest.io.pulses import PULSE_SCHEMA, TableError, iter_pulses, list_to_padded
 from waveforest.report.quicklook import plot_cfd_residuals
 from waveforest.sensor.cfd import detect_echoes
 from waveforest.sensor.cfd_tuning import WIDTH_EDGES, tune_cfd
@@ -83,18 +82,6 @@ class Pulses:
                                           self.last_echo_ns, self.n_dr)))
 
 
-def stream_pulses(path, batch_rows: int = STREAM_ROWS, columns: list[str] | None = None) -> Iterator[pa.Table]:
-    """Batches of a Parquet table with memory bounded by one batch.
-
-    As :func:`waveforest.io.pulses.iter_pulses`, but without Arrow's pre-buffering of column
-    chunks, which holds every row group read so far (~300 MB per 800,000 pulses of 256 samples)
-    until the file is closed.
-    """
-    pf = pq.ParquetFile(path, pre_buffer=False)
-    for rb in pf.iter_batches(batch_size=batch_rows, columns=columns):
-        yield pa.Table.from_batches([rb])
-
-
 def _check_columns(path: Path) -> int:
     """Rows of the pulse table at ``path``; raises WaveforestError without the columns read here."""
     if not path.exists():
@@ -120,7 +107,7 @@ def _tuning_pulses(path: Path, n_rows: int, k: int, seed: int, batch_rows: int, 
     drawn[rng.choice(n_rows, size=min(int(k), n_rows), replace=False)] = True
     names: set[str] = set()
     parts, start = [], 0
-    for batch in stream_pulses(path, batch_rows, columns=COLUMNS):
+    for batch in iter_pulses(path, batch_rows, columns=COLUMNS):
         names.update(np.unique(batch.column("dataset").to_numpy(zero_copy_only=False).astype(str)).tolist())
         if len(names) > 1:
             raise WaveforestError(f"{path}: the pulse table holds several datasets ({', '.join(sorted(names))}); "
@@ -198,7 +185,7 @@ def run(pulses_path, json_path, cfg: dict, *, plot_path=None, batch_rows: int = 
         cfd, corr = tuning.cfd, tuning.ranges.correction
         level = noise.mean + cfd.arming_sd * noise.sd
         cols = {k: [] for k in ("dr", "res", "amp", "width", "has", "vis", "dt")}
-        for batch in stream_pulses(path, batch_rows, columns=COLUMNS):
+        for batch in iter_pulses(path, batch_rows, columns=COLUMNS):
             p = Pulses.of(batch)
             ech = detect_echoes(p.samples, p.lengths, p.sampling_ns, noise.mean, noise.sd, cfd, 1)
             dr = dr_minus_cfd(p.dr_time_ns, ech.times_ns[:, 0])
