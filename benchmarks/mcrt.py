@@ -22,7 +22,18 @@ Figures (``name: value unit``), canopy first, then ``<species>_...`` for each sp
   (split over Python threads), the path the tracer used before :mod:`waveforest.mcrt.backends.embree`;
 * ``ms_per_pulse_amortised_<k>``: tracing plus the scene build shared by k pulses (a pool of
   instances; target <= 100 ms), on the BVH quality :func:`trace` builds for k pulses
-  (:func:`waveforest.mcrt.tracer.bvh_quality`: HIGH from 12 pulses of 30,000 rays on);
+  (:func:`waveforest.mcrt.tracer.bvh_quality`: HIGH from 12 pulses of 30,000 rays on); for
+  the canopy, ``ms_per_pulse_amortised_1`` is that of a canopy assembled anew for every
+  pulse from a library of leaf bricks (below), ``ms_per_pulse_amortised_1_flat`` that of a
+  new flat canopy (one BVH over all its triangles);
+* canopy only, a new canopy per pulse from bricks (:func:`bench_bricks`): the 6 x 6 m
+  canopy as 3 x 3 bricks of 2 m drawn from a library of :data:`BRICKS` independent
+  ``random_leaves`` bricks (HIGH BVHs, built once: ``brick_library_build_ms``), each turned
+  by a multiple of 90 deg (``tests/fixtures/scenes.py:brick_canopy``), on a two-level BVH
+  (:func:`waveforest.mcrt.prepare_instances`): ``scene_build_ms_instanced`` (one
+  arrangement), ``trace_ms_per_pulse_instanced`` (all pulses on one arrangement), and
+  ``ms_per_pulse_amortised_1``: every pulse on its own new arrangement, arrangement and
+  trace of a pulse as one unit on each core (:func:`waveforest.workers.unordered_map`);
 * ``rays_per_pulse_intersect``, ``rays_per_pulse_occluded``: Embree work per pulse;
 * ``trace_cpu_ms_per_pulse_serial``, ``embree_floor_cpu_ms_per_pulse_serial``,
   ``trace_over_floor_cpu``: the same on one thread, as CPU time of that thread, which other
@@ -55,9 +66,10 @@ accurate per ray; its own error is << that of the estimators):
 * the headline ``efficiency_vs_random_30k`` of :data:`RECOMMENDED`, with its
   ``recommended_cpu_ms_per_pulse_amortised_1`` and ``recommended_n_rays``.
 
-The speed section traces with the settings of ``--method`` (default ``random_30k``, today's
-default; its ``ms_per_pulse_amortised_1`` then uses the method's one-pulse BVH quality) and
-prints its ``n_rays``.
+The speed section traces with the settings of ``--method`` (default :data:`RECOMMENDED`, the
+tracer's default in the study config; ``random_30k`` is the default before issue 27; the
+flat ``ms_per_pulse_amortised_1`` uses the method's one-pulse BVH quality) and prints its
+``n_rays``.
 
 Wall times are the minimum of ``--repeat`` runs (the machine is shared). Run:
 ``python benchmarks/mcrt.py [--pulses 16] [--repeat 3] [--species birch raspberry fireweed]
@@ -76,11 +88,12 @@ from pathlib import Path
 import numba
 import numpy as np
 
-from waveforest.mcrt import Beams, EmbreeIntersector, prepare, trace
+from waveforest.mcrt import Beams, EmbreeIntersector, prepare, prepare_instances, prepare_prototypes, trace
 from waveforest.mcrt.tracer import bvh_quality
+from waveforest.workers import unordered_map
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from fixtures.scenes import random_leaves
+from fixtures.scenes import brick_canopy, leaf_bricks, plane, random_leaves
 
 LAI, HEIGHT_M, SIZE_M, LEAF_AREA_M2 = 3.35, 1.2, 6.0, 6.7e-4
 RANGE_M, DIVERGENCE_MRAD, MAX_ZENITH_DEG = 1200.0, 0.15, 15.0
@@ -155,12 +168,46 @@ SYSTEM_FWHM_NS, SYSTEM_PEAK = 7.2, 1.5e9
 """Gaussian S(t) of the feature errors: 2010_12_1's pulse width; peak in DN m^2 per unit
 sigma (a rho = 0.3 plane at 1200 m gives ~100 DN)."""
 
+BRICKS, BRICK_M = 36, 2.0
+"""Leaf bricks in the canopy's library, and their side (3 x 3 bricks make the 6 x 6 m canopy)."""
+
 SPECIES = {"birch": 3.0, "raspberry": 1.3, "fireweed": 1.5}
 """The paper's species and the heights they are benchmarked at, m (as benchmarks/vegetation.py)."""
 
 
-def bench_scene(prefix: str, scene, beams, args, full: bool) -> None:
-    """Print the figures of one scene (names prefixed by ``prefix``)."""
+def bench_bricks(beams, kw: dict, args, out) -> None:
+    """The canopy assembled anew for every pulse from a library of leaf bricks (module docstring)."""
+    threads = numba.get_num_threads()
+    rng = np.random.default_rng(args.seed)
+    t = time.perf_counter()
+    parts = leaf_bricks(BRICKS, LAI, (0.0, HEIGHT_M), BRICK_M, LEAF_AREA_M2, seed=args.seed)
+    protos = prepare_prototypes(parts + [plane(SIZE_M, 0.0, 0.3)])
+    out("brick_library_build_ms", (time.perf_counter() - t) * 1e3, "ms")
+    per_side = int(round(SIZE_M / BRICK_M))
+
+    def arrange(r):
+        return prepare_instances(protos, *brick_canopy(BRICKS, per_side, BRICK_M, r))
+
+    arrange(rng)
+    out("scene_build_ms_instanced", best(lambda: arrange(rng), args.repeat) * 1e3, "ms")
+    one = arrange(rng)
+    trace(one, beams[:2], n_rays=500, max_order=3)  # warm-up
+    out("trace_ms_per_pulse_instanced", best(lambda: trace(one, beams, threads=threads, **kw), args.repeat)
+        / len(beams) * 1e3, "ms")
+    streams = np.random.SeedSequence(args.seed).spawn(len(beams))
+
+    def unit(i):  # pulse i on its own new arrangement (seeded by the pulse)
+        return trace(arrange(np.random.default_rng(streams[i])), beams[i:i + 1], threads=1, **kw).total[0]
+
+    def run():
+        return sum(v for _, v in unordered_map(unit, list(range(len(beams))), threads))
+
+    out("ms_per_pulse_amortised_1", best(run, args.repeat) / len(beams) * 1e3, "ms")
+
+
+def bench_scene(prefix: str, scene, beams, args, full: bool, bricks: bool = False) -> None:
+    """Print the figures of one scene (names prefixed by ``prefix``); ``bricks``: also those of
+    :func:`bench_bricks` (the canopy)."""
     threads = numba.get_num_threads()
     n = len(beams)
 
@@ -243,7 +290,9 @@ def bench_scene(prefix: str, scene, beams, args, full: bool) -> None:
         amortised = (default + build / k) if high else (times["medium"] / n + build_medium / k)
         if k == 1 and q1 not in ("medium", "high"):  # the method's one-pulse BVH
             amortised = times[q1] / n + build_one
-        out(f"ms_per_pulse_amortised_{k}", amortised * 1e3, "ms")
+        out(f"ms_per_pulse_amortised_{k}{'_flat' if k == 1 and bricks else ''}", amortised * 1e3, "ms")
+    if bricks:
+        bench_bricks(beams, kw, args, out)
 
     if full:  # one thread, CPU time of this thread (robust to other jobs on the machine)
         prev = numba.get_num_threads()
@@ -389,8 +438,8 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--species", nargs="*", default=list(SPECIES), help="species to benchmark (none: canopy only)")
     ap.add_argument("--sections", nargs="+", default=["speed", "error"], choices=["speed", "error"])
-    ap.add_argument("--method", default="random_30k", choices=list(METHODS),
-                    help="tracer settings of the speed section (default: today's default)")
+    ap.add_argument("--method", default=RECOMMENDED, choices=list(METHODS),
+                    help="tracer settings of the speed section (default: the study's default)")
     ap.add_argument("--seeds", type=int, default=16, help="seeds per method in the error section")
     ap.add_argument("--error-pulses", type=int, default=4, help="fixed pulses per scene in the error section")
     ap.add_argument("--methods", nargs="+", choices=list(METHODS), default=None,
@@ -418,7 +467,7 @@ def main() -> None:
     methods = {m: METHODS[m] for m in (args.methods or (QUICK_METHODS if args.quick else METHODS))}
     for prefix, scene in scenes.items():
         if "speed" in args.sections:
-            bench_scene(prefix, scene, beams, args, full=True)
+            bench_scene(prefix, scene, beams, args, full=True, bricks=prefix == "")
         if "error" in args.sections:
             eb = beams[:args.error_pulses]
             if prefix == "birch_":  # pulses through the crown (as tests/test_vegetation_mcrt.py)

@@ -15,7 +15,7 @@ Modules: :mod:`.beams` (pulses), :mod:`.prepare` (a scene made ready, :func:`pre
 
 from waveforest.mcrt.backends import DirectEmbreeIntersector, EmbreeIntersector, NumpyIntersector
 from waveforest.mcrt.beams import Beams, direction_from_angles
-from waveforest.mcrt.prepare import PreparedScene, prepare
+from waveforest.mcrt.prepare import PreparedScene, Prototypes, prepare, prepare_instances, prepare_prototypes
 from waveforest.mcrt.tracer import DEFAULT_WINDOW_NS, TraceResult, trace
 
 __all__ = [
@@ -26,6 +26,9 @@ __all__ = [
     "NumpyIntersector",
     "PreparedScene",
     "prepare",
+    "Prototypes",
+    "prepare_prototypes",
+    "prepare_instances",
     "trace",
     "TraceResult",
     "DEFAULT_WINDOW_NS",

@@ -4,17 +4,23 @@
 The intersector works in an internal frame, scene coordinates minus ``shift`` (the centre of
 the scene's bounding box), so that Embree's float32 arithmetic works on numbers of a few
 metres whatever the scene's coordinates are.
+
+A scene made of rigid copies of a few parts (e.g. a canopy assembled from a library of
+leaf bricks, a new arrangement for every pulse) is prepared in two steps: the parts once
+(:func:`prepare_prototypes`, one BVH each), then each arrangement (:func:`prepare_instances`:
+a top-level BVH over the copies, and the copies' per-triangle records).
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
 
 from waveforest.mcrt.backends import BACKENDS, Intersector
-from waveforest.mcrt.backends.embree import DEFAULT_QUALITY, QUALITIES
+from waveforest.mcrt.backends.embree import DEFAULT_QUALITY, QUALITIES, DirectEmbreeIntersector, InstancedEmbreeIntersector
 from waveforest.scene import Scene, SceneError
 
 
@@ -26,8 +32,9 @@ class PreparedScene:
 
     Attributes
     ----------
-    scene : Scene
-        The scene (local coordinates).
+    scene : Scene or None
+        The scene (local coordinates); None for an arrangement of instances
+        (:func:`prepare_instances`), whose triangles are never assembled.
     intersector : Intersector
         Works in the internal frame ``local - shift``.
     shift : (3,) float64, m
@@ -39,14 +46,14 @@ class PreparedScene:
         Bounding box [min, max] in the internal frame.
     """
 
-    scene: Scene
+    scene: Scene | None
     intersector: Intersector
     shift: np.ndarray
     tri_data: np.ndarray
     bounds: np.ndarray
 
     def __len__(self) -> int:
-        return len(self.scene)
+        return len(self.tri_data)
 
     @property
     def normals(self) -> np.ndarray:
@@ -64,7 +71,7 @@ class PreparedScene:
     @property
     def kind(self) -> np.ndarray:
         """(n,) int64 element kinds."""
-        return self.scene.kind.astype(np.int64)
+        return self.tri_data[:, 5].astype(np.int64)
 
     @property
     def backend(self) -> str:
@@ -141,4 +148,118 @@ def prepare(scene: Scene | PreparedScene, backend: str = "embree", quality: str 
         shift=shift,
         tri_data=tri_data,
         bounds=_box(internal),
+    )
+
+
+@dataclass(frozen=True, eq=False)
+class Prototypes:
+    """Parts prepared once, to be copied into many arrangements (:func:`prepare_instances`).
+
+    Attributes
+    ----------
+    scenes : tuple of PreparedScene
+        Each part with its own BVH (``embree`` backend) in its own internal frame.
+    records : (N, 8) float64
+        The parts' ``tri_data`` one after the other.
+    starts : (P + 1,) int64
+        Part ``p`` has records ``starts[p]:starts[p + 1]``.
+    """
+
+    scenes: tuple
+    records: np.ndarray
+    starts: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.scenes)
+
+
+def prepare_prototypes(scenes: Sequence[Scene], quality: str = "high") -> Prototypes:
+    """Prepare the parts of :func:`prepare_instances` (``embree`` backend; HIGH quality by
+    default: a part's BVH is built once and traced in every arrangement)."""
+    prepared = tuple(prepare(s, "embree", quality) for s in scenes)
+    if not prepared:
+        raise ValueError("scenes: expected at least one prototype")
+    starts = np.cumsum([0] + [len(p) for p in prepared]).astype(np.int64)
+    return Prototypes(prepared, np.concatenate([p.tri_data for p in prepared]), starts)
+
+
+@njit(cache=True, nogil=True)
+def _instance_records(records, starts, which, rotation, offsets, out):
+    """``out[offsets[j] + i]`` = record ``i`` of prototype ``which[j]`` with its normal
+    turned by ``rotation[j]`` (the rest copied)."""
+    for j in range(which.shape[0]):
+        a, b = starts[which[j]], starts[which[j] + 1]
+        o = offsets[j]
+        for i in range(b - a):
+            r = records[a + i]
+            for c in range(3):
+                out[o + i, c] = rotation[j, c, 0] * r[0] + rotation[j, c, 1] * r[1] + rotation[j, c, 2] * r[2]
+            for c in range(3, 8):
+                out[o + i, c] = r[c]
+
+
+def prepare_instances(prototypes: Prototypes, which, rotation, translation, quality: str = "medium") -> PreparedScene:
+    """A scene of rigid copies of prepared parts: a two-level Embree BVH (only the top level,
+    one box per copy, is built here) and the copies' per-triangle records.
+
+    Parameters
+    ----------
+    prototypes : Prototypes
+        From :func:`prepare_prototypes`.
+    which : (k,) int
+        Part of each copy.
+    rotation : (k, 3, 3) float
+        Rotation of each copy (orthonormal, determinant +1).
+    translation : (k, 3) float, m
+        A point x of part ``which[j]`` (its local coordinates) lies at
+        ``rotation[j] @ x + translation[j]`` in the scene.
+    quality : {"low", "medium", "high"}
+        Build quality of the top level.
+
+    Returns
+    -------
+    PreparedScene
+        ``scene`` None; triangle ``offsets[j] + i`` is triangle ``i`` of copy ``j`` (copies
+        in order); traced by :func:`waveforest.mcrt.trace` like any prepared scene.
+    """
+    if not isinstance(prototypes, Prototypes):
+        raise TypeError(f"prototypes: expected waveforest.mcrt.prepare.Prototypes, got {type(prototypes).__name__}")
+    which = np.ascontiguousarray(which, np.int64)
+    rot = np.ascontiguousarray(rotation, np.float64)
+    t = np.ascontiguousarray(translation, np.float64)
+    k = len(which)
+    if which.ndim != 1 or k == 0 or rot.shape != (k, 3, 3) or t.shape != (k, 3):
+        raise ValueError(f"instances: expected (k,) parts, (k, 3, 3) rotations, (k, 3) translations; got "
+                         f"{which.shape}, {rot.shape}, {t.shape}")
+    if which.min() < 0 or which.max() >= len(prototypes):
+        raise ValueError(f"which: part index outside [0, {len(prototypes)})")
+    if not (np.all(np.isfinite(rot)) and np.all(np.isfinite(t))):
+        raise ValueError("rotation, translation: non-finite values")
+    if (np.abs(rot @ rot.transpose(0, 2, 1) - np.eye(3)).max() > 1e-6
+            or np.abs(np.linalg.det(rot) - 1.0).max() > 1e-6):
+        raise ValueError("rotation: expected orthonormal matrices of determinant +1")
+    if quality not in QUALITIES:
+        raise ValueError(f"quality: expected one of {', '.join(QUALITIES)}, got {quality!r}")
+    parts = prototypes.scenes
+    for p in parts:
+        if not isinstance(p.intersector, DirectEmbreeIntersector):
+            raise ValueError("prototypes: instances need parts prepared with the embree backend")
+    # box of each copy: its part's internal box corners, back to part coordinates, placed
+    shifts = np.stack([p.shift for p in parts])[which]
+    corners = np.stack([np.stack([[b[i, 0], b[j, 1], b[l, 2]] for i in (0, 1) for j in (0, 1) for l in (0, 1)])
+                        for b in (p.bounds for p in parts)])[which] + shifts[:, None, :]
+    placed = np.einsum("kab,kcb->kca", rot, corners) + t[:, None, :]
+    box = np.stack([placed.reshape(-1, 3).min(axis=0), placed.reshape(-1, 3).max(axis=0)])
+    shift = 0.5 * (box[0] + box[1])
+    xfm = np.concatenate([rot, (np.einsum("kab,kb->ka", rot, shifts) + t - shift)[:, :, None]], axis=2)
+    sizes = np.diff(prototypes.starts)[which]
+    offsets = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
+    tri_data = np.empty((int(sizes.sum()), prototypes.records.shape[1]))
+    _instance_records(prototypes.records, prototypes.starts, which, rot, offsets, tri_data)
+    return PreparedScene(
+        scene=None,
+        intersector=InstancedEmbreeIntersector([p.intersector for p in parts], which, xfm, offsets, quality),
+        shift=shift,
+        tri_data=tri_data,
+        bounds=box - shift,
     )

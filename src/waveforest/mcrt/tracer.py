@@ -267,7 +267,7 @@ def _trace_chunk(prepared: PreparedScene, beams: Beams, index: np.ndarray, key, 
     buffers = rays  # the live rays are packed into the emission arrays after each order
     work = Scattered.empty(len(rays))
     isect = prepared.intersector
-    kind = prepared.scene.kind
+    kind = prepared.kind
     first = None
     for order in range(1, max_order + 1):
         if len(rays) == 0:

@@ -62,7 +62,8 @@ CELL_BITS = 5
 SLOT_FLOATS = 32
 """Slot size in float32 (128 bytes, room for an RTCRayHit of 96 bytes)."""
 
-_RTC_GEOMETRY_TYPE_TRIANGLE = 0
+_RTC_GEOMETRY_TYPE_TRIANGLE, _RTC_GEOMETRY_TYPE_INSTANCE = 0, 121
+_RTC_FORMAT_FLOAT3X4_COLUMN_MAJOR = 0x9234
 _RTC_BUFFER_TYPE_INDEX, _RTC_BUFFER_TYPE_VERTEX = 0, 1
 _RTC_FORMAT_UINT3, _RTC_FORMAT_FLOAT3 = 0x5003, 0x9003
 _INVALID_ID = 0xFFFFFFFF
@@ -119,6 +120,8 @@ def _load():
             ("rtcReleaseGeometry", None, [p]),
             ("rtcCommitScene", None, [p]),
             ("rtcReleaseScene", None, [p]),
+            ("rtcSetGeometryInstancedScene", None, [p, p]),
+            ("rtcSetGeometryTransform", None, [p, ctypes.c_uint, ctypes.c_int, p]),
         ):
             fn = getattr(lib, name)
             fn.restype, fn.argtypes = res, args
@@ -160,13 +163,15 @@ def _set_ray(f, u, org, dirs, i, tfar):
 
 
 @njit(cache=True, parallel=True, nogil=True)
-def _query_kernel(scene, org, dirs, t, prim, occlusion, slot_f, slot_u):
+def _query_kernel(scene, org, dirs, t, prim, occlusion, slot_f, slot_u, offsets):
     """Trace ray ``i`` from ``t = 0`` to ``t[i]`` for every ``i``, in blocks of ``BLOCK_RAYS``.
 
     Nearest hit (``occlusion`` False): ``t[i]`` becomes the hit distance (``inf`` on a miss)
-    and ``prim[i]`` the triangle (-1 on a miss). Occlusion (True): ``t[i]`` becomes ``-inf``
-    where something lies on the ray (Embree's convention) and ``prim`` is not touched.
-    ``org``, ``dirs`` (m, 3) float32; ``t`` (m,) float32; ``prim`` (m,) int32.
+    and ``prim[i]`` the triangle (-1 on a miss): Embree's primID, plus ``offsets[instID]``
+    when the hit lies in an instance (:class:`InstancedEmbreeIntersector`). Occlusion (True):
+    ``t[i]`` becomes ``-inf`` where something lies on the ray (Embree's convention) and
+    ``prim`` is not touched. ``org``, ``dirs`` (m, 3) float32; ``t`` (m,) float32; ``prim``
+    (m,) int32; ``offsets`` (k,) int64.
     """
     m = org.shape[0]
     n_blocks = (m + BLOCK_RAYS - 1) // BLOCK_RAYS
@@ -187,7 +192,8 @@ def _query_kernel(scene, org, dirs, t, prim, occlusion, slot_f, slot_u):
                 prim[i] = -1
             else:
                 t[i] = f[_TFAR]
-                prim[i] = np.int32(u[_PRIM])
+                base = 0 if u[_INST] == _INVALID_ID else offsets[u[_INST]]
+                prim[i] = np.int32(base + u[_PRIM])
 
 
 @njit(cache=True, nogil=True)
@@ -236,6 +242,10 @@ def coherent_order(org, bits):
         order[count[key[i]]] = i
         count[key[i]] += 1
     return order
+
+
+_NO_OFFSETS = np.zeros(1, np.int64)
+"""The ``offsets`` of a scene without instances (never read)."""
 
 
 def _slots(m: int) -> tuple[np.ndarray, np.ndarray]:
@@ -292,6 +302,7 @@ class DirectEmbreeIntersector(RayQueries):
             lib.rtcReleaseScene(scene)
             raise RuntimeError(f"Embree error {err} while building a scene of {n} triangles")
         self._scene = scene
+        self._offsets = _NO_OFFSETS
         self.n_triangles = n
         self.quality = quality
 
@@ -304,12 +315,73 @@ class DirectEmbreeIntersector(RayQueries):
         order = coherent_order(o, CELL_BITS)
         ts, ps = np.full_like(tfar, np.inf), np.empty_like(prim)
         with NumbaThreads(1 if len(o) < MIN_PARALLEL_RAYS else threads):
-            _query_kernel(self._scene, *take_rays(o, d, order), ts, ps, False, *_slots(len(o)))
+            _query_kernel(self._scene, *take_rays(o, d, order), ts, ps, False, *_slots(len(o)), self._offsets)
         tfar[order], prim[order] = ts, ps
 
     def _occluded(self, o, d, tmax, out, threads):
         order = coherent_order(o, CELL_BITS)
         t = tmax[order]
         with NumbaThreads(1 if len(o) < MIN_PARALLEL_RAYS else threads):
-            _query_kernel(self._scene, *take_rays(o, d, order), t, _NO_PRIM, True, *_slots(len(o)))
+            _query_kernel(self._scene, *take_rays(o, d, order), t, _NO_PRIM, True, *_slots(len(o)),
+                          self._offsets)
         out[order] = t == -np.inf  # Embree sets tfar = -inf on an occluded ray
+
+
+class InstancedEmbreeIntersector(DirectEmbreeIntersector):
+    """Queries on a two-level Embree BVH: rigid instances of prebuilt prototype BVHs.
+
+    Only the top level (one box per instance) is built here, so a new arrangement of
+    prototypes costs far less than a BVH over all its triangles (docs/validation.md, "Speed").
+    A hit in instance ``j`` reports triangle ``offsets[j] + primID`` (``primID`` within its
+    prototype), so that per-triangle arrays of the arrangement line up with instance order.
+
+    Parameters
+    ----------
+    prototypes : sequence of DirectEmbreeIntersector
+        Built prototypes (kept alive while this BVH lives).
+    which : (k,) int
+        Prototype of each instance.
+    transforms : (k, 3, 4) float
+        Prototype frame -> this BVH's frame: [R | t], x' = R x + t.
+    offsets : (k,) int
+        Index of each instance's first triangle in the arrangement.
+    quality : {"low", "medium", "high"}
+        Build quality of the top level.
+    """
+
+    def __init__(self, prototypes, which, transforms, offsets, quality: str = "medium") -> None:
+        lib = _load()
+        if lib is None:
+            raise RuntimeError(f"direct Embree calls unavailable: {_ERROR}")
+        if quality not in QUALITIES:
+            raise ValueError(f"quality: expected one of {', '.join(QUALITIES)}, got {quality!r}")
+        which = np.asarray(which, np.int64)
+        xfm = np.asarray(transforms, np.float64)
+        if which.ndim != 1 or xfm.shape != (len(which), 3, 4) or len(offsets) != len(which) or not len(which):
+            raise ValueError(f"instances: expected (k,) prototypes, (k, 3, 4) transforms and (k,) offsets, "
+                             f"got {which.shape}, {xfm.shape}, {len(offsets)}")
+        if which.min() < 0 or which.max() >= len(prototypes):
+            raise ValueError(f"which: prototype index outside [0, {len(prototypes)})")
+        if not np.all(np.isfinite(xfm)):
+            raise ValueError("transforms: non-finite values")
+        self._lib = lib
+        self._prototypes = list(prototypes)
+        scene = lib.rtcNewScene(_DEVICE)
+        lib.rtcSetSceneBuildQuality(scene, QUALITIES[quality])
+        columns = np.ascontiguousarray(xfm.transpose(0, 2, 1), np.float32)  # (k, 4, 3): column-major
+        for j, p in enumerate(which):
+            geom = lib.rtcNewGeometry(_DEVICE, _RTC_GEOMETRY_TYPE_INSTANCE)
+            lib.rtcSetGeometryInstancedScene(geom, self._prototypes[p]._scene)
+            lib.rtcSetGeometryTransform(geom, 0, _RTC_FORMAT_FLOAT3X4_COLUMN_MAJOR, columns[j].ctypes.data)
+            lib.rtcCommitGeometry(geom)
+            lib.rtcAttachGeometry(scene, geom)  # geometry IDs 0, 1, ... = instance order
+            lib.rtcReleaseGeometry(geom)
+        lib.rtcCommitScene(scene)
+        err = lib.rtcGetDeviceError(_DEVICE)
+        if err:
+            lib.rtcReleaseScene(scene)
+            raise RuntimeError(f"Embree error {err} while building a scene of {len(which)} instances")
+        self._scene = scene
+        self._offsets = np.ascontiguousarray(offsets, np.int64)
+        self.n_triangles = int(sum(self._prototypes[p].n_triangles for p in which))
+        self.quality = quality
