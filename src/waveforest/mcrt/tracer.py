@@ -39,7 +39,6 @@ against tracing: docs/validation.md, "Speed" (``benchmarks/mcrt.py``).
 from __future__ import annotations
 
 import math
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numba
@@ -64,6 +63,7 @@ from waveforest.mcrt.kernels import (
 from waveforest.mcrt.prepare import PreparedScene, prepare
 from waveforest.mcrt.threads import MIN_PARALLEL_RAYS, NumbaThreads, default_threads
 from waveforest.scene import Scene
+from waveforest.workers import unordered_map
 
 DEFAULT_WINDOW_NS = 100.0
 """Default sigma window, ns of two-way time after t0 (15 m of one-way range: a 6 x 6 m scene
@@ -90,28 +90,12 @@ def bvh_quality(n_pulses: int, n_rays: int) -> str:
     "high" from :data:`HIGH_QUALITY_MIN_RAYS` rays on, else "medium"."""
     return "high" if int(n_pulses) * int(n_rays) >= HIGH_QUALITY_MIN_RAYS else "medium"
 
+
 CHUNKS_PER_WORKER = 4
 """In ``parallel="pulses"``, pulses are split into about this many chunks per thread."""
 
 PARALLEL_MODES = ("pulses", "rays")
 """How ``trace`` uses its threads: whole chunks of pulses per thread, or every call split."""
-
-
-def _map_serial_workers(fn, items, workers: int):
-    """``fn(item, 1)`` for every item on ``workers`` threads, each running serial kernels.
-
-    Numba's thread count is thread-local, so each worker sets its own to 1; Embree calls and
-    the ``nogil`` kernels release the GIL, so the workers run concurrently. Yields results
-    in the order of ``items``.
-    """
-
-
-    def work(item):
-        numba.set_num_threads(1)
-        return fn(item, 1)
-
-    with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="waveforest-trace") as pool:
-        yield from pool.map(work, items)
 
 
 @dataclass(frozen=True)
@@ -402,16 +386,17 @@ def trace(scene: Scene | PreparedScene, beams: Beams, n_rays: int = 30000, max_o
                             float(bin_ns), n_bins, float(viewed_diameter_m), float(specular),
                             float(hotspot), by_order, embree_threads, sampler, survive, float(roulette))
 
-    if by_pulses:
-        results = _map_serial_workers(run_chunk, chunks, threads)
+    if by_pulses:  # one serial wavefront per worker thread, chunks as workers free up
+        results = unordered_map(lambda ab: run_chunk(ab, 1), chunks, threads)
     else:
-        results = map(lambda ab: run_chunk(ab, threads), chunks)
+        results = ((i, run_chunk(ab, threads)) for i, ab in enumerate(chunks))
     if progress:
         from tqdm import tqdm
 
         results = tqdm(results, total=len(chunks), desc="trace", unit="chunk", leave=False)
     with NumbaThreads(None if by_pulses else threads):  # the kernels' prange threads
-        for (a, b), (acc, drop, tot, fh, t0c) in zip(chunks, results):
+        for i, (acc, drop, tot, fh, t0c) in results:
+            a, b = chunks[i]
             sigma[a:b], dropped[a:b], totals[a:b], first[a:b], t0[a:b] = acc, drop, tot, fh, t0c
     return TraceResult(
         sigma=sigma.sum(axis=1),
