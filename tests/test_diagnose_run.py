@@ -30,8 +30,11 @@ ROOT = Path(__file__).resolve().parents[1]
 def _synthetic_outputs(tmp_path, effects):
     study = SyntheticStudy(samples_per_species=12, pulses_per_sample=8, seed=1)
     settings = SearchSettings(rounds=2, n_boot=100)
-    result, gap, cand, sigs = find_missing_effects(study.keys, study.real(effects), study.simulate, settings, seed=5)
-    limits, curve = detection_limits(study.keys, study.simulate, settings, PowerSettings(replicates=2, values=3), 5)
+    tables = {}  # as the stage runs them: the power analysis first, its simulations reused
+    limits, curve = detection_limits(study.keys, study.simulate, settings, PowerSettings(replicates=2, values=3), 5,
+                                     tables=tables)
+    result, gap, cand, sigs = find_missing_effects(study.keys, study.real(effects), study.simulate, settings, seed=5,
+                                                   power_tables=tables)
     paths = write_outputs(tmp_path, result, gap, cand, sigs, limits=limits, curve=curve, settings=settings,
                           base_effects={}, datasets=sorted(study.datasets), keys=study.keys, seconds=1.0)
     return result, paths
@@ -261,6 +264,33 @@ def test_outputs_when_nothing_is_named(tmp_path):
     assert "**Verdict: none: no effect larger than " in md and "What these data could have seen" in md
 
 
+def test_signatures_reuse_the_power_analysis_when_nothing_was_searched():
+    """With nothing to search, the signatures come from the power analysis' pseudo-real
+    simulations (one seed: common random numbers), not from new simulations."""
+    study = SyntheticStudy(samples_per_species=12, pulses_per_sample=8, seed=1)
+    settings = SearchSettings(rounds=2, n_boot=100)
+    calls = []
+
+    def counted(pulses, effects, seed):
+        calls.append(dict(effects))
+        return study.simulate(pulses, effects, seed)
+
+    tables = {}
+    detection_limits(study.keys, counted, settings, PowerSettings(replicates=1, values=2), 5, tables=tables)
+    n_power = len(calls)
+    result, _, _, sigs = find_missing_effects(study.keys, study.real({}), counted, settings, seed=5,
+                                              power_tables=tables)
+    assert result.verdict == "none"
+    assert calls[n_power:] and all(not c for c in calls[n_power:])  # base model only after the power analysis
+    assert set(sigs["effect"]) == set(settings.candidates)
+    for name, g in sigs.groupby("effect"):  # the ladder value nearest the test value, in the search coordinate
+        tried = [k[0][1] for k in tables if k and k[0][0] == name]
+        u_test = cat.to_u(name, CATALOGUE[name].test_value)
+        assert g["value"].iloc[0] == min(tried, key=lambda v: abs(cat.to_u(name, v) - u_test))
+    h = sigs[sigs["effect"] == "hotspot"].groupby("feature")["shift_sd"].mean()
+    assert h["Apeak"] > 0.3 and abs(h["H"]) < 1e-9  # the toy's hotspot signature, noise-free
+
+
 def test_model_yaml_round_trip_and_checks(tmp_path):
     e = NamedEffect(name="nonlinearity", value=150.0, ci_low=120.0, ci_high=float("inf"), gap_reduction=0.2,
                     reduction_ci_low=0.1, reduction_ci_high=0.3, relative_reduction=0.8, round=1)
@@ -482,3 +512,21 @@ def test_real_chain_two_effects_over_two_rounds(tmp_path):
     assert all(e["ci_low"] <= truth[e["name"]] <= e["ci_high"] for e in m["effects"])
     gap = m["gap"]
     assert gap["after"] - gap["noise_floor"] <= 0.5 * (gap["before"] - gap["noise_floor"])
+
+
+def test_scene_cache_keeps_base_plants_at_once_and_candidate_plants_from_their_second_request():
+    """A candidate's vegetation value is mostly simulated once: its plants must not push the
+    base model's plants (traced again by every other candidate) out of the cache."""
+    from waveforest.diagnose.simulator import _SceneCache
+
+    cache = _SceneCache(base_effects={"hotspot": 1.3})  # no vegetation effect in the base model
+    kw = dict(ground_rho=0.3, lai_jitter=0.1)
+    a = cache("birch", 1.2, 7, **kw)
+    assert cache("birch", 1.2, 7, **kw, leaf_albedo=1.0) is a  # an off value is the base plant
+    assert (cache.built, cache.hits) == (1, 1)
+    b = cache("birch", 1.2, 7, **kw, leaf_albedo=0.8)
+    assert b is not a and len(cache.scenes) == 1  # built, not kept
+    c = cache("birch", 1.2, 7, **kw, leaf_albedo=0.8)
+    assert cache.built == 3 and len(cache.scenes) == 2 and cache("birch", 1.2, 7, **kw, leaf_albedo=0.8) is c
+    np.testing.assert_array_equal(b.scene.triangles, c.scene.triangles)  # the same plant either way
+    assert not np.array_equal(a.tri_data[:, 3], b.tri_data[:, 3])  # leaf albedo scales rho

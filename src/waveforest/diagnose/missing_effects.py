@@ -7,9 +7,10 @@ docs/method.md §(j). :func:`find_missing_effects` runs, from one master seed (s
 2. all pulses simulated again with a fresh seed, independent of the search, under the base
    model and under the extended model (base + named effects; nothing named: "after" is the
    base model), compared with :func:`.before_after.before_after`;
-3. the signatures (:func:`signatures`): each candidate at the grid value nearest its
-   realistic test value (:mod:`waveforest.effects`) against the base model, same seed, from
-   the search's simulation cache.
+3. the signatures (:func:`signatures`): each candidate near its realistic test value
+   (:mod:`waveforest.effects`) against the base model, same seed, from the search's
+   simulation cache or from the power analysis' simulations (no new simulation when either
+   has the candidate).
 
 :func:`summary_markdown` renders the result as ``diagnose.md``. Gaps in squared pooled SDs.
 """
@@ -25,15 +26,18 @@ from waveforest.diagnose import catalogue as cat
 from waveforest.diagnose.before_after import before_after
 from waveforest.diagnose.power import verdict_with_limits
 from waveforest.diagnose.search import SearchResult, SearchSettings, search
-from waveforest.diagnose.simulations import simulate_all
+from waveforest.diagnose.simulations import effects_key, simulate_all
 from waveforest.effects import CATALOGUE
 from waveforest.errors import WaveforestError
 
 
-def signatures(result: SearchResult, settings: SearchSettings) -> pd.DataFrame:
-    """How each candidate at (the grid value nearest) its test value moves the features.
+def signatures(result: SearchResult, settings: SearchSettings, power_tables: dict | None = None) -> pd.DataFrame:
+    """How each candidate near its realistic test value moves the features.
 
-    Against the base model with the same seed (common random numbers), both halves.
+    Against the base model with the same seed (common random numbers): the grid value nearest
+    the test value from the search's simulation cache (both halves) when the search simulated
+    it; else the value nearest the test value among ``power_tables`` (the power analysis'
+    pseudo-real tables, :func:`.power.detection_limits`); else that grid value simulated now.
 
     Returns
     -------
@@ -43,15 +47,22 @@ def signatures(result: SearchResult, settings: SearchSettings) -> pd.DataFrame:
     sims = result.simulations
     if sims is None:
         return pd.DataFrame()
-    off = sims.all({})
+    power_tables = power_tables or {}
     parts = []
     for name in settings.candidates:
+        u_test = cat.to_u(name, CATALOGUE[name].test_value)
         u_grid = cat.grid(name, settings.values)
-        u = float(u_grid[np.argmin(np.abs(u_grid - cat.to_u(name, CATALOGUE[name].test_value)))])
+        u = float(u_grid[np.argmin(np.abs(u_grid - u_test))])
         if abs(u - cat.off_u(name)) < 1e-12:
             continue
         value = cat.from_u(name, u)
-        on = sims.all(cat.with_effect({}, name, value))
+        effects = cat.with_effect({}, name, value)
+        pairs = {k: t for k, t in power_tables.items() if len(k) == 1 and k[0][0] == name}
+        if sims.has(effects) or not pairs or effects_key({}) not in power_tables:
+            off, on = sims.all({}), sims.all(effects)
+        else:
+            key = min(pairs, key=lambda k: abs(cat.to_u(name, k[0][1]) - u_test))
+            value, off, on = key[0][1], power_tables[effects_key({})], pairs[key]
         try:
             sig = cat.signature(off, on, features=settings.features, floors=settings.floors,
                                 min_pulses=settings.min_pulses, min_samples=1)
@@ -65,10 +76,10 @@ def signatures(result: SearchResult, settings: SearchSettings) -> pd.DataFrame:
 
 
 def find_missing_effects(keys: pd.DataFrame, real: pd.DataFrame, simulate, settings: SearchSettings, seed: int, *,
-             progress=None, fit_keys: pd.DataFrame | None = None
+             progress=None, fit_keys: pd.DataFrame | None = None, power_tables: dict | None = None
              ) -> tuple[SearchResult, pd.DataFrame, pd.DataFrame, pd.DataFrame]:
     """Search (fits on ``fit_keys``, default all), re-simulate ``keys`` before/after with a
-    fresh seed, signatures (no file output).
+    fresh seed, signatures (no file output; ``power_tables``: see :func:`signatures`).
 
     Returns
     -------
@@ -100,7 +111,7 @@ def find_missing_effects(keys: pd.DataFrame, real: pd.DataFrame, simulate, setti
     lead = ["round", "rank", "name", "value", "ci_low", "ci_high", "gap_reduction", "reduction_ci_low",
             "reduction_ci_high", "relative_reduction", "significant", "at_bound", "named"]
     cand = cand[lead + [c for c in cand.columns if c not in lead]]
-    return result, gap, cand, signatures(result, settings)
+    return result, gap, cand, signatures(result, settings, power_tables)
 
 
 def _fmt(x: float, nd: int = 3) -> str:

@@ -41,7 +41,7 @@ import pandas as pd
 from waveforest.diagnose import catalogue as cat
 from waveforest.diagnose.gap import gap_report, sample_universe
 from waveforest.diagnose.search import SearchSettings
-from waveforest.diagnose.simulations import Simulator, simulate_all
+from waveforest.diagnose.simulations import Simulator, effects_key, simulate_all
 from waveforest.effects import CATALOGUE
 from waveforest.errors import WaveforestError
 from waveforest.stats.bootstrap import bootstrap_weights
@@ -122,6 +122,7 @@ class _Replicate:
         self.sim = self._count(simulate_all(simulate, keys, {}, int(s_sim), settings.replicates), "power: base")
         self.universe = universe
         self.weights = bootstrap_weights(universe, settings.n_boot, s_boot)
+        self.tables = None
 
     def _count(self, table, label):
         if self.progress is not None:
@@ -129,8 +130,11 @@ class _Replicate:
         return table
 
     def test(self, effects: dict) -> tuple[float, float, float]:
-        """(gap, noise floor, lower bound of the excess gap's interval) of pseudo-real data under ``effects``."""
+        """(gap, noise floor, lower bound of the excess gap's interval) of pseudo-real data under
+        ``effects``; the pseudo-real table goes to ``self.tables`` when that is a dict."""
         real = self._count(simulate_all(self.simulate, self.keys, effects, self.s_real, 1), f"power: {effects}")
+        if self.tables is not None:
+            self.tables[effects_key(effects)] = real
         s = self.settings
         rep = gap_report(real, self.sim, n_boot=s.n_boot, alpha=s.alpha, wasserstein=False, universe=self.universe,
                          weights=self.weights, **s.gap_kw)
@@ -139,7 +143,7 @@ class _Replicate:
 
 
 def detection_limits(keys: pd.DataFrame, simulate: Simulator, settings: SearchSettings, power: PowerSettings,
-                     seed: int, *, progress: Callable[[str], None] | None = None
+                     seed: int, *, progress: Callable[[str], None] | None = None, tables: dict | None = None
                      ) -> tuple[pd.DataFrame, pd.DataFrame]:
     """The power analysis of the module docstring for every candidate of ``settings``.
 
@@ -157,6 +161,10 @@ def detection_limits(keys: pd.DataFrame, simulate: Simulator, settings: SearchSe
         Master seed of the replicates.
     progress : callable, optional
         Called with a label after each simulation.
+    tables : dict, optional
+        Filled with the first replicate's pseudo-real feature tables, keyed by
+        :func:`.simulations.effects_key` (off included): one seed for all, so any two are
+        common-random-number pairs (:func:`.missing_effects.signatures` reads them).
 
     Returns
     -------
@@ -177,6 +185,7 @@ def detection_limits(keys: pd.DataFrame, simulate: Simulator, settings: SearchSe
     universe = sample_universe(keys)
     seeds = np.random.SeedSequence([int(seed), 9]).generate_state(power.replicates)
     reps = [_Replicate(keys, simulate, settings, int(s), universe, progress) for s in seeds]
+    reps[0].tables = tables
     off = np.array([r.test({}) for r in reps])  # (R, 3)
     limits, curve = [], []
     for name in settings.candidates:

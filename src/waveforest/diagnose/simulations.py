@@ -5,7 +5,7 @@ A *simulator* is ``simulate(pulses, effects, seed) -> feature table`` (:data:`Si
 (:data:`HALVES`) and one seed per half; ``get(half, effects)`` simulates that half under
 ``effects`` once (``replicates`` calls, replicate r with seed ``SeedSequence([seed, r])``)
 and keeps the concatenated feature table, keyed by the half and the effects rounded to 12
-decimals. The same seed for every model of a half gives common random numbers
+decimals (:func:`effects_key`). The same seed for every model of a half gives common random numbers
 (docs/method.md §(j), the search). Errors: :class:`waveforest.errors.WaveforestError` when
 the simulator returns no DataFrame.
 """
@@ -29,6 +29,11 @@ HALVES = ("A", "B")
 """Names of the two halves of the field samples."""
 
 
+def effects_key(effects: dict[str, float]) -> tuple:
+    """A hashable key of ``effects``: sorted (name, value rounded to 12 decimals) pairs."""
+    return tuple(sorted((k, round(float(v), 12)) for k, v in effects.items()))
+
+
 class SimulationCache:
     """Cache of simulator calls keyed by (half, effects); one seed per half."""
 
@@ -44,7 +49,7 @@ class SimulationCache:
 
     def get(self, half: str, effects: dict[str, float]) -> pd.DataFrame:
         """Simulated features of ``half`` under ``effects`` (all replicates, cached)."""
-        key = (half, tuple(sorted((k, round(float(v), 12)) for k, v in effects.items())))
+        key = (half, effects_key(effects))
         if key not in self.cache:
             self.cache[key] = simulate_all(self.simulate, self.halves[half], effects, self.seeds[half],
                                            self.replicates)
@@ -52,6 +57,10 @@ class SimulationCache:
             if self.progress is not None:
                 self.progress(f"{half} {dict(effects)}")
         return self.cache[key]
+
+    def has(self, effects: dict[str, float]) -> bool:
+        """Whether every half with pulses is already simulated under ``effects``."""
+        return all((h, effects_key(effects)) in self.cache for h in HALVES if len(self.halves[h]))
 
     def all(self, effects: dict[str, float]) -> pd.DataFrame:
         """Simulated features of all samples (both halves) under ``effects``."""

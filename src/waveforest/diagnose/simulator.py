@@ -48,6 +48,7 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.compute as pc
 
+from waveforest.diagnose.catalogue import VEGETATION_EFFECTS
 from waveforest.diagnose.strata import (
     BELOW_CROWN,
     BELOW_CROWN_ATTEMPTS,
@@ -55,6 +56,7 @@ from waveforest.diagnose.strata import (
     stem_distance,
     turned_about_stems,
 )
+from waveforest.effects import CATALOGUE
 from waveforest.errors import WaveforestError
 from waveforest.io.tables import dataset_row
 from waveforest.mcrt import prepare
@@ -82,31 +84,46 @@ def _is_tree_model(species: str) -> bool:
     return bool(row["model"].iloc[0] == "tree") if len(row) else True
 
 
+def _vegetation_effects(species: str, kw: dict) -> tuple:
+    """The vegetation effects in ``build_scene`` keyword arguments that change this species'
+    plant: sorted (name, value) pairs, off values and an understory under a non-tree dropped."""
+    return tuple(sorted((k, float(v)) for k, v in kw.items() if k in VEGETATION_EFFECTS
+                        and float(v) != CATALOGUE[k].off and (k != "understory" or _is_tree_model(species))))
+
+
 class _SceneCache:
     """``scene_builder`` for ``simulate_pulses`` that returns cached prepared scenes.
 
     Keyed by (species, height, scene seed, vegetation keyword arguments); least recently
     used scenes are dropped beyond :data:`SCENE_CACHE_SIZE` scenes or
-    :data:`SCENE_CACHE_TRIANGLES` triangles. The BVH is built at MEDIUM quality: a scene
-    serves a few pulses of ``diagnose.n_rays`` per simulation, far below what a HIGH build
-    pays back over (:func:`waveforest.mcrt.tracer.bvh_quality`; timings in docs/validation.md).
+    :data:`SCENE_CACHE_TRIANGLES` triangles. Plants of the base model (``base_effects``'
+    vegetation effects) are kept from their first build; plants under other vegetation
+    effects (a candidate's value, mostly asked for once) only from their second request, so
+    that one-off plants do not push out the ones every other candidate traces again. The BVH
+    is built at MEDIUM quality: a scene serves a few pulses of ``diagnose.n_rays`` per
+    simulation, far below what a HIGH build pays back over
+    (:func:`waveforest.mcrt.tracer.bvh_quality`; timings in docs/validation.md).
     """
 
-    def __init__(self, size: int = SCENE_CACHE_SIZE, triangles: int = SCENE_CACHE_TRIANGLES):
+    def __init__(self, size: int = SCENE_CACHE_SIZE, triangles: int = SCENE_CACHE_TRIANGLES,
+                 base_effects: dict | None = None):
         self.size = size
         self.max_triangles = triangles
+        self.base_effects = dict(base_effects or {})
         self.triangles = 0
         self.scenes: OrderedDict = OrderedDict()
+        self.requested: set = set()  # keys of plants built once and not kept
         self.built = 0
         self.hits = 0
         self.lock = threading.Lock()
 
     def __call__(self, species, height, seed, **kwargs):
 
-        kw = {k: float(v) for k, v in kwargs.items()}
-        if kw.get("understory", 0.0) and not _is_tree_model(str(species)):
-            kw.pop("understory")  # grows under trees only (vegetation.build_scene): same plant
-        key = (str(species), float(height), int(seed), tuple(sorted(kw.items())))
+        species = str(species)
+        fx = _vegetation_effects(species, kwargs)
+        rest = tuple(sorted((k, float(v)) for k, v in kwargs.items() if k not in VEGETATION_EFFECTS))
+        key = (species, float(height), int(seed), rest + fx)
+        base = fx == _vegetation_effects(species, self.base_effects)
         with self.lock:
             if key in self.scenes:
                 self.scenes.move_to_end(key)
@@ -116,7 +133,9 @@ class _SceneCache:
         scene = prepare(build_scene(species, height, seed, **kwargs), quality="medium")
         with self.lock:
             self.built += 1
-            if key not in self.scenes:
+            keep = base or key in self.requested
+            self.requested.add(key)
+            if keep and key not in self.scenes:
                 self.scenes[key] = scene
                 self.triangles += len(scene.scene)
             while len(self.scenes) > 1 and (len(self.scenes) > self.size or self.triangles > self.max_triangles):
@@ -167,7 +186,7 @@ class StudySimulator:
         self.base_effects = dict(base_effects or {})
         self.range_correction = bool(range_correction)
         self.threads = threads
-        self.scenes = _SceneCache()
+        self.scenes = _SceneCache(base_effects=self.base_effects)
         self.pulses_simulated = 0
         self.calibration_pulses = dict(calibration_pulses or {})
         self._recalibrated: dict = {}

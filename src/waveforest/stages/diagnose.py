@@ -12,11 +12,12 @@ the campaign's datasets.csv, targets.csv and fields.csv. Steps:
    the comparison pulses of the modelled species of ``diagnose.datasets`` and, with
    ``diagnose.below_crown``, the stratum under the crowns; candidates are fitted on at most
    ``diagnose.fit_pulses`` of them per dataset x species x stratum and tested on all.
-2. **Diagnosis** (:func:`.diagnose.missing_effects.find_missing_effects`) with the study's
+2. **Detection limits** (:func:`.diagnose.power.detection_limits`, ``diagnose.power``): the
+   smallest value of each candidate that these pulses would detect, with the study's
    simulation chain (:class:`.diagnose.simulator.StudySimulator`) on top of
-   ``simulate.effects`` (the base model): search, before/after, signatures.
-3. **Detection limits** (:func:`.diagnose.power.detection_limits`, ``diagnose.power``): the
-   smallest value of each candidate that these pulses would detect, with the same simulator.
+   ``simulate.effects`` (the base model).
+3. **Diagnosis** (:func:`.diagnose.missing_effects.find_missing_effects`) with the same
+   simulator: search, before/after, signatures (from the search's or step 2's simulations).
 4. **Outputs** in ``out_dir`` (:data:`OUTPUT_NAMES`): ``model.yaml``, ``candidates.csv``,
    ``gap_before_after.csv``, ``gap.png``, ``signatures.csv``, ``detection_limits.csv``,
    ``detection_curve.csv``, ``diagnose.md``.
@@ -294,10 +295,11 @@ def run(selected_paths, real_paths, calibration_paths, out_dir, cfg: dict, *, da
 
         bar = tqdm(desc="diagnose: simulations", unit="sim")
     tick = (lambda label: bar.update(1)) if bar is not None else None
-    result, gap, cand, sigs = find_missing_effects(keys, real, simulator, settings, int(cfg["seed"]), fit_keys=fit_keys,
-                                                   progress=tick)
+    power_tables = {}  # the power analysis' simulations, which the signatures reuse
     limits, curve = detection_limits(keys, simulator, settings, PowerSettings.from_config(cfg), int(cfg["seed"]),
-                                     progress=tick)
+                                     progress=tick, tables=power_tables)
+    result, gap, cand, sigs = find_missing_effects(keys, real, simulator, settings, int(cfg["seed"]), fit_keys=fit_keys,
+                                                   progress=tick, power_tables=power_tables)
     if bar is not None:
         bar.close()
     seconds = time.perf_counter() - t_start
