@@ -20,7 +20,12 @@ import numpy as np
 from numba import njit
 
 from waveforest.mcrt.backends import BACKENDS, Intersector
-from waveforest.mcrt.backends.embree import DEFAULT_QUALITY, QUALITIES, DirectEmbreeIntersector, InstancedEmbreeIntersector
+from waveforest.mcrt.backends.embree import (
+    DEFAULT_QUALITY,
+    QUALITIES,
+    DirectEmbreeIntersector,
+    InstancedEmbreeIntersector,
+)
 from waveforest.scene import Scene, SceneError
 
 
@@ -246,7 +251,7 @@ def prepare_instances(prototypes: Prototypes, which, rotation, translation, qual
             raise ValueError("prototypes: instances need parts prepared with the embree backend")
     # box of each copy: its part's internal box corners, back to part coordinates, placed
     shifts = np.stack([p.shift for p in parts])[which]
-    corners = np.stack([np.stack([[b[i, 0], b[j, 1], b[l, 2]] for i in (0, 1) for j in (0, 1) for l in (0, 1)])
+    corners = np.stack([np.stack([[b[i, 0], b[j, 1], b[c, 2]] for i in (0, 1) for j in (0, 1) for c in (0, 1)])
                         for b in (p.bounds for p in parts)])[which] + shifts[:, None, :]
     placed = np.einsum("kab,kcb->kca", rot, corners) + t[:, None, :]
     box = np.stack([placed.reshape(-1, 3).min(axis=0), placed.reshape(-1, 3).max(axis=0)])
