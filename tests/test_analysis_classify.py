@@ -99,6 +99,14 @@ def test_folds_never_split_a_group():
         seen[test] += 1
     assert np.all(seen == 1)
     assert lda.cv_folds(y, np.zeros(300), 5, 0) == []
+    # the same labels, groups and seed: the same folds (kept from the first call), other seeds others
+    lda._FOLDS.clear()
+    again = lda.cv_folds(y.tolist(), groups.astype(str), 5, seed=0)
+    assert len(lda._FOLDS) == 1 and lda.cv_folds(y, groups, 5, seed=0) is not again
+    assert all(np.array_equal(a[1], b[1]) for a, b in zip(folds, again))
+    again[0][1][:] = -1  # a caller's change does not reach the kept folds
+    assert all(np.array_equal(a[1], b[1]) for a, b in zip(folds, lda.cv_folds(y, groups, 5, seed=0)))
+    assert not all(np.array_equal(a[1], b[1]) for a, b in zip(folds, lda.cv_folds(y, groups, 5, seed=1)))
 
 
 def test_consecutive_means():

@@ -9,6 +9,7 @@ class frequencies of the training data (scikit-learn's default).
 
 from __future__ import annotations
 
+import hashlib
 import warnings
 from dataclasses import dataclass
 
@@ -136,11 +137,20 @@ def resubstitution(x, y) -> np.ndarray:
     return _fit_predict(x, y, x)
 
 
+_FOLDS: dict = {}
+"""Folds of recent :func:`cv_folds` calls, keyed by (k, seed, hash of the class and group codes):
+a classification evaluates several feature sets on the same pulses, and scikit-learn's
+StratifiedGroupKFold takes seconds for thousands of groups."""
+
+_FOLDS_KEPT = 8
+
+
 def cv_folds(y, groups, n_folds: int, seed: int) -> list[tuple[np.ndarray, np.ndarray]]:
     """Stratified folds that never split a group: list of (train_index, test_index).
 
     The number of folds is ``min(n_folds, number of groups, size of the largest class)``;
-    fewer than 2 -> [] (no cross-validation possible).
+    fewer than 2 -> [] (no cross-validation possible). The same labels, groups and seed give
+    the same folds (computed once, :data:`_FOLDS`).
     """
     y = np.asarray(y, dtype=object)
     groups = np.asarray(groups, dtype=object)
@@ -150,12 +160,18 @@ def cv_folds(y, groups, n_folds: int, seed: int) -> list[tuple[np.ndarray, np.nd
     k = min(int(n_folds), n_groups, largest)
     if k < 2:
         return []
-    splitter = StratifiedGroupKFold(n_splits=k, shuffle=True, random_state=int(seed) % 2**32)
     codes = pd.factorize(y)[0]
     gcodes = pd.factorize(groups)[0]
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # "least populated class has fewer members than n_splits"
-        return [(tr, te) for tr, te in splitter.split(np.zeros(len(y)), codes, gcodes)]
+    key = (k, int(seed) % 2**32, hashlib.blake2b(codes.tobytes() + b"|" + gcodes.tobytes()).hexdigest())
+    if key not in _FOLDS:
+        splitter = StratifiedGroupKFold(n_splits=k, shuffle=True, random_state=key[1])
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # "least populated class has fewer members than n_splits"
+            folds = [(tr, te) for tr, te in splitter.split(np.zeros(len(y)), codes, gcodes)]
+        while len(_FOLDS) >= _FOLDS_KEPT:
+            _FOLDS.pop(next(iter(_FOLDS)))
+        _FOLDS[key] = folds
+    return [(tr.copy(), te.copy()) for tr, te in _FOLDS[key]]
 
 
 def cross_validated(x, y, groups, n_folds: int = 5, seed: int = 0) -> np.ndarray | None:
