@@ -10,6 +10,7 @@ class frequencies of the training data (scikit-learn's default).
 from __future__ import annotations
 
 import hashlib
+import threading
 import warnings
 from dataclasses import dataclass
 
@@ -143,6 +144,7 @@ a classification evaluates several feature sets on the same pulses, and scikit-l
 StratifiedGroupKFold takes seconds for thousands of groups."""
 
 _FOLDS_KEPT = 8
+_FOLDS_LOCK = threading.Lock()
 
 
 def cv_folds(y, groups, n_folds: int, seed: int) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -163,15 +165,18 @@ def cv_folds(y, groups, n_folds: int, seed: int) -> list[tuple[np.ndarray, np.nd
     codes = pd.factorize(y)[0]
     gcodes = pd.factorize(groups)[0]
     key = (k, int(seed) % 2**32, hashlib.blake2b(codes.tobytes() + b"|" + gcodes.tobytes()).hexdigest())
-    if key not in _FOLDS:
+    with _FOLDS_LOCK:
+        folds = _FOLDS.get(key)
+    if folds is None:
         splitter = StratifiedGroupKFold(n_splits=k, shuffle=True, random_state=key[1])
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # "least populated class has fewer members than n_splits"
             folds = [(tr, te) for tr, te in splitter.split(np.zeros(len(y)), codes, gcodes)]
-        while len(_FOLDS) >= _FOLDS_KEPT:
-            _FOLDS.pop(next(iter(_FOLDS)))
-        _FOLDS[key] = folds
-    return [(tr.copy(), te.copy()) for tr, te in _FOLDS[key]]
+        with _FOLDS_LOCK:
+            while len(_FOLDS) >= _FOLDS_KEPT:
+                _FOLDS.pop(next(iter(_FOLDS)))
+            _FOLDS[key] = folds
+    return [(tr.copy(), te.copy()) for tr, te in folds]
 
 
 def cross_validated(x, y, groups, n_folds: int = 5, seed: int = 0) -> np.ndarray | None:
