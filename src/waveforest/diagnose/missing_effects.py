@@ -58,7 +58,7 @@ def signatures(result: SearchResult, settings: SearchSettings, power_tables: dic
         value = cat.from_u(name, u)
         effects = cat.with_effect({}, name, value)
         pairs = {k: t for k, t in power_tables.items() if len(k) == 1 and k[0][0] == name}
-        if sims.has(effects) or not pairs or effects_key({}) not in power_tables:
+        if sims.has(effects) or not pairs:  # the power analysis tests off before any value
             off, on = sims.all({}), sims.all(effects)
         else:
             key = min(pairs, key=lambda k: abs(cat.to_u(name, k[0][1]) - u_test))

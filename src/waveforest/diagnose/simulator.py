@@ -134,8 +134,9 @@ class _SceneCache:
         with self.lock:
             self.built += 1
             keep = base or key in self.requested
-            self.requested.add(key)
-            if keep and key not in self.scenes:
+            if not keep:
+                self.requested.add(key)
+            elif key not in self.scenes:
                 self.scenes[key] = scene
                 self.triangles += len(scene.scene)
             while len(self.scenes) > 1 and (len(self.scenes) > self.size or self.triangles > self.max_triangles):

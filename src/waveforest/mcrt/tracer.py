@@ -250,14 +250,13 @@ def _trace_chunk(prepared: PreparedScene, beams: Beams, index: np.ndarray, key, 
     buffers = rays  # the live rays are packed into the emission arrays after each order
     work = Scattered.empty(len(rays))
     isect = prepared.intersector
-    kind = prepared.kind
     first = None
     for order in range(1, max_order + 1):
         if len(rays) == 0:
             break
         tfar, prim = isect.intersect(rays.origin, rays.direction, threads=threads)
         if order == 1:
-            code = np.where(prim >= 0, kind[np.maximum(prim, 0)], MISS_KIND)
+            code = np.where(prim >= 0, prepared.tri_data[np.maximum(prim, 0), 5].astype(np.int64), MISS_KIND)
             first = np.bincount(rays.beam * (MISS_KIND + 1) + code,
                                 minlength=nb * (MISS_KIND + 1)).reshape(nb, MISS_KIND + 1)
         out = scatter(order, order == max_order, rays, tfar, prim, prepared, frame, n_bins, bin_ns,

@@ -257,6 +257,29 @@ def _slots(m: int) -> tuple[np.ndarray, np.ndarray]:
     return f, f.view(np.uint32)
 
 
+def _new_scene(quality: str):
+    """(library, new Embree scene of build quality ``quality``); errors when Embree is
+    unavailable or the quality unknown."""
+    lib = _load()
+    if lib is None:
+        raise RuntimeError(f"direct Embree calls unavailable: {_ERROR}")
+    if quality not in QUALITIES:
+        raise ValueError(f"quality: expected one of {', '.join(QUALITIES)}, got {quality!r}")
+    scene = lib.rtcNewScene(_DEVICE)
+    lib.rtcSetSceneBuildQuality(scene, QUALITIES[quality])
+    return lib, scene
+
+
+def _commit(lib, scene, what: str):
+    """Build the BVH of ``scene`` (Embree's own threads); an Embree error releases it and raises."""
+    lib.rtcCommitScene(scene)
+    err = lib.rtcGetDeviceError(_DEVICE)
+    if err:
+        lib.rtcReleaseScene(scene)
+        raise RuntimeError(f"Embree error {err} while building a scene of {what}")
+    return scene
+
+
 class DirectEmbreeIntersector(RayQueries):
     """Nearest-hit and occlusion queries on an Embree 4 BVH, called from Numba kernels.
 
@@ -271,19 +294,12 @@ class DirectEmbreeIntersector(RayQueries):
     backend = "embree"
 
     def __init__(self, triangles: np.ndarray, quality: str = DEFAULT_QUALITY) -> None:
-        lib = _load()
-        if lib is None:
-            raise RuntimeError(f"direct Embree calls unavailable: {_ERROR}")
-        if quality not in QUALITIES:
-            raise ValueError(f"quality: expected one of {', '.join(QUALITIES)}, got {quality!r}")
         tri = check_triangles(triangles)
         n = len(tri)
-        q = QUALITIES[quality]
+        lib, scene = _new_scene(quality)
         self._lib = lib
-        scene = lib.rtcNewScene(_DEVICE)
-        lib.rtcSetSceneBuildQuality(scene, q)
         geom = lib.rtcNewGeometry(_DEVICE, _RTC_GEOMETRY_TYPE_TRIANGLE)
-        lib.rtcSetGeometryBuildQuality(geom, q)
+        lib.rtcSetGeometryBuildQuality(geom, QUALITIES[quality])
         vptr = lib.rtcSetNewGeometryBuffer(geom, _RTC_BUFFER_TYPE_VERTEX, 0, _RTC_FORMAT_FLOAT3, 12, 3 * n)
         iptr = lib.rtcSetNewGeometryBuffer(geom, _RTC_BUFFER_TYPE_INDEX, 0, _RTC_FORMAT_UINT3, 12, n)
         if not vptr or not iptr:
@@ -296,12 +312,7 @@ class DirectEmbreeIntersector(RayQueries):
         lib.rtcCommitGeometry(geom)
         lib.rtcAttachGeometry(scene, geom)
         lib.rtcReleaseGeometry(geom)
-        lib.rtcCommitScene(scene)  # builds the BVH (Embree's own threads)
-        err = lib.rtcGetDeviceError(_DEVICE)
-        if err:
-            lib.rtcReleaseScene(scene)
-            raise RuntimeError(f"Embree error {err} while building a scene of {n} triangles")
-        self._scene = scene
+        self._scene = _commit(lib, scene, f"{n} triangles")
         self._offsets = _NO_OFFSETS
         self.n_triangles = n
         self.quality = quality
@@ -350,11 +361,6 @@ class InstancedEmbreeIntersector(DirectEmbreeIntersector):
     """
 
     def __init__(self, prototypes, which, transforms, offsets, quality: str = "medium") -> None:
-        lib = _load()
-        if lib is None:
-            raise RuntimeError(f"direct Embree calls unavailable: {_ERROR}")
-        if quality not in QUALITIES:
-            raise ValueError(f"quality: expected one of {', '.join(QUALITIES)}, got {quality!r}")
         which = np.asarray(which, np.int64)
         xfm = np.asarray(transforms, np.float64)
         if which.ndim != 1 or xfm.shape != (len(which), 3, 4) or len(offsets) != len(which) or not len(which):
@@ -364,10 +370,9 @@ class InstancedEmbreeIntersector(DirectEmbreeIntersector):
             raise ValueError(f"which: prototype index outside [0, {len(prototypes)})")
         if not np.all(np.isfinite(xfm)):
             raise ValueError("transforms: non-finite values")
-        self._lib = lib
         self._prototypes = list(prototypes)
-        scene = lib.rtcNewScene(_DEVICE)
-        lib.rtcSetSceneBuildQuality(scene, QUALITIES[quality])
+        lib, scene = _new_scene(quality)
+        self._lib = lib
         columns = np.ascontiguousarray(xfm.transpose(0, 2, 1), np.float32)  # (k, 4, 3): column-major
         for j, p in enumerate(which):
             geom = lib.rtcNewGeometry(_DEVICE, _RTC_GEOMETRY_TYPE_INSTANCE)
@@ -376,12 +381,7 @@ class InstancedEmbreeIntersector(DirectEmbreeIntersector):
             lib.rtcCommitGeometry(geom)
             lib.rtcAttachGeometry(scene, geom)  # geometry IDs 0, 1, ... = instance order
             lib.rtcReleaseGeometry(geom)
-        lib.rtcCommitScene(scene)
-        err = lib.rtcGetDeviceError(_DEVICE)
-        if err:
-            lib.rtcReleaseScene(scene)
-            raise RuntimeError(f"Embree error {err} while building a scene of {len(which)} instances")
-        self._scene = scene
+        self._scene = _commit(lib, scene, f"{len(which)} instances")
         self._offsets = np.ascontiguousarray(offsets, np.int64)
         self.n_triangles = int(sum(self._prototypes[p].n_triangles for p in which))
         self.quality = quality
