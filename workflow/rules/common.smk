@@ -99,12 +99,17 @@ def config_values(wildcards):
     return out
 
 
-def write_config(path):
-    """Write the whole validated config to ``path`` as YAML (sorted keys), atomically."""
-    tmp = "{}.part".format(path)
-    with open(tmp, "w") as fh:
+VALIDATED_CONFIG = os.path.join(RESULTS, "config", ".validated.yaml")
+"""The whole validated config (defaults filled) of this run, written when it starts; rule
+`config` copies it for each stage."""
+
+
+onstart:
+    os.makedirs(os.path.dirname(VALIDATED_CONFIG), exist_ok=True)
+    _part = "{}.part".format(VALIDATED_CONFIG)
+    with open(_part, "w") as fh:
         fh.write(yaml.safe_dump(config, sort_keys=True))
-    os.replace(tmp, path)
+    os.replace(_part, VALIDATED_CONFIG)
 
 
 def _user_datasets():

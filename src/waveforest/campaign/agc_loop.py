@@ -84,7 +84,7 @@ class AGCParams:
         return max(0, lo), AGC_MAX
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _agc_loop_kernel(t_s, a0_dn, strip, z_bg, z_jit, law_a, law_b, bg_mean, bg_sd, bg_tau,
                      loop_tau, loop_gain, setpoint, jitter_sd, saturation, agc_lo, agc_hi,
                      agc_out, gain_out, obs_out):

@@ -42,7 +42,7 @@ def _y(x, p, k, delay, fraction):
     return xd - fraction * x[p, k]
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def _dr_cfd_kernel(x, lengths, fraction, delay, arm, dead, search, pre, post, pos, amp, count):
     n = x.shape[0]
     max_echoes = pos.shape[1]

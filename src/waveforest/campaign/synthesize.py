@@ -362,19 +362,26 @@ def _trace_sites(allp: pd.DataFrame, site_info: pd.DataFrame, datasets: pd.DataF
         sampler=str(cfg["mcrt"]["sampler"]), roulette=float(cfg["mcrt"]["roulette"]))
     groups = allp.groupby("site", sort=False).indices
     sites = [s for s in site_info.index if s in groups]
+    # per-pulse and per-site arrays once: a site's job is then slices (no pandas per site)
+    sensor = allp[["sensor_x", "sensor_y", "sensor_z"]].to_numpy(np.float64)
+    direction = allp[["dir_x", "dir_y", "dir_z"]].to_numpy(np.float64)
+    div = allp["dataset"].map(divergence).to_numpy(np.float64)
+    ds_of = allp["dataset"].map(ds_index).to_numpy(np.int64)
+    range_m = allp["range_ground_m"].to_numpy(np.float64)
+    row = allp["row"].to_numpy(np.int64)
+    si = site_info.loc[sites]
+    xyz = si[["x", "y", "z"]].to_numpy(np.float64)
+    num = {c: si[c].to_numpy(np.float64) for c in ("height_m", "rho", "side_m", "on_ground_rho", "disc_m")}
+    kind, species = si["kind"].astype(str).to_numpy(), si["species"].astype(str).to_numpy()
     jobs = []
-    for site in sites:
-        info = site_info.loc[site]
-        sub = allp.iloc[groups[site]]
-        origin = sub[["sensor_x", "sensor_y", "sensor_z"]].to_numpy() - np.array([info["x"], info["y"], info["z"]])
+    for k, site in enumerate(sites):
+        idx = groups[site]
         jobs.append(SiteJob(
-            site=site, kind=str(info["kind"]), species=str(info["species"]), height_m=float(info["height_m"]),
-            rho=float(info["rho"]), side_m=float(info["side_m"]), on_ground_rho=float(info["on_ground_rho"]),
-            reach_m=float(info["disc_m"]) + 1.0, origin=origin,
-            direction=sub[["dir_x", "dir_y", "dir_z"]].to_numpy(),
-            divergence_mrad=divergence.loc[sub["dataset"]].to_numpy(dtype=float),
-            range_m=sub["range_ground_m"].to_numpy(),
-            dataset=sub["dataset"].map(ds_index).to_numpy(np.int64), rows=sub["row"].to_numpy(np.int64)))
+            site=site, kind=kind[k], species=species[k], height_m=float(num["height_m"][k]),
+            rho=float(num["rho"][k]), side_m=float(num["side_m"][k]),
+            on_ground_rho=float(num["on_ground_rho"][k]), reach_m=float(num["disc_m"][k]) + 1.0,
+            origin=sensor[idx] - xyz[k], direction=direction[idx], divergence_mrad=div[idx],
+            range_m=range_m[idx], dataset=ds_of[idx], rows=row[idx]))
     t0 = time.perf_counter()
     results = trace_sites(jobs, settings, workers=max(1, int(numba.get_num_threads())), progress=progress)
     timings["sites_wall"] = time.perf_counter() - t0

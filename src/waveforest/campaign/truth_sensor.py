@@ -159,7 +159,7 @@ class Recorded(NamedTuple):
     walk_m: np.ndarray
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def _sample_kernel(analog, pos0, step, out):
     """out[p, k] = analog[p] linearly interpolated at fractional index pos0[p] + k step (0 outside)."""
     n, m = analog.shape

@@ -194,7 +194,7 @@ def _cfd_one(row, n, dt, mean, thr, frac, D, dead, max_echoes, out_t, out_a):
     return ne
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, nogil=True)
 def _cfd_kernel(samples, lengths, dt, mean, thr, frac, D, dead, max_echoes, out_t, out_a, out_n):
     """CFD over a table of waveforms (prange over pulses); outputs pre-filled by the caller."""
     for i in prange(samples.shape[0]):

@@ -137,7 +137,7 @@ def _features_one(row, n, dt, mean, sd, t_echo, seg_sd, rise_sd, search_ns, out)
     out[6] = t_top
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, nogil=True)
 def _features_kernel(samples, lengths, dt, mean, sd, t_echo, seg_sd, rise_sd, search_ns, out):
     """Features of every waveform (prange over pulses): out (n, 7)."""
     for i in prange(samples.shape[0]):

@@ -24,7 +24,7 @@ import waveforest.sensor._checks as _checks
 from waveforest.sensor.params import INTEGER_TOL, QUANTISATION_VAR
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, nogil=True)
 def _ar1_kernel(z, phi, out):
     """Stationary AR(1) rows of unit marginal variance from standard normal rows ``z``."""
     c = math.sqrt(1.0 - phi * phi)

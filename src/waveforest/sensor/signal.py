@@ -116,7 +116,7 @@ def _saturate(v, level):
             v[k] = level * math.tanh(v[k] / level)
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, nogil=True)
 def _analog_kernel(sigma, w, S, level, out):
     """Fine-grid signal of every pulse: (n, n_bins + n_S - 1) into ``out`` (pre-zeroed);
     ``level``: (n,) saturation level per pulse (0 = linear)."""
@@ -125,7 +125,7 @@ def _analog_kernel(sigma, w, S, level, out):
         _saturate(out[i], level[i])
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, nogil=True)
 def _sample_kernel(v, tv0, trig_rel, pre_ns, phase_ns, dt, out, trig, first):
     """Record window and point sampling of fine-grid signals (prange over pulses).
 

@@ -29,7 +29,7 @@ def leaf_area_index(scene: Scene, plot_area: float = PLOT_AREA_M2) -> float:
     return float(scene.areas[scene.kind == KIND_LEAF].sum() / plot_area)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _coverage_kernel(tri_xy, x0, y0, cell, nx, ny):  # pragma: no cover - compiled; tested against reference
     """Grid points (centres x0 + (i + 1/2) cell, y0 + (j + 1/2) cell) inside any triangle."""
     out = np.zeros((ny, nx), dtype=np.bool_)

@@ -62,7 +62,7 @@ EDGE_DEG = 1e-9
 """Means within this of 0 or 90 degrees give the degenerate ``fixed`` distribution."""
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _invert_dewit(u, table, sign, freq):  # pragma: no cover - compiled; tested against reference
     """theta with F(theta) = u for F = (2/pi)(theta + sign sin(freq theta)/freq).
 

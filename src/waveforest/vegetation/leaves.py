@@ -170,7 +170,7 @@ def leaf_frames(normal: np.ndarray, toward: np.ndarray) -> tuple[np.ndarray, np.
     return m, b
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _place_kernel(base, m, b, length, wf, tx, ty):  # pragma: no cover - compiled; tested against reference
     """vertex[i, t, v] = base[i] + length[i] (tx[t, v] m[i] + wf[i] ty[t, v] b[i]), float32."""
     n = base.shape[0]
