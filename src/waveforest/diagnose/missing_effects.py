@@ -198,7 +198,9 @@ def _limits_markdown(limits: pd.DataFrame, curve: pd.DataFrame, real_floor: floa
              f"(src/waveforest/diagnose/power.py). With no effect the test fired in {_fmt(false_alarms * 100)} % "
              f"of them. Noise floor of the pseudo-real data without effect {_fmt(off_floor)}, of the real data "
              f"{_fmt(real_floor)}: a real floor well above the pseudo-real one means more spread between real "
-             "plants than between simulated ones, and limits that are too small.", "",
+             "plants than between simulated ones, and limits that are too small. The pseudo-real data are the "
+             "model's own twins: where real data differ from the model in other ways too, an effect at or somewhat "
+             "above its limit can still go unnamed (docs/validation.md, Diagnose at the paper's scale).", "",
              "| effect | smallest detectable | tried up to |", "|---|---|---|"]
     for r in limits.itertuples():
         found = "not within the bounds" if pd.isna(r.smallest_detectable) else f"{_fmt(r.smallest_detectable)} {r.unit}"
