@@ -256,7 +256,7 @@ def _trace_chunk(prepared: PreparedScene, beams: Beams, index: np.ndarray, key, 
             break
         tfar, prim = isect.intersect(rays.origin, rays.direction, threads=threads)
         if order == 1:
-            code = np.where(prim >= 0, prepared.tri_data[np.maximum(prim, 0), 5].astype(np.int64), MISS_KIND)
+            code = np.where(prim >= 0, prepared.kind_of(np.maximum(prim, 0)), MISS_KIND)
             first = np.bincount(rays.beam * (MISS_KIND + 1) + code,
                                 minlength=nb * (MISS_KIND + 1)).reshape(nb, MISS_KIND + 1)
         out = scatter(order, order == max_order, rays, tfar, prim, prepared, frame, n_bins, bin_ns,
