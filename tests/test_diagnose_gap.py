@@ -54,6 +54,36 @@ def test_known_shift_gives_d_equal_to_shift_and_gap_k_squared():
     assert rep.significant
 
 
+
+def test_datasets_are_pooled_before_squaring():
+    """d and l are averaged over a species' datasets before squaring: a shift in every dataset
+    counts k^2, the same shift in one of D datasets k^2 / D^2, opposite shifts cancel; the
+    noise floor of D pooled datasets is about 1/D of one cell's."""
+    rng = np.random.default_rng(13)
+    ds = ("d1", "d2", "d3", "d4")
+    real = clustered(rng, datasets=ds, species=("a",), samples=60, pulses=15, icc=0.0)
+    base = clustered(rng, datasets=ds, species=("a",), samples=60, pulses=15, icc=0.0)
+    k = 1.0
+
+    def total(sim):
+        return G.gap_report(real, sim, n_boot=100, seed=3, features=("H",), wasserstein=False)
+
+    everywhere, one, opposite = base.copy(), base.copy(), base.copy()
+    everywhere["H"] += k
+    one.loc[one["dataset"] == "d1", "H"] += k
+    opposite.loc[opposite["dataset"].isin(["d1", "d2"]), "H"] += k
+    opposite.loc[opposite["dataset"].isin(["d3", "d4"]), "H"] -= k
+    # per cell SE of d ~ sqrt(2 / 900) ~ 0.05, pooled ~ 0.024: allowances of ~3 SE
+    assert total(everywhere).total == pytest.approx(k**2, abs=0.15)
+    assert total(one).total == pytest.approx(k**2 / len(ds) ** 2, abs=0.05)
+    rep = total(opposite)
+    assert rep.cells["d"].abs().min() > 0.7  # every cell is far off ...
+    assert rep.cells["log_sd_ratio"].abs().max() < 0.15
+    assert rep.total < 0.03  # ... but not the same way in every dataset
+    null = G.gap_report(real, base, n_boot=400, seed=3, features=("H",), wasserstein=False)
+    cell_floor = null.cells["noise"].mean()
+    assert null.noise_floor == pytest.approx(cell_floor / len(ds), rel=0.4)
+
 def test_a_stratum_is_a_cell_of_its_own_and_keeps_its_samples():
     """Rows with a stratum form their own cells ("a below crown"); a shift there shows there
     only; the same samples hold pulses of both strata and are resampled as one cluster."""

@@ -16,7 +16,6 @@ Errors: :class:`waveforest.errors.WaveforestError` when no cell is valid in both
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -25,10 +24,11 @@ import pandas as pd
 from waveforest.diagnose.gap import (
     GapData,
     cell_statistics,
-    contributions,
-    noise_floor,
+    masked_floor,
+    masked_gap,
     sample_universe,
     total_gap,
+    total_noise_floor,
     wasserstein_cells,
 )
 from waveforest.errors import WaveforestError
@@ -94,7 +94,7 @@ def paired_reduction(
     ga, gb = total_gap(a, valid=valid), total_gap(b, valid=valid)
     reps = total_gap(a, w, valid) - total_gap(b, w, valid)
     lo, hi = wald_interval(ga - gb, reps, cluster_df(universe), alpha)
-    fl = float(np.nanmean(noise_floor(a, w, valid)[valid]))
+    fl = total_noise_floor(a, w, valid)
     excess = ga - fl
     rel = (ga - gb) / excess if excess > 0 else np.nan
     return Reduction(gap_base=ga, gap_new=gb, noise_base=fl, reduction=ga - gb, ci_low=lo, ci_high=hi,
@@ -145,7 +145,7 @@ def before_after(
     if not valid.any():
         raise WaveforestError("gap: no cell has enough real and simulated pulses to compare")
     w = bootstrap_weights(universe, n_boot, seed)
-    pair = _PairedTerms.of(a, b, w, valid, alpha)
+    pair = _PairedTerms.of(a, b, w, alpha)
     pa_, pb_ = pair.point
     w1a = w1b = np.full(valid.shape, np.nan)
     if wasserstein:
@@ -192,29 +192,24 @@ def _paired(real: pd.DataFrame, sim_a: pd.DataFrame, sim_b: pd.DataFrame, univer
 
 @dataclass
 class _PairedTerms:
-    """Moment-gap terms of two simulations (point and bootstrap) and the base model's noise."""
+    """Cell statistics of two simulations (point and bootstrap) against the same real data."""
 
+    data: GapData
     point: tuple[dict, dict]
-    terms: tuple[np.ndarray, np.ndarray]
-    replicates: tuple[np.ndarray, np.ndarray]
-    noise: np.ndarray
+    replicates: tuple[dict, dict]
     alpha: float
 
     @classmethod
-    def of(cls, a: GapData, b: GapData, weights: np.ndarray, valid: np.ndarray, alpha: float) -> _PairedTerms:
-        pa_, pb_ = cell_statistics(a), cell_statistics(b)
-        return cls(point=(pa_, pb_), terms=(contributions(pa_), contributions(pb_)),
-                   replicates=(contributions(cell_statistics(a, weights)), contributions(cell_statistics(b, weights))),
-                   noise=noise_floor(a, weights, valid), alpha=alpha)
+    def of(cls, a: GapData, b: GapData, weights: np.ndarray, alpha: float) -> _PairedTerms:
+        return cls(data=a, point=(cell_statistics(a), cell_statistics(b)),
+                   replicates=(cell_statistics(a, weights), cell_statistics(b, weights)), alpha=alpha)
 
     def summarise(self, mask: np.ndarray, df) -> dict:
-        """Gaps before and after, their intervals and the reduction, averaged over ``mask``."""
-        (ta, tb), (ra, rb), alpha = self.terms, self.replicates, self.alpha
-        with np.errstate(invalid="ignore"), warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN replicates of a tiny cell
-            ga, gb = float(np.nanmean(ta[mask])), float(np.nanmean(tb[mask]))
-            reps_a, reps_b = np.nanmean(ra[:, mask], axis=1), np.nanmean(rb[:, mask], axis=1)
-            fl = float(np.nanmean(self.noise[mask]))
+        """Gaps before and after, their intervals and the reduction, over the cells of ``mask``."""
+        (pa_, pb_), (ra, rb), alpha = self.point, self.replicates, self.alpha
+        ga, gb = masked_gap(self.data, pa_, mask), masked_gap(self.data, pb_, mask)
+        reps_a, reps_b = masked_gap(self.data, ra, mask), masked_gap(self.data, rb, mask)
+        fl = masked_floor(self.data, ra, mask)
         lo_a, hi_a = recentred_interval(ga, reps_a, alpha)
         lo_b, hi_b = recentred_interval(gb, reps_b, alpha)
         r_lo, r_hi = wald_interval(ga - gb, reps_a - reps_b, df, alpha)

@@ -50,7 +50,7 @@ def gap_figure(gap: pd.DataFrame, candidates: pd.DataFrame, path: str | Path, *,
     fl = rows["noise_floor"].to_numpy(float)
     ax.hlines(fl, x - 0.4, x + 0.4, colors="k", linestyles="--", linewidth=1, label="noise floor (base)")
     ax.set_xticks(x, rows["feature"].tolist())
-    ax.set_ylabel("moment gap, mean of d$^2$ + ln(SD ratio)$^2$")
+    ax.set_ylabel("moment gap, mean of $\\bar{d}^2 + \\bar{l}^2$ (datasets pooled)")
     ax.set_title("gap between real and simulated features")
     ax.legend(fontsize=8)
     ax = axes[1]

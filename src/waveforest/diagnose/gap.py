@@ -27,21 +27,29 @@ pulse) from dividing by zero and from turning a few-hundredths difference into a
 
 Total
 -----
-The *moment gap* ``G = mean over valid (cell, feature) of (d^2 + l^2)``, in squared pooled
-SDs: a pure mean shift of k SDs in one of K cells adds k^2 / K, an SD ratio r adds
-ln(r)^2 / K. It is smooth in the model parameters (a good 1-D search objective) and
-computable from per-sample sums, so its bootstrap is a matrix product. Per feature, the
-same mean over the cells of that feature. ``w`` is reported beside it (shape differences
-that moments miss, e.g. the H histogram near the ground) but does not enter G.
+A missing physical effect moves a species' features the same way in every dataset, while
+sampling noise does not. So the cells of one label (species and stratum) are pooled over the
+datasets before squaring: ``d_bar`` and ``l_bar`` are the means of d and l over the label's
+valid cells of that feature (the datasets weighted equally). The *moment gap* ::
+
+    G = mean over labels and features of (d_bar^2 + l_bar^2)
+
+in squared pooled SDs: a shift of k SDs of one label's feature in all of D datasets adds
+k^2 / K (K label x feature terms), the same shift in one dataset only k^2 / (D^2 K), and
+shifts of opposite sign cancel. It is smooth in the model parameters (a good 1-D search
+objective) and computable from per-sample sums, so its bootstrap is a matrix product. Per
+feature, the same mean over the labels of that feature; restricted to one cell, G is that
+cell's d^2 + l^2. ``w`` is reported beside it (shape differences that moments miss, e.g. the
+H histogram near the ground) but does not enter G.
 
 Noise
 -----
 Pulses of one field sample see the same plant and are correlated, so every bootstrap here
 resamples *field samples* (clusters), stratified by species, and takes each drawn sample's
 real and simulated pulses together (a paired cluster bootstrap). Even a perfect model has
-E[d^2] = Var(d) > 0: the *noise floor* ``F = mean of (Var*(d) + Var*(l))`` (bootstrap
-variances, from interquartile ranges: :func:`waveforest.stats.bootstrap.robust_sd`) is the gap expected from sampling
-noise alone, and the *excess gap* is ``G - F``. The gap is *significant* when the lower
+E[d_bar^2] = Var(d_bar) > 0: the *noise floor* ``F = mean of (Var*(d_bar) + Var*(l_bar))``
+(bootstrap variances, from interquartile ranges: :func:`waveforest.stats.bootstrap.robust_sd`)
+is the gap expected from sampling noise alone (pooling D datasets divides it by about D), and the *excess gap* is ``G - F``. The gap is *significant* when the lower
 bound of the excess gap's interval is above 0. Intervals of G (and of differences of G) are bootstrap percentile intervals
 recentred on the estimate (G + quantiles of G* - median G*): the bootstrap adds its own
 noise to d*, shifting G* upwards by about F; recentring removes that shift and keeps the
@@ -53,6 +61,7 @@ are percentile intervals (descriptive only).
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -344,13 +353,68 @@ def contributions(stats: dict[str, np.ndarray]) -> np.ndarray:
     return stats["d"] ** 2 + stats["log_sd_ratio"] ** 2
 
 
+def pooled(data: GapData, x: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Mean of a per-cell statistic over the datasets of each label (module docstring, Total).
+
+    Parameters
+    ----------
+    data : GapData
+    x : (C, F) or (B, C, F) float64
+        A statistic per cell and feature (e.g. ``d``), or its bootstrap replicates.
+    mask : (C, F) bool
+        Cells that enter; NaN values of ``x`` are left out of their label's mean.
+
+    Returns
+    -------
+    (K,) or (B, K) float64
+        One value per label x feature with at least one cell in ``mask`` (NaN where all of
+        its cells are NaN).
+    """
+    codes = pd.factorize(data.cells["species"])[0]
+    member = (codes[None, :] == np.arange(codes.max() + 1)[:, None])[:, :, None] & mask[None]  # (L, C, F)
+    keep = member.any(axis=1)  # (L, F)
+    ok = np.isfinite(x)
+    num = np.einsum("lcf,...cf->...lf", member, np.where(ok, x, 0.0))
+    den = np.einsum("lcf,...cf->...lf", member, ok.astype(np.float64))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return (num / den)[..., keep]
+
+
+def masked_gap(data: GapData, stats: dict[str, np.ndarray], mask: np.ndarray) -> float | np.ndarray:
+    """G over the cells of ``mask``: mean of ``d_bar^2 + l_bar^2`` (float, or (B,) for
+    bootstrap ``stats``; replicates in which a term is degenerate average the rest)."""
+    terms = pooled(data, stats["d"], mask) ** 2 + pooled(data, stats["log_sd_ratio"], mask) ** 2
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN replicates of a tiny cell
+        out = np.nanmean(terms, axis=-1)
+    return float(out) if np.ndim(out) == 0 else out
+
+
+def masked_floor(data: GapData, boot: dict[str, np.ndarray], mask: np.ndarray) -> float:
+    """F over the cells of ``mask``: mean of ``Var*(d_bar) + Var*(l_bar)`` from the bootstrap
+    statistics ``boot`` ((B, C, F) arrays of :func:`cell_statistics`)."""
+    v = robust_sd(pooled(data, boot["d"], mask)) ** 2 + robust_sd(pooled(data, boot["log_sd_ratio"], mask)) ** 2
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return float(np.nanmean(v))
+
+
+def _mask(data: GapData, valid: np.ndarray | None, feature: str | None) -> np.ndarray:
+    mask = data.valid if valid is None else np.asarray(valid, dtype=bool)
+    if feature is not None:
+        mask = mask & (np.asarray(data.features) == feature)[None, :]
+    if not mask.any():
+        raise WaveforestError("gap: no cell has enough real and simulated pulses to compare")
+    return mask
+
+
 def total_gap(
     data: GapData,
     weights: np.ndarray | None = None,
     valid: np.ndarray | None = None,
     feature: str | None = None,
 ) -> float | np.ndarray:
-    """The moment gap G: mean of ``d^2 + l^2`` over valid cells (and features).
+    """The moment gap G: mean of ``d_bar^2 + l_bar^2`` over labels (and features).
 
     Parameters
     ----------
@@ -358,7 +422,7 @@ def total_gap(
     weights : (B, J) float64, optional
         Bootstrap multiplicities; None = point estimate.
     valid : (C, F) bool, optional
-        Cells to average over (default ``data.valid``); pass a common mask when comparing
+        Cells that enter (default ``data.valid``); pass a common mask when comparing
         simulations so that every gap averages the same cells.
     feature : str, optional
         Restrict to one feature (the per-feature gap).
@@ -366,33 +430,14 @@ def total_gap(
     Returns
     -------
     float, or (B,) float64 with weights
-        Squared pooled SDs. Replicates in which a valid cell is degenerate average the rest.
+        Squared pooled SDs.
     """
-    mask = data.valid if valid is None else np.asarray(valid, dtype=bool)
-    if feature is not None:
-        mask = mask & (np.asarray(data.features) == feature)[None, :]
-    if not mask.any():
-        raise WaveforestError("gap: no cell has enough real and simulated pulses to compare")
-    terms = contributions(cell_statistics(data, weights))
-    with np.errstate(invalid="ignore"):
-        out = np.nanmean(terms[..., mask], axis=-1)
-    return float(out) if weights is None else out
+    return masked_gap(data, cell_statistics(data, weights), _mask(data, valid, feature))
 
 
-
-def noise_floor(data: GapData, weights: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
-    """Bootstrap variance of d plus that of l, per cell and feature: the gap of noise alone.
-
-    Returns
-    -------
-    (C, F) float64
-        ``Var*(d) + Var*(l)`` (each the square of :func:`robust_sd`); NaN where invalid. Its
-        mean over the valid cells is F.
-    """
-    stats = cell_statistics(data, weights)
-    out = robust_sd(stats["d"]) ** 2 + robust_sd(stats["log_sd_ratio"]) ** 2
-    mask = data.valid if valid is None else valid
-    return np.where(mask, out, np.nan)
+def total_noise_floor(data: GapData, weights: np.ndarray, valid: np.ndarray | None = None) -> float:
+    """The noise floor F of the total gap over ``valid`` (default ``data.valid``)."""
+    return masked_floor(data, cell_statistics(data, weights), _mask(data, valid, None))
 
 
 # --------------------------------------------------------------------------------------
@@ -490,7 +535,7 @@ def gap_report(
     point = cell_statistics(data)
     boot = cell_statistics(data, weights)
     terms = contributions(point)
-    noise = noise_floor(data, weights)
+    noise = np.where(data.valid, robust_sd(boot["d"]) ** 2 + robust_sd(boot["log_sd_ratio"]) ** 2, np.nan)
     q = [alpha / 2, 1 - alpha / 2]
     df = np.maximum((data.n[0] > 0).sum(axis=-1) - 1, 1)
     d_ci = wald_interval(point["d"], boot["d"], df, alpha)
@@ -500,7 +545,7 @@ def gap_report(
     if wasserstein:
         w1, w1_ci = wasserstein_cells(data, point["pooled_sd"], weights, q)
     cells = _cells_table(data, point, terms, noise, d_ci, l_ci, w1, w1_ci)
-    summary, total_reps = _summary_table(data, terms, contributions(boot), noise, w1 if wasserstein else None, alpha)
+    summary, total_reps = _summary_table(data, point, boot, w1 if wasserstein else None, alpha)
     return GapReport(cells=cells, summary=summary, replicates=total_reps)
 
 
@@ -525,7 +570,7 @@ def _cells_table(data: GapData, point: dict, terms, noise, d_ci, l_ci, w1, w1_ci
     return pd.DataFrame(rows)
 
 
-def _summary_table(data: GapData, terms, boot_terms, noise, w1, alpha: float) -> tuple[pd.DataFrame, np.ndarray]:
+def _summary_table(data: GapData, point: dict, boot: dict, w1, alpha: float) -> tuple[pd.DataFrame, np.ndarray]:
     """:attr:`GapReport.summary` (per feature and ``total``) and the total gap's replicates.
 
     ``w1`` is None when the Wasserstein distances were not computed.
@@ -539,9 +584,9 @@ def _summary_table(data: GapData, terms, boot_terms, noise, w1, alpha: float) ->
                                "excess": np.nan, "excess_ci_low": np.nan, "excess_ci_high": np.nan,
                                "significant": False, "w1": np.nan, "n_cells": 0}
             continue
-        g = float(np.nanmean(terms[mask]))
-        reps = np.nanmean(boot_terms[:, mask], axis=1)
-        fl = float(np.nanmean(noise[mask]))
+        g = masked_gap(data, point, mask)
+        reps = masked_gap(data, boot, mask)
+        fl = masked_floor(data, boot, mask)
         lo, hi = recentred_interval(g, reps, alpha)
         summary_rows[f] = {
             "gap": g, "ci_low": lo, "ci_high": hi, "noise_floor": fl,

@@ -53,9 +53,9 @@ from waveforest.diagnose.gap import (
     GapData,
     GapReport,
     gap_report,
-    noise_floor,
     sample_universe,
     total_gap,
+    total_noise_floor,
 )
 from waveforest.diagnose.optimise import parabolic_vertex, refinement_step
 from waveforest.diagnose.simulations import HALVES, SimulationCache, Simulator
@@ -458,7 +458,7 @@ def _test(current: dict, models_by_fold: list[dict], ctx: _Context):
         w = ctx.test_halves[t].weights
         gb.append(total_gap(base, valid=valid))
         gn.append(total_gap(cand, valid=valid))
-        ex.append(gb[-1] - float(np.nanmean(noise_floor(base, w, valid)[valid])))
+        ex.append(gb[-1] - total_noise_floor(base, w, valid))
         rep.append(total_gap(base, w, valid) - total_gap(cand, w, valid))
     # folds test disjoint halves with independent resamples: replicate-wise mean is a replicate of the mean
     return float(np.mean(gb)), float(np.mean(gn)), float(np.mean(ex)), float(np.mean(gb) - np.mean(gn)), \
