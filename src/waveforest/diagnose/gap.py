@@ -49,8 +49,9 @@ resamples *field samples* (clusters), stratified by species, and takes each draw
 real and simulated pulses together (a paired cluster bootstrap). Even a perfect model has
 E[d_bar^2] = Var(d_bar) > 0: the *noise floor* ``F = mean of (Var*(d_bar) + Var*(l_bar))``
 (bootstrap variances, from interquartile ranges: :func:`waveforest.stats.bootstrap.robust_sd`)
-is the gap expected from sampling noise alone (pooling D datasets divides it by about D), and the *excess gap* is ``G - F``. The gap is *significant* when the lower
-bound of the excess gap's interval is above 0. Intervals of G (and of differences of G) are bootstrap percentile intervals
+is the gap expected from sampling noise alone (pooling D datasets divides it by up to D;
+less where the datasets share field samples), and the *excess gap* is ``G - F``. The gap is
+*significant* when the lower bound of the excess gap's interval is above 0. Intervals of G (and of differences of G) are bootstrap percentile intervals
 recentred on the estimate (G + quantiles of G* - median G*): the bootstrap adds its own
 noise to d*, shifting G* upwards by about F; recentring removes that shift and keeps the
 skewness of a sum of squares. Intervals of d and l are ``estimate -+ t * SE*`` (bootstrap
