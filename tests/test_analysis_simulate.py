@@ -256,26 +256,32 @@ def test_builder_sees_the_vegetation_effects_and_pool_size():
     assert xy == 0.2
 
 
+def _half_plate(species, height, seed, **kw):
+    """The fixture's plate cut to x > 0 of the sample (local frame); the ground stays whole."""
+    from waveforest.scene import Scene
+
+    sc = plate_scene(species, height, seed, **kw)
+    tri = sc.triangles.copy()
+    top = tri[:, 0, 2] > 0.01
+    tri[top, :, 0] = np.clip(tri[top, :, 0], 0.0, None)
+    return Scene(tri, sc.rho, sc.tau, sc.kind)
+
+
+def _first_echo_h(table: pa.Table) -> pd.Series:
+    """Height of each twin's first echo above the ground, m, by pulse_id."""
+    d = table.to_pandas().set_index("pulse_id")
+    return pd.Series([z[0] for z in d["echo_z"]], d.index) - d["ground_z"]
+
+
 def test_xy_error_moves_the_traced_beam_not_the_record():
     """A plate covering only x > 0 of each sample: a large xy_error makes some pulses miss it."""
-
-    def half_plate(species, height, seed, **kw):
-        sc = plate_scene(species, height, seed, **kw)
-        tri = sc.triangles.copy()
-        top = tri[:, 0, 2] > 0.01
-        tri[top, :, 0] = np.clip(tri[top, :, 0], 0.0, None)
-        from waveforest.scene import Scene
-
-        return Scene(tri, sc.rho, sc.tau, sc.kind)
-
     cfg = _cfg()
-    base, _ = _sim(cfg, builder=half_plate)
-    moved, _ = _sim(cfg, effects={"xy_error": 1.0}, builder=half_plate)
+    base, _ = _sim(cfg, builder=_half_plate)
+    moved, _ = _sim(cfg, effects={"xy_error": 1.0}, builder=_half_plate)
     b, m = base.to_pandas().set_index("pulse_id"), moved.to_pandas().set_index("pulse_id")
     common = b.index.intersection(m.index)
     assert len(common) >= 12
-    h = lambda d: np.array([z[0] for z in d.loc[common, "echo_z"]]) - d.loc[common, "ground_z"].to_numpy()  # noqa
-    changed = np.abs(h(b) - h(m)) > 0.3  # plate top vs ground
+    changed = np.abs(_first_echo_h(base)[common] - _first_echo_h(moved)[common]) > 0.3  # plate top vs ground
     assert changed.sum() >= 2
     for col in ("sensor_x", "sensor_y", "dir_x", "dir_y"):  # recorded geometry unchanged
         assert np.array_equal(b.loc[common, col], m.loc[common, col])
@@ -284,6 +290,48 @@ def test_xy_error_moves_the_traced_beam_not_the_record():
     ex = np.array([x[0] for x in m.loc[common, "echo_x"]])
     along = (m.loc[common, "sensor_z"] - ez) / -m.loc[common, "dir_z"]
     assert np.allclose(ex, m.loc[common, "sensor_x"] + m.loc[common, "dir_x"] * along, atol=1e-6)
+
+
+def test_georeferencing_drift_is_a_unit_gauss_markov_process_in_gps_time():
+    """georeferencing_drift: N(0, 1) per pulse and axis, corr exp(-dt / tau) between two pulses,
+    and each pulse's value independent of the order the pulses come in."""
+    from waveforest.model.forward import GEOREF_TAU_S, georeferencing_drift
+
+    rng = np.random.default_rng(4)
+    n = 40_000  # independent pairs: (t0, t0 + dt) in groups of their own
+    for dt, rho in ((0.05, np.exp(-0.05 / GEOREF_TAU_S)), (GEOREF_TAU_S, np.exp(-1.0)), (100.0, np.exp(-10.0))):
+        pairs = np.array([georeferencing_drift(rng.standard_normal((2, 2)), np.array([5.0, 5.0 + dt]))
+                          for _ in range(n // 40)])  # (m, 2 pulses, 2 axes)
+        first, second = pairs[:, 0, :].ravel(), pairs[:, 1, :].ravel()
+        se = 1.0 / np.sqrt(first.size)
+        assert abs(first.std() - 1.0) < 4 * se and abs(second.std() - 1.0) < 4 * se
+        assert abs(np.corrcoef(first, second)[0, 1] - rho) < 4 * se
+    z, t = rng.standard_normal((50, 2)), rng.uniform(0.0, 60.0, 50)
+    order = rng.permutation(50)
+    np.testing.assert_allclose(georeferencing_drift(z[order], t[order]), georeferencing_drift(z, t)[order])
+
+
+def test_xy_error_moves_the_pulses_of_one_pass_together():
+    """A georeferencing error wanders over seconds: the twins of one sample (one plant, one
+    (sample, instance) group), recorded within a few ms, share nearly one offset c. On the half plate (x > 0) a twin then hits iff its own
+    x offset from the stem dx > -c_x, so within a sample the hits are exactly the largest dx;
+    independent offsets per pulse (SD 0.5 m against dx within +-0.3 m) would break that order."""
+    df = _selected(n_per_sample=12).to_pandas()
+    k = pd.factorize(df["sample_id"])[0]
+    df["gps_time"] = 40.0 * k + 1e-3 * df.groupby("sample_id").cumcount()  # passes 40 s apart
+    sel = pa.Table.from_pandas(df, preserve_index=False)
+    table, _ = simulate_pulses(sel, _info(), _cal(), _cfg(instances_per_sample=1), effects={"xy_error": 0.5},
+                               progress=False,
+                               scene_builder=_half_plate)
+    hit = _first_echo_h(table) > 0.3
+    d = df.set_index("pulse_id").loc[hit.index]
+    dx = [e[0] for e in d["echo_x"]] - d["sample_x"]
+    mixed = 0
+    for _, g in pd.DataFrame({"s": d["sample_id"], "dx": dx, "hit": hit}).groupby("s"):
+        g = g.sort_values("dx")
+        assert (np.diff(g["hit"].to_numpy().astype(int)) >= 0).all()  # misses, then hits
+        mixed += 0 < g["hit"].sum() < len(g)
+    assert mixed >= 1 and len(hit) == 36  # 3 compared samples x 12 pulses
 
 
 def test_load_calibration(tmp_path):

@@ -50,7 +50,9 @@ and effect sizes"):
   (docs/method.md §(a), j). In the campaign it is a drift of the GNSS/INS solution that moves
   the recorded trajectory and points together (campaign/flight.py), so that ``simulate``
   traces each recorded beam where the real one was not; in the model, ``simulate`` shifts
-  each traced beam by N(0, xy_error) per axis.
+  each traced beam by a drift of that SD per axis, correlated in GPS time over 10 s
+  (:func:`waveforest.model.forward.georeferencing_drift`), so that the pulses of one pass over
+  a sample move together.
 """
 
 from __future__ import annotations

@@ -14,6 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+from numba import njit
 
 from waveforest.constants import RANGE_PER_NS
 from waveforest.effects import CATALOGUE
@@ -24,6 +25,12 @@ from waveforest.sensor.agc import divide_gain
 
 MAX_ECHOES = 4
 """DR echoes per pulse (ALS60, docs/method.md §(a))."""
+
+GEOREF_TAU_S = 10.0
+"""Correlation time of the modelled georeferencing drift (effect ``xy_error``), s: a GNSS/INS
+error wanders over seconds, so the pulses of one pass over a field sample (well under a second
+apart) share nearly one offset, and passes of different strips (tens of seconds and more apart)
+nearly independent ones (:func:`georeferencing_drift`)."""
 
 
 def split_effects(effects: dict | None) -> tuple[dict, dict, dict, float]:
@@ -38,7 +45,7 @@ def split_effects(effects: dict | None) -> tuple[dict, dict, dict, float]:
     sensor : dict
         ``render`` keyword arguments (noise_autocorr, nonlinearity, trigger_loss).
     xy_error : float
-        SD of the per-pulse horizontal offset of the beam, m (per axis).
+        SD of the horizontal georeferencing drift of the beams, m (per axis; :func:`georeferencing_drift`).
     """
     veg, mcrt, sensor, xy = {}, {}, {}, 0.0
     for name, value in (effects or {}).items():
@@ -56,6 +63,45 @@ def split_effects(effects: dict | None) -> tuple[dict, dict, dict, float]:
         else:  # pragma: no cover - the catalogue has no other stage
             raise WaveforestError(f"effect {name!r}: stage {stage!r} is not handled")
     return veg, mcrt, sensor, xy
+
+
+@njit(cache=True, nogil=True)
+def _gauss_markov(z, t, tau_s):
+    n = z.shape[0]
+    order = np.argsort(t)
+    out = np.empty_like(z)
+    prev = -1
+    for k in range(n):
+        i = order[k]
+        if prev < 0:
+            out[i] = z[i]
+        else:
+            phi = np.exp(-(t[i] - t[prev]) / tau_s)
+            out[i] = phi * out[prev] + np.sqrt(1.0 - phi * phi) * z[i]
+        prev = i
+    return out
+
+
+def georeferencing_drift(z: np.ndarray, gps_time: np.ndarray, tau_s: float = GEOREF_TAU_S) -> np.ndarray:
+    """A stationary Gauss-Markov drift of unit SD per axis at the pulses' GPS times.
+
+    Parameters
+    ----------
+    z : (n, 2) float64
+        Independent standard normal draws, one per pulse and axis.
+    gps_time : (n,) float64, s
+    tau_s : float, s
+        Correlation time: corr(x_i, x_j) = exp(-|t_i - t_j| / tau_s).
+
+    Returns
+    -------
+    (n, 2) float64: x_0 = z_0 and x_i = phi x_(i-1) + sqrt(1 - phi^2) z_i in time order, phi =
+    exp(-dt / tau_s); the offsets of ``xy_error`` are xy_error times these (linear in it, so one
+    seed gives common random numbers over its values).
+    """
+    z = np.ascontiguousarray(z, dtype=np.float64)
+    t = np.ascontiguousarray(gps_time, dtype=np.float64)
+    return np.column_stack([_gauss_markov(np.ascontiguousarray(z[:, a]), t, float(tau_s)) for a in range(2)])
 
 
 @dataclass(frozen=True)

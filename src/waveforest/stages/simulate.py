@@ -37,8 +37,10 @@ of chunks.
 
 Effects (src/waveforest/effects.py) go to the module that applies them: vegetation effects to
 ``build_scene``, mcrt effects to ``trace``, sensor effects to ``render``; ``xy_error`` shifts
-each traced beam horizontally by N(0, xy_error) per axis while the pulse keeps its recorded
-coordinates (the truth differs from the record, as with a georeferencing error).
+each traced beam horizontally by a georeferencing drift of SD xy_error per axis, correlated in
+GPS time (:func:`waveforest.model.forward.georeferencing_drift`: the pulses of one pass over a
+sample share nearly one offset), while the pulse keeps its recorded coordinates (the truth
+differs from the record).
 """
 
 from __future__ import annotations
@@ -63,7 +65,7 @@ from waveforest.io.pulses import PULSE_SCHEMA, padded_to_list, read_pulses, writ
 from waveforest.io.tables import dataset_row, divergence_mrad, read_datasets, read_fields
 from waveforest.mcrt import Beams
 from waveforest.mcrt.threads import default_threads
-from waveforest.model.forward import MCRTSetup, SensorSetup, split_effects, trace_and_render
+from waveforest.model.forward import MCRTSetup, SensorSetup, georeferencing_drift, split_effects, trace_and_render
 from waveforest.rng import hash_ids, hashed_seed63, hashed_sequence, stable_hash
 from waveforest.sensor._checks import gain_or_one
 from waveforest.sensor.agc import GAIN_COLUMN
@@ -264,7 +266,7 @@ def _simulate_group(d: pd.DataFrame, scene, ss: np.random.SeedSequence, inst: in
     rng = np.random.default_rng(ss)
     offset = np.zeros_like(sensor)
     if xy_error > 0:
-        offset[:, :2] = rng.normal(0.0, xy_error, (len(d), 2))
+        offset[:, :2] = xy_error * georeferencing_drift(rng.standard_normal((len(d), 2)), d["gps_time"].to_numpy(float))
     origin = sensor - d[["sample_x", "sample_y", "ground_z"]].to_numpy(float) + offset
     beams = Beams.from_divergence(origin, direction, div, r)
     gain = gain_or_one(d[GAIN_COLUMN].to_numpy(float)) if GAIN_COLUMN in d else np.ones(len(d))
