@@ -373,7 +373,7 @@ SLOW_CONFIG = {
     "simulate": {"chunks": 1},
     "sensitivity": {"pulses": 20},
     "sensor_study": {"pulses": 20},
-    "diagnose": {"rounds": 2, "bootstrap": 200},
+    "diagnose": {"rounds": 2, "bootstrap": 200, "max_pulses": None},  # every comparison pulse, as measured below
 }
 """A small study on which each hidden effect is diagnosed (the chain up to ``compare`` takes
 ~5 minutes on the 2-core machine; ``diagnose`` 2 minutes when nothing clears the noise floor,
