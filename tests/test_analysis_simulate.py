@@ -309,20 +309,22 @@ def test_georeferencing_drift_is_a_unit_gauss_markov_process_in_gps_time():
     z, t = rng.standard_normal((50, 2)), rng.uniform(0.0, 60.0, 50)
     order = rng.permutation(50)
     np.testing.assert_allclose(georeferencing_drift(z[order], t[order]), georeferencing_drift(z, t)[order])
+    t[3] = np.nan  # a pulse without a GPS time gets its own draw
+    assert np.isfinite(georeferencing_drift(z, t)).all() and (georeferencing_drift(z, t)[3] == z[3]).all()
 
 
 def test_xy_error_moves_the_pulses_of_one_pass_together():
     """A georeferencing error wanders over seconds: the twins of one sample (one plant, one
-    (sample, instance) group), recorded within a few ms, share nearly one offset c. On the half plate (x > 0) a twin then hits iff its own
-    x offset from the stem dx > -c_x, so within a sample the hits are exactly the largest dx;
-    independent offsets per pulse (SD 0.5 m against dx within +-0.3 m) would break that order."""
+    (sample, instance) group), recorded within a few ms, share nearly one offset c. On the half
+    plate (x > 0) a twin then hits iff its own x offset from the stem dx > -c_x, so within a
+    sample the hits are exactly the largest dx; independent offsets per pulse (SD 0.5 m against
+    dx within +-0.3 m) would break that order."""
     df = _selected(n_per_sample=12).to_pandas()
     k = pd.factorize(df["sample_id"])[0]
     df["gps_time"] = 40.0 * k + 1e-3 * df.groupby("sample_id").cumcount()  # passes 40 s apart
     sel = pa.Table.from_pandas(df, preserve_index=False)
     table, _ = simulate_pulses(sel, _info(), _cal(), _cfg(instances_per_sample=1), effects={"xy_error": 0.5},
-                               progress=False,
-                               scene_builder=_half_plate)
+                               progress=False, scene_builder=_half_plate)
     hit = _first_echo_h(table) > 0.3
     d = df.set_index("pulse_id").loc[hit.index]
     dx = [e[0] for e in d["echo_x"]] - d["sample_x"]

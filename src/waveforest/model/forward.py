@@ -67,17 +67,17 @@ def split_effects(effects: dict | None) -> tuple[dict, dict, dict, float]:
 
 @njit(cache=True, nogil=True)
 def _gauss_markov(z, t, tau_s):
+    """(n,) unit Gauss-Markov values at times ``t`` from the (n,) normals ``z`` (a pulse with a
+    non-finite time starts afresh)."""
     n = z.shape[0]
     order = np.argsort(t)
     out = np.empty_like(z)
     prev = -1
     for k in range(n):
         i = order[k]
-        if prev < 0:
-            out[i] = z[i]
-        else:
-            phi = np.exp(-(t[i] - t[prev]) / tau_s)
-            out[i] = phi * out[prev] + np.sqrt(1.0 - phi * phi) * z[i]
+        dt = t[i] - t[prev] if prev >= 0 else np.inf
+        phi = np.exp(-dt / tau_s) if np.isfinite(dt) else 0.0
+        out[i] = phi * out[prev] + np.sqrt(1.0 - phi * phi) * z[i] if phi > 0.0 else z[i]
         prev = i
     return out
 
