@@ -67,17 +67,17 @@ def split_effects(effects: dict | None) -> tuple[dict, dict, dict, float]:
 
 @njit(cache=True, nogil=True)
 def _gauss_markov(z, t, tau_s):
-    """(n,) unit Gauss-Markov values at times ``t`` from the (n,) normals ``z`` (a pulse with a
-    non-finite time starts afresh)."""
-    n = z.shape[0]
+    """(n, 2) unit Gauss-Markov values at times ``t`` from the (n, 2) normals ``z`` (a pulse with
+    a non-finite time starts afresh)."""
     order = np.argsort(t)
     out = np.empty_like(z)
     prev = -1
-    for k in range(n):
+    for k in range(z.shape[0]):
         i = order[k]
         dt = t[i] - t[prev] if prev >= 0 else np.inf
         phi = np.exp(-dt / tau_s) if np.isfinite(dt) else 0.0
-        out[i] = phi * out[prev] + np.sqrt(1.0 - phi * phi) * z[i] if phi > 0.0 else z[i]
+        for a in range(z.shape[1]):
+            out[i, a] = phi * out[prev, a] + np.sqrt(1.0 - phi * phi) * z[i, a] if phi > 0.0 else z[i, a]
         prev = i
     return out
 
@@ -99,9 +99,8 @@ def georeferencing_drift(z: np.ndarray, gps_time: np.ndarray, tau_s: float = GEO
     exp(-dt / tau_s); the offsets of ``xy_error`` are xy_error times these (linear in it, so one
     seed gives common random numbers over its values).
     """
-    z = np.ascontiguousarray(z, dtype=np.float64)
-    t = np.ascontiguousarray(gps_time, dtype=np.float64)
-    return np.column_stack([_gauss_markov(np.ascontiguousarray(z[:, a]), t, float(tau_s)) for a in range(2)])
+    return _gauss_markov(np.ascontiguousarray(z, dtype=np.float64), np.ascontiguousarray(gps_time, dtype=np.float64),
+                         float(tau_s))
 
 
 @dataclass(frozen=True)
