@@ -73,6 +73,68 @@ def test_pulses_under_the_crowns_are_a_stratum_with_the_mirror_rule():
     assert out["E"].isna().tolist() == [True, False, False, False]
 
 
+def test_tree_pulses_near_the_stem_are_a_stratum_of_the_same_pulses():
+    """diagnose.near_stem_m splits a tree species' comparison pulses by the first echo's distance
+    from the stem; herbs and the stratum under the crowns keep theirs, and the split comes after
+    the caps: the same pulses of the same samples with and without it."""
+    from waveforest import config
+    from waveforest.diagnose.strata import BELOW_CROWN, NEAR_STEM, pulse_keys
+
+    rows = [dict(dataset="2010_12_1", pulse_id=i, sample_id=f"s{i % 7}", species="birch", is_tree=True,
+                 comparison_set=i < 40, below_crown_set=i >= 40, sample_distance_m=0.5 * ((i * 0.37) % 1.0))
+            for i in range(46)]
+    rows += [dict(dataset="2010_12_1", pulse_id=100 + i, sample_id=f"r{i % 3}", species="raspberry", is_tree=False,
+                  comparison_set=True, below_crown_set=False, sample_distance_m=0.05) for i in range(12)]
+    tables = {"2010_12_1": _select_table(rows)}
+    dist = {r["pulse_id"]: r["sample_distance_m"] for r in rows}
+
+    def keys(**diagnose):
+        return pulse_keys(tables, config.load(overrides={"diagnose": {"below_crown": True, **diagnose}})).set_index(
+            "pulse_id")
+
+    on, off = keys(), keys(near_stem_m=None)
+    want = {i: BELOW_CROWN if i >= 40 else (NEAR_STEM if i < 40 and dist[i] < 0.3 else "") for i in range(46)}
+    want.update({100 + i: "" for i in range(12)})
+    assert on["stratum"].to_dict() == want and 0 < list(want.values()).count(NEAR_STEM) < 40
+    assert (off["stratum"] != NEAR_STEM).all()
+    assert on.drop(columns="stratum").equals(off.drop(columns="stratum"))
+    for cap in (10, 25):
+        assert keys(max_pulses=cap).index.tolist() == keys(max_pulses=cap, near_stem_m=None).index.tolist()
+
+
+def test_a_blurred_crown_profile_cancels_in_one_cell_and_shows_split_at_the_stem():
+    """Why diagnose.near_stem_m: an XY error blurs a conical crown's first-echo heights, and
+    select's height rule drops echoes blurred off the crown. Pulses recorded near the stem then
+    echo lower than their twins and those further out higher; in one cell the shifts cancel,
+    split at the stem each shows, and the gap is several times larger."""
+    from waveforest.diagnose import gap as G
+    from waveforest.diagnose.strata import NEAR_STEM
+
+    rng = np.random.default_rng(8)
+    rows = []
+    for ds in ("a", "b", "c"):
+        for j in range(60):
+            top = rng.uniform(3.0, 5.0)  # a cone of radius 0.5 m and height top
+            r = 0.5 * np.sqrt(rng.uniform(size=(2, 40)))  # recorded distances, real and twin pulses
+            blur = np.hypot(r[0] * np.cos(t := rng.uniform(0, 2 * np.pi, 40)) + 0.2 * rng.standard_normal(40),
+                            r[0] * np.sin(t) + 0.2 * rng.standard_normal(40))
+            for src, rec, true in (("real", r[0], blur), ("sim", r[1], r[1])):
+                h = top * (1.0 - true / 0.6) + 0.05 * rng.standard_normal(40)
+                keep = h >= 1.0
+                rows.append(pd.DataFrame({"src": src, "dataset": ds, "species": "birch", "sample_id": f"{ds}{j}",
+                                          "stratum": np.where(rec < 0.3, NEAR_STEM, ""), "H": h})[keep])
+    df = pd.concat(rows, ignore_index=True)
+    real, sim = df[df.src == "real"].drop(columns="src"), df[df.src == "sim"].drop(columns="src")
+
+    def gap(split):
+        r, s = (t if split else t.drop(columns="stratum") for t in (real, sim))
+        return G.total_gap(G.GapData.build(r, s, features=("H",)))
+
+    d = {lab: (sim[sim.stratum == lab].H.mean() - real[real.stratum == lab].H.mean()) for lab in (NEAR_STEM, "")}
+    assert d[NEAR_STEM] > 0 > d[""]
+    assert gap(True) > 3 * gap(False)
+
+
 def test_max_pulses_keeps_whole_samples_the_same_in_every_dataset_and_nested():
     """diagnose.max_pulses: whole field samples per dataset x species, in one seeded order of the
     samples for every dataset, at most the cap of pulses (at least one sample); a smaller cap

@@ -34,7 +34,9 @@ and effect sizes"):
 
 - ``understory`` 2.5: the grass/herb/seedling layer of boreal clear-cuts and young stands
   (Calamagrostis, Deschampsia, Epilobium, tree seedlings) reaches a green LAI of about 1-3 by
-  mid-summer, so 2.5 is a dense but common layer. The selection keeps a tree's pulses only
+  mid-summer, so 2.5 is a dense but common layer; the bound 4 is the densest grass. (With a
+  bound of 3 a fit of a hidden 2.5 could stop at the bound by noise alone, and the search
+  does not name a fit at its range's far bound: docs/validation.md, Near the stem.) The selection keeps a tree's pulses only
   with a first echo above 1 m and the birch waveform features only above 1.5 m
   (docs/method.md §(i1), i4), so in the crown pulses the layer shows through multiple
   scattering alone; the pulses that reach the ground through gaps in the crowns (first echo
@@ -77,7 +79,7 @@ class Effect:
 CATALOGUE: dict[str, Effect] = {
     e.name: e
     for e in [
-        Effect("understory", 0.0, 2.5, (0.0, 3.0), "vegetation", "LAI of a grass/seedling layer under trees"),
+        Effect("understory", 0.0, 2.5, (0.0, 4.0), "vegetation", "LAI of a grass/seedling layer under trees"),
         Effect("clumping", 0.0, 0.15, (0.05, 0.8), "vegetation", "shoot cluster radius, m"),
         Effect("xy_error", 0.0, 0.25, (0.0, 0.6), "geometry", "horizontal georeferencing error SD, m"),
         Effect("specular", 0.0, 0.3, (0.0, 0.8), "mcrt", "specular fraction of the leaf reflectance"),

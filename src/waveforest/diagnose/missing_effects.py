@@ -138,13 +138,16 @@ def summary_markdown(result: SearchResult, gap: pd.DataFrame, cand: pd.DataFrame
         f"candidates fitted on {n_fit_pulses if n_fit_pulses is not None else n_pulses} pulses, tested on all); "
         f"{seconds:.0f} s.",
         "",
-        "The gap is the mean over species x feature of d^2 + ln(SD ratio)^2, d (the mean difference in "
+        "The gap is the mean over species (x stratum) x feature of d^2 + ln(SD ratio)^2, d (the mean difference in "
         "pooled SDs) and the log SD ratio each averaged over the datasets first, so that an effect "
         "that moves a species the same way in every dataset adds up (src/waveforest/diagnose/gap.py); "
         "the noise floor is the gap that "
-        "sampling noise alone gives (cluster bootstrap over field samples). With diagnose.below_crown, "
-        "a tree species' pulses whose first echo lies lower than select.tree_min_echo_h_m, the ground "
-        "seen through gaps in its crowns, form the cells '<species> below crown'.",
+        "sampling noise alone gives (cluster bootstrap over field samples). A tree species' pulses "
+        "whose first echo lies within diagnose.near_stem_m of the stem form the cells '<species> near "
+        "stem' (an XY error moves them one way and those further out the other). With "
+        "diagnose.below_crown, a tree species' pulses whose first echo lies lower than "
+        "select.tree_min_echo_h_m, the ground seen through gaps in its crowns, form the cells "
+        "'<species> below crown'.",
         "",
         f"- base model: gap {_fmt(tot['gap_before'])} [{_fmt(tot['before_ci_low'])}, "
         f"{_fmt(tot['before_ci_high'])}], noise floor {_fmt(tot['noise_floor'])}",

@@ -1,10 +1,13 @@
-"""The populations compared: pulse keys, selection rules and the stratum under the crowns.
+"""The populations compared: pulse keys, selection rules and the strata.
 
 docs/method.md §(j) (the simulator and the strata). A pulse of the diagnosis is a row of
-``select``'s ``comparison_set`` of a modelled species (``stratum`` ""), or, with
-``diagnose.below_crown``, of the stratum under the crowns (``stratum`` :data:`BELOW_CROWN`):
-a pulse whose own first CFD echo lies within ``select.tree_radius_m`` of a compared stem
-and lower than ``select.tree_min_echo_h_m`` (the ground seen through gaps in the crown).
+``select``'s ``comparison_set`` of a modelled species (``stratum`` ""); a tree's pulse whose
+first echo lies within ``diagnose.near_stem_m`` of the stem (``sample_distance_m``) is in the
+stratum :data:`NEAR_STEM`; with ``diagnose.below_crown``, a pulse of the stratum under the
+crowns (``stratum`` :data:`BELOW_CROWN`): one whose own first CFD echo lies within
+``select.tree_radius_m`` of a compared stem and lower than ``select.tree_min_echo_h_m`` (the
+ground seen through gaps in the crown). The strata split cells only: they are assigned after
+the caps, so they change neither the pulses simulated nor the field samples resampled.
 Real and simulated pulses of a stratum are drawn by one rule and one detector:
 
 * real side: :func:`own_cfd_echoes` gives every pulse the CFD echoes a twin would get, and
@@ -41,13 +44,17 @@ from waveforest.stages.select import SelectRules, select_pulses
 BELOW_CROWN = "below crown"
 """``stratum`` of the pulses of ``select``'s ``below_crown_set`` (the others have "")."""
 
+NEAR_STEM = "near stem"
+"""``stratum`` of the comparison pulses of trees within ``diagnose.near_stem_m`` of the stem."""
+
 BELOW_CROWN_ATTEMPTS = 16
 """Most attempts at a twin under the crown per pulse of that stratum (:class:`.simulator.StudySimulator`)."""
 
 WAVEFORM_FEATURES = ("Npeaks", "Apeak", "FWHM", "E")
 """Features restricted by ``simulate.compare_min_h_m`` (all but H)."""
 
-KEY_COLUMNS = ("dataset", "pulse_id", "sample_id", "species", "is_tree", "comparison_set", "below_crown_set")
+KEY_COLUMNS = ("dataset", "pulse_id", "sample_id", "species", "is_tree", "comparison_set", "below_crown_set",
+               "sample_distance_m")
 """``select`` columns that identify a pulse to simulate."""
 
 
@@ -188,12 +195,13 @@ def pulse_keys(selected: dict, cfg: dict, cap: int | None = None) -> pd.DataFram
     Returns
     -------
     DataFrame
-        dataset, pulse_id, sample_id, species, is_tree, stratum (:data:`BELOW_CROWN` or "");
-        sorted by dataset and pulse_id.
+        dataset, pulse_id, sample_id, species, is_tree, stratum (:data:`BELOW_CROWN`,
+        :data:`NEAR_STEM` or ""); sorted by dataset and pulse_id.
     """
 
     species = [str(s) for s in cfg["simulate"]["species"]]
-    optional = ("is_tree", "below_crown_set")  # select tables of other tools may lack them
+    near_m = cfg["diagnose"]["near_stem_m"]
+    optional = ("is_tree", "below_crown_set", "sample_distance_m")  # select tables of other tools may lack them
     parts = []
     for ds, table in sorted(selected.items()):
         missing = [c for c in KEY_COLUMNS if c not in table.column_names and c not in optional]
@@ -201,6 +209,8 @@ def pulse_keys(selected: dict, cfg: dict, cap: int | None = None) -> pd.DataFram
             raise WaveforestError(f"select table of {ds} lacks column(s) {', '.join(missing)}")
         df = table.select([c for c in KEY_COLUMNS if c in table.column_names]).to_pandas()
         df = df.reindex(columns=list(KEY_COLUMNS), fill_value=False)
+        if "sample_distance_m" not in table.column_names:
+            df["sample_distance_m"] = np.nan
         below = df["below_crown_set"].fillna(False).astype(bool) & bool(cfg["diagnose"]["below_crown"])
         df = df[(df["comparison_set"].fillna(False).astype(bool) | below) & df["species"].astype(str).isin(species)]
         df = df.assign(stratum=np.where(below[df.index], BELOW_CROWN, "")).drop(
@@ -211,7 +221,11 @@ def pulse_keys(selected: dict, cfg: dict, cap: int | None = None) -> pd.DataFram
             rank = hash_ids(stable_hash(int(cfg["seed"]), ds, "diagnose"), df["pulse_id"].to_numpy(np.int64))
             df = df.assign(_rank=rank).sort_values(["_rank", "pulse_id"])
             df = df.groupby(["species", "stratum"], sort=False).head(int(cap)).drop(columns="_rank")
-        parts.append(df)
+        if near_m is not None:  # after the caps: a split of cells, not a choice of pulses
+            near = (df["stratum"] == "") & df["is_tree"].fillna(False).astype(bool) & (
+                df["sample_distance_m"].to_numpy(float) < float(near_m))
+            df["stratum"] = df["stratum"].where(~near, NEAR_STEM)
+        parts.append(df.drop(columns="sample_distance_m"))
     keys = pd.concat(parts, ignore_index=True) if parts else pd.DataFrame(
         columns=["dataset", "pulse_id", "sample_id", "species", "is_tree", "stratum"])
     keys["sample_id"] = keys["sample_id"].astype(str)
