@@ -36,12 +36,12 @@ and effect sizes"):
   (Calamagrostis, Deschampsia, Epilobium, tree seedlings) reaches a green LAI of about 1-3 by
   mid-summer, so 2.5 is a dense but common layer; the bound 4 is the densest grass. (With a
   bound of 3 a fit of a hidden 2.5 could stop at the bound by noise alone, and the search
-  does not name a fit at its range's far bound: docs/validation.md, Near the stem.) The selection keeps a tree's pulses only
-  with a first echo above 1 m and the birch waveform features only above 1.5 m
-  (docs/method.md §(i1), i4), so in the crown pulses the layer shows through multiple
-  scattering alone; the pulses that reach the ground through gaps in the crowns (first echo
-  under 1 m within 0.5 m of the stem) see it directly, and ``diagnose`` compares them as a
-  stratum of their own (``diagnose.below_crown``).
+  does not name a fit at its range's far bound: docs/validation.md, Near the stem.) The
+  selection keeps a tree's pulses only with a first echo above 1 m and the birch waveform
+  features only above 1.5 m (docs/method.md §(i1), i4), so in the crown pulses the layer shows
+  through multiple scattering alone; the pulses that reach the ground through gaps in the
+  crowns (first echo under 1 m within 0.5 m of the stem) see it directly, and ``diagnose``
+  compares them as a stratum of their own (``diagnose.below_crown``).
 - ``clumping`` 0.15 m: the value is the SD of the Thomas-process displacement around a
   cluster centre (vegetation/placement.py), so a *smaller* radius is *stronger* clumping
   (radius >> plant spacing is uniform again). Raspberry canes rise from one root crown and

@@ -142,9 +142,9 @@ def summary_markdown(result: SearchResult, gap: pd.DataFrame, cand: pd.DataFrame
         "pooled SDs) and the log SD ratio each averaged over the datasets first, so that an effect "
         "that moves a species the same way in every dataset adds up (src/waveforest/diagnose/gap.py); "
         "the noise floor is the gap that "
-        "sampling noise alone gives (cluster bootstrap over field samples). A tree species' pulses "
-        "whose first echo lies within diagnose.near_stem_m of the stem form the cells '<species> near "
-        "stem' (an XY error moves them one way and those further out the other). With "
+        "sampling noise alone gives (cluster bootstrap over field samples). With diagnose.near_stem_m "
+        "(default 0.3 m), a tree species' pulses whose first echo lies that close to the stem form the "
+        "cells '<species> near stem' (an XY error moves them one way and those further out the other). With "
         "diagnose.below_crown, a tree species' pulses whose first echo lies lower than "
         "select.tree_min_echo_h_m, the ground seen through gaps in its crowns, form the cells "
         "'<species> below crown'.",

@@ -6,8 +6,9 @@ first echo lies within ``diagnose.near_stem_m`` of the stem (``sample_distance_m
 stratum :data:`NEAR_STEM`; with ``diagnose.below_crown``, a pulse of the stratum under the
 crowns (``stratum`` :data:`BELOW_CROWN`): one whose own first CFD echo lies within
 ``select.tree_radius_m`` of a compared stem and lower than ``select.tree_min_echo_h_m`` (the
-ground seen through gaps in the crown). The strata split cells only: they are assigned after
-the caps, so they change neither the pulses simulated nor the field samples resampled.
+ground seen through gaps in the crown). The stratum near the stem splits cells only: it is
+assigned after the caps, so it changes neither the pulses simulated nor the field samples
+resampled (the stratum under the crowns adds pulses, capped on their own).
 Real and simulated pulses of a stratum are drawn by one rule and one detector:
 
 * real side: :func:`own_cfd_echoes` gives every pulse the CFD echoes a twin would get, and
