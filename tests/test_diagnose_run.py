@@ -556,8 +556,17 @@ def test_real_chain_no_effect_names_nothing(tmp_path, overrides):
 # 0.0445; lad_shift 15.05 [12.44, 15.98] around 15, gap 0.540 -> 0.0196, floor 0.0321.
 
 
+UNDERSTORY_NOT_NAMED = pytest.mark.xfail(strict=True, reason=(
+    "issue 28: on UNDER_CROWNS' campaign as it is now (803 pulses with those under the crowns, 32 "
+    "samples; 80 samples when the figures above were measured) a hidden understory 2.5 ends in none: "
+    "gap 3.82 [2.63, 207], floor 0.143, the stratum's few pulses giving the bootstrap a huge tail; the "
+    "same without the stratum near the stem (5.72 [3.94, 310], floor 0.208); docs/validation.md, Near "
+    "the stem"))
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize("name", list(CATALOGUE))
+@pytest.mark.parametrize("name", [pytest.param(n, marks=UNDERSTORY_NOT_NAMED) if n == "understory" else n
+                                  for n in CATALOGUE])
 def test_real_chain_names_the_hidden_effect(tmp_path, name):
     truth = CATALOGUE[name].test_value
     m = _diagnose_campaign(tmp_path, {name: truth}, OVERRIDES.get(name))
