@@ -93,7 +93,7 @@ def test_tree_pulses_near_the_stem_are_a_stratum_of_the_same_pulses():
             "pulse_id")
 
     on, off = keys(), keys(near_stem_m=None)
-    want = {i: BELOW_CROWN if i >= 40 else (NEAR_STEM if i < 40 and dist[i] < 0.3 else "") for i in range(46)}
+    want = {i: BELOW_CROWN if i >= 40 else (NEAR_STEM if dist[i] < 0.3 else "") for i in range(46)}
     want.update({100 + i: "" for i in range(12)})
     assert on["stratum"].to_dict() == want and 0 < list(want.values()).count(NEAR_STEM) < 40
     assert (off["stratum"] != NEAR_STEM).all()
@@ -114,7 +114,7 @@ def test_a_blurred_crown_profile_cancels_in_one_cell_and_shows_split_at_the_stem
     rows = []
     for ds in ("a", "b", "c"):
         for j in range(60):
-            top = rng.uniform(3.0, 5.0)  # a cone of radius 0.5 m and height top
+            top = rng.uniform(3.0, 5.0)  # a cone of height top and radius 0.6 m, pulses within 0.5 m
             r = 0.5 * np.sqrt(rng.uniform(size=(2, 40)))  # recorded distances, real and twin pulses
             blur = np.hypot(r[0] * np.cos(t := rng.uniform(0, 2 * np.pi, 40)) + 0.2 * rng.standard_normal(40),
                             r[0] * np.sin(t) + 0.2 * rng.standard_normal(40))
