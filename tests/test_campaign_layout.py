@@ -184,3 +184,57 @@ def test_the_default_layout_has_table1_design_counts_and_keeps_samples_apart(spe
         assert pdist(f[["s", "w"]].to_numpy()).min() >= MIN_SAMPLE_DISTANCE_M
     heights = lay.fields.loc[lay.fields["species"] == "birch", "height_m"]
     assert heights.min() >= 1.5 and heights.max() <= 7.5 and heights.between(2.5, 5.0).mean() < 0.6
+
+
+def _sites(fields: pd.DataFrame) -> pd.DataFrame:
+    return pd.DataFrame({"site": fields["sample_id"].to_numpy(), "s": fields["s"].to_numpy(),
+                         "w": fields["w"].to_numpy(), "ground_z": fields["ground_z"].to_numpy(),
+                         "disc_m": fields["radius_m"].to_numpy() + 0.3})
+
+
+def test_coverage_drops_whole_strip_visits_at_its_rate_and_keeps_the_rest_identical(species):
+    """A site of coverage c keeps each (strip, site) visit with probability c; the visits kept,
+    and every site of coverage 1, have exactly the pulses of the flight without coverage."""
+    lay_ = build_layout(species, None, SEED)
+    row = load_datasets(["2012_27_1"]).iloc[0]  # two strips over many sites: visits of both kinds
+    lay = load_layout()
+    sites = _sites(lay_.fields[lay_.fields["year"] == 2012])
+    plan = plan_flight(row, lay_.frame, lay, 1.0, SEED, float(sites["ground_z"].mean()))
+    full = site_pulses(plan, sites, lay, SEED)
+    c = np.where(np.arange(len(sites)) % 3 == 0, 1.0, np.where(np.arange(len(sites)) % 3 == 1, 0.6, 0.0))
+    thin = site_pulses(plan, sites.assign(coverage=c), lay, SEED)
+    cov = dict(zip(sites["site"], c))
+    visits_full = full.groupby(["site", "strip"]).size()
+    visits_thin = thin.groupby(["site", "strip"]).size()
+    c_visit = visits_full.index.get_level_values(0).map(cov).to_numpy(float)
+    kept = visits_full.index.isin(visits_thin.index)
+    assert kept[c_visit == 1].all() and not kept[c_visit == 0].any()
+    k = kept[c_visit == 0.6]
+    assert abs(k.mean() - 0.6) < 3 * np.sqrt(0.6 * 0.4 / k.size) and k.size > 500
+    key = ["site", "strip", "gps_time"]
+    same = full[full.set_index(["site", "strip"]).index.isin(visits_thin.index)]
+    pd.testing.assert_frame_equal(same.sort_values(key).reset_index(drop=True),
+                                  thin.sort_values(key).reset_index(drop=True))
+
+
+def test_coverage_file_lookup_and_bad_values(tmp_path, monkeypatch):
+    from waveforest.campaign import params
+    assert params.coverage("2012_05_1", ["raspberry", "birch"]).tolist() == [0.57, 1.0]
+    assert params.coverage("2012_10_1", np.array(["birch", "scots_pine"], object)).tolist() == [0.98, 0.70]
+    assert np.all(params.coverage("2010_19_1", ["birch"]) == 1.0)
+    for name in ("datasets.csv", "sensor_truth.csv", "design_counts.csv"):
+        (tmp_path / name).write_text((params.CAMPAIGN_RESOURCES / name).read_text())
+    monkeypatch.setattr(params, "CAMPAIGN_RESOURCES", tmp_path)
+    cases = {"2012_05_1,birch,1.2\n": "coverage: expected numbers in \\[0, 1\\]",
+             "2012_05_1,birch,\n": "coverage: expected numbers",
+             "2013_05_1,birch,0.5\n": "dataset: unknown dataset\\(s\\) 2013_05_1",
+             "2012_05_1,oak,0.5\n": "species: unknown slug\\(s\\) oak",
+             "2012_05_1,birch,0.5\n2012_05_1,birch,0.6\n": "listed twice"}
+    try:
+        for body, msg in cases.items():
+            (tmp_path / "coverage.csv").write_text("dataset,species,coverage\n" + body)
+            params._coverage.cache_clear()
+            with pytest.raises(CampaignParamsError, match=msg):
+                params.coverage("2012_05_1", ["birch"])
+    finally:
+        params._coverage.cache_clear()

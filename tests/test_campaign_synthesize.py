@@ -281,3 +281,30 @@ def test_out_that_is_not_a_folder_is_refused_at_once(tmp_path):
     res = CliRunner().invoke(cli, ["synthesize", "--out", str(fifo), "--quiet"])
     assert res.exit_code != 0 and "not a folder" in str(res.exception or res.output)
     assert stat.S_ISFIFO(os.stat(fifo).st_mode) and sorted(p.name for p in tmp_path.iterdir()) == ["campaign"]
+
+
+def test_design_campaign_records_samples_at_their_coverage_and_every_target():
+    """Table 1's design counts: a species' (strip, sample) visits are kept at its coverage.csv rate;
+    targets and a samples_per_species campaign are never thinned."""
+    from waveforest.campaign.layout import build_layout
+    from waveforest.campaign.params import coverage, load_datasets, load_layout
+    from waveforest.campaign.synthesize import _campaign_sites, _plan_pulses
+
+    ds = load_datasets(["2012_05_1"])
+    lay = load_layout()
+    layout = build_layout(veg.species_table(), None, 11)
+    fields, targets = _campaign_sites(layout, [2012], None)
+    visits = {}
+    for per_species in (None, 1000):  # design counts; a campaign with samples_per_species set
+        cfg = small_cfg(samples_per_species=per_species, max_pulses_per_site=None, density_scale=1.0)
+        _, pulses = _plan_pulses(ds, fields, targets, layout, lay, cfg, 11, 0.3)
+        visits[per_species] = pulses["2012_05_1"].groupby(["site", "strip"]).size()
+    full, thin = visits[1000], visits[None]
+    species = full.index.get_level_values(0).map(fields.set_index("sample_id")["species"])
+    kept = full.index.isin(thin.index)
+    assert kept[species.isna()].all()  # targets
+    for slug in ("raspberry", "fireweed", "birch", "scots_pine"):
+        c = float(coverage("2012_05_1", [slug])[0])
+        k = kept[species == slug]
+        assert abs(k.mean() - c) <= 3 * np.sqrt(c * (1 - c) / k.size) + 1e-12, slug
+    assert (thin.reindex(full.index[kept]) == full[kept]).all()  # a kept visit keeps all its pulses

@@ -22,7 +22,8 @@ its line plus its position in the sweep; GPS times increase along each strip.
 
 Pulses are generated only where the analysis looks: within a disc around each site
 (``radius + disc_margin_m`` for field samples, the same for targets), for every strip whose
-swath holds the site ``coverage_margin_m`` inside its 15-deg edge. A pulse aims at the ground
+swath holds the site ``coverage_margin_m`` inside its 15-deg edge and that records it (a
+site's coverage, ``coverage.csv``). A pulse aims at the ground
 point on the site's ground plane; its beam is the line from the sensor position at its GPS
 time to that point.
 """
@@ -220,7 +221,8 @@ def site_pulses(plan: FlightPlan, sites: pd.DataFrame, layout: dict, seed: int,
     plan : FlightPlan
     sites : DataFrame
         One row per site with columns site (str id), s, w (frame, m), ground_z (m),
-        disc_m (radius of the pulse disc, m).
+        disc_m (radius of the pulse disc, m), optionally coverage (probability that a strip
+        whose swath holds the site records it; stream ("coverage", dataset, strip, site)).
     layout : dict
         ``layout.yaml`` (flight.coverage_margin_m, flight.scan_jitter).
     seed : int
@@ -242,10 +244,13 @@ def site_pulses(plan: FlightPlan, sites: pd.DataFrame, layout: dict, seed: int,
     ids = sites["site"].astype(str).to_numpy(object)
     s_, w_ = sites["s"].to_numpy(np.float64), sites["w"].to_numpy(np.float64)
     z_, r_ = sites["ground_z"].to_numpy(np.float64), sites["disc_m"].to_numpy(np.float64)
+    cov = sites["coverage"].to_numpy(np.float64) if "coverage" in sites else np.ones(len(sites))
     parts = []
     for st in plan.strips:
         covered = np.abs(w_ - st.w_line) <= (st.z_fly - z_) * tan_max - st.sway_amp - margin - r_
         for k in np.flatnonzero(covered):
+            if cov[k] < 1 and stream_generator(seed, "coverage", plan.dataset, st.index, ids[k]).random() >= cov[k]:
+                continue
             f = _strip_site_pulses(plan, st, ids[k], s_[k], w_[k], z_[k], r_[k], seed, jit)
             if f is not None:
                 parts.append(f)

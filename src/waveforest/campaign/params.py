@@ -15,6 +15,8 @@ targets.csv            reference target sites: material, years, nadir HDRF (empt
                        AGC-only targets), true reflectance, calibration/AGC flags, size
 design_counts.csv      field-sample counts per species and design of Table 1 (P10, S10, S12):
                        which species were sampled in which year
+coverage.csv           per dataset and species, the share of its field samples that a strip
+                       whose swath holds them records (Table 3's counts; design counts only)
 layout.yaml            study area, stands, terrain, sample rules, flight-path parameters
 =====================  ====================================================================
 
@@ -177,6 +179,46 @@ def load_targets() -> pd.DataFrame:
         raise CampaignParamsError("targets.csv: the disc of radius_m must lie inside the target square (side_m)")
     df["years"] = df["years"].astype(str)
     return df
+
+
+COVERAGE_COLUMNS = {
+    "dataset": "dataset name (datasets.csv)",
+    "species": "species slug (design_counts.csv), or * for every species of the dataset not listed",
+    "coverage": "probability that a strip whose swath holds a field sample records its pulses, in [0, 1]",
+}
+"""Columns of ``coverage.csv`` and their meaning (absent rows: 1)."""
+
+
+@lru_cache(maxsize=1)
+def _coverage() -> pd.DataFrame:
+    path = CAMPAIGN_RESOURCES / "coverage.csv"
+    df = _read_csv("coverage.csv", COVERAGE_COLUMNS)[list(COVERAGE_COLUMNS)]
+    df["dataset"], df["species"] = df["dataset"].astype(str), df["species"].astype(str)
+    c = pd.to_numeric(df["coverage"], errors="coerce").to_numpy(float)
+    if not np.all((c >= 0) & (c <= 1)):
+        raise CampaignParamsError(f"{path}: column coverage: expected numbers in [0, 1]")
+    unknown = sorted(set(df["dataset"]) - set(_datasets_all()["dataset"]))
+    if unknown:
+        raise CampaignParamsError(f"{path}: column dataset: unknown dataset(s) {', '.join(unknown)}")
+    slugs = set(load_design_counts()["slug"]) | {"*"}
+    unknown = sorted(set(df["species"]) - slugs)
+    if unknown:
+        raise CampaignParamsError(f"{path}: column species: unknown slug(s) {', '.join(unknown)} (or *)")
+    if df.duplicated(["dataset", "species"]).any():
+        raise CampaignParamsError(f"{path}: a (dataset, species) pair is listed twice")
+    df["coverage"] = c
+    return df
+
+
+def coverage(dataset: str, species) -> np.ndarray:
+    """Coverage (``coverage.csv``) of field samples of ``species`` (array of slugs) in ``dataset``:
+    the species' own row, else the dataset's ``*`` row, else 1. Shape of ``species``."""
+    df = _coverage()
+    rows = df[df["dataset"] == dataset]
+    table = dict(zip(rows["species"], rows["coverage"]))
+    default = table.pop("*", 1.0)
+    sp = pd.Series(np.asarray(species, dtype=object))
+    return sp.map(table).fillna(default).to_numpy(float)
 
 
 def load_design_counts() -> pd.DataFrame:

@@ -50,7 +50,7 @@ from waveforest import __version__
 from waveforest.campaign.agc_loop import agc_sequence
 from waveforest.campaign.flight import georeferencing_error, plan_flight, site_pulses
 from waveforest.campaign.layout import FIELD_COLUMNS, TARGET_COLUMNS, build_layout
-from waveforest.campaign.params import CAMPAIGN_RESOURCES, load_datasets, load_layout
+from waveforest.campaign.params import CAMPAIGN_RESOURCES, coverage, load_datasets, load_layout
 from waveforest.campaign.readme import readme_text
 from waveforest.campaign.site_trace import SiteJob, TraceSettings, trace_sites
 from waveforest.campaign.truth_sensor import MAX_ECHOES, TruthSensor, record
@@ -270,14 +270,19 @@ def _campaign_sites(layout, years: list[int], only) -> tuple[pd.DataFrame, pd.Da
 def _plan_pulses(datasets: pd.DataFrame, fields: pd.DataFrame, targets: pd.DataFrame, layout, lay: dict,
                  cfg: dict, seed: int, margin: float) -> tuple[dict, dict]:
     """Per dataset, its flight plan (:func:`.flight.plan_flight`) and the pulses near its year's
-    sites (:func:`.flight.site_pulses`, with columns ``dataset`` first and ``year``)."""
+    sites (:func:`.flight.site_pulses`, with columns ``dataset`` first and ``year``). With Table 1's
+    design counts a field sample is recorded with its ``coverage.csv`` coverage; targets always."""
     camp = cfg["campaign"]
     tree_r = float(cfg["select"]["tree_radius_m"])
     cap = camp["max_pulses_per_site"]
+    design = camp["samples_per_species"] is None
     plans, pulses = {}, {}
     for _, row in datasets.iterrows():
         ds, year = row["dataset"], int(row["year"])
         sites = _sites_table(fields, targets, year, margin, tree_r)
+        if design:  # coverage.csv is fitted to Table 1's design counts
+            species = sites["site"].map(fields.set_index("sample_id")["species"]).to_numpy(object)
+            sites["coverage"] = np.where(pd.isna(species), 1.0, coverage(ds, species))
         plans[ds] = plan_flight(row, layout.frame, lay, float(camp["density_scale"]), seed,
                                 float(sites["ground_z"].mean()))
         p = site_pulses(plans[ds], sites, lay, seed, None if cap is None else int(cap))
