@@ -5,7 +5,8 @@ azimuths of ``datasets.csv`` (160 deg / 340 deg, docs/method.md §(a)), at a fly
 mean terrain H = mean_range / E[sec(theta)] (theta uniform in tan over the swath, so that the
 mean range over the swath equals Table 2's mean range). Strips are spaced
 2 H tan(theta_max) (1 - overlap) apart across track, at least ``min_strips`` of them,
-centred on the area, so every site lies in one or two swaths.
+centred on the area, so every site lies in at least one swath (one or two at 25 % overlap, up
+to three at 2012_10_1's 60 %).
 
 Trajectory of a strip (``layout.yaml`` ``flight``): constant ground speed along the planned
 line, a slow sinusoidal altitude undulation and lateral sway with random phases; it is
@@ -23,9 +24,8 @@ its line plus its position in the sweep; GPS times increase along each strip.
 Pulses are generated only where the analysis looks: within a disc around each site
 (``radius + disc_margin_m`` for field samples, the same for targets), for every strip whose
 swath holds the site ``coverage_margin_m`` inside its 15-deg edge and that records it (a
-site's coverage, ``coverage.csv``). A pulse aims at the ground
-point on the site's ground plane; its beam is the line from the sensor position at its GPS
-time to that point.
+site's coverage, ``coverage.csv``). A pulse aims at the ground point on the site's ground
+plane; its beam is the line from the sensor position at its GPS time to that point.
 """
 
 from __future__ import annotations
