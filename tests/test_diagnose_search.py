@@ -257,3 +257,26 @@ def test_a_fit_at_the_edge_of_its_range_is_not_named():
     assert first["name"] == "hotspot" and bool(first["significant"]) and bool(first["at_bound"])
     assert res.verdict == "unexplained" and res.named == []
     assert "edge of the range" in res.reason
+
+
+def test_a_broad_fit_at_the_bound_is_named_when_nothing_inside_is_significant():
+    """A significant fit at the edge whose interval reaches far into the range (a saturating
+    signature) stands in for a best inside its range that is not significant; a pinned one
+    (interval at the edge too) never does, and a significant fit inside always comes first."""
+    from waveforest.diagnose.search import Candidate, Estimate, _rank, pinned
+
+    def cand(name, u_hat, u_low, u_high, red, sig):
+        lo, hi = cat.from_u(name, u_low), cat.from_u(name, u_high)
+        est = Estimate(name, u_hat, cat.from_u(name, u_hat), min(lo, hi), max(lo, hi), u_low, u_high)
+        return Candidate(round=1, estimate=est, gap_base=0.06, gap_new=0.06 - red, excess_base=0.05,
+                         reduction=red, reduction_ci_low=red / 2 if sig else -red, reduction_ci_high=2 * red,
+                         relative=red / 0.05, significant=sig, replicates=np.full(50, red))
+
+    broad = cand("understory", 1.0, 0.48, 1.0, 0.032, True)  # understory 4 [1.93, 4] LAI
+    stuck = cand("hotspot", 1.0, 0.9, 1.0, 0.040, True)
+    weak = cand("noise_autocorr", 0.2, 0.05, 0.3, 0.004, False)
+    assert pinned(stuck.estimate) and not pinned(broad.estimate) and not pinned(weak.estimate)
+    assert _rank([stuck, broad, weak], 30, 0.05)[2] is broad
+    assert _rank([stuck, weak], 30, 0.05)[2] is weak  # only a pinned fit at the edge: nothing nameable
+    strong = cand("lad_shift", 0.6, 0.55, 0.65, 0.010, True)
+    assert _rank([stuck, broad, strong], 30, 0.05)[2] is strong

@@ -25,7 +25,7 @@ import pandas as pd
 from waveforest.diagnose import catalogue as cat
 from waveforest.diagnose.before_after import before_after
 from waveforest.diagnose.power import verdict_with_limits
-from waveforest.diagnose.search import SearchResult, SearchSettings, search
+from waveforest.diagnose.search import SearchResult, SearchSettings, at_bound, search
 from waveforest.diagnose.simulations import effects_key, simulate_all
 from waveforest.effects import CATALOGUE
 from waveforest.errors import WaveforestError
@@ -165,6 +165,11 @@ def summary_markdown(result: SearchResult, gap: pd.DataFrame, cand: pd.DataFrame
                          f"{_fmt(e.gap_reduction)} [{_fmt(e.reduction_ci_low)}, {_fmt(e.reduction_ci_high)}] |")
         lines.append("")
         for e in result.named:
+            if at_bound(e.name, cat.to_u(e.name, e.value)):
+                lines += [f"{e.name} was fitted at the edge of its range; its interval reaches far into the range: "
+                          f"these data do not tell the values from {_fmt(e.ci_low)} to {_fmt(e.ci_high)} apart "
+                          "(a signature that saturates): the effect is there, its size known only to lie in "
+                          "that interval.", ""]
             if e.look_alikes:
                 lines += [f"{', '.join(e.look_alikes)} reduced the gap significantly too in round {e.round}, by an "
                           f"amount not told apart from {e.name}'s: on these data, as good an explanation.", ""]

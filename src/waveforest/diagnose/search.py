@@ -24,6 +24,8 @@ docs/method.md §(j) (the search). Procedure (one *round*; :func:`search` runs u
 4. **Name** the candidate with the largest R fitted inside its range (:func:`at_bound`) if
    it is significant; candidates ranked above it with a fit at the bound are reported, not
    named, and so are significant candidates not told apart from it (:func:`look_alikes`).
+   If it is not significant, a significant fit at the bound whose interval reaches well into
+   the range (not :func:`pinned`) is named instead.
    From the second effect on, re-fit all named effects by coordinate descent
    (:data:`REFIT_PASSES`). Stop when the best candidate is not significant, when
    ``rounds`` effects are named, or when the model's gap is within the noise floor.
@@ -216,10 +218,24 @@ that is not the effect's off value is *at the bound*."""
 
 
 def at_bound(name: str, u_hat: float) -> bool:
-    """Whether a fit lies at the far edge of the effect's range (:data:`AT_BOUND_U`): the
-    data then ask for a value beyond what the catalogue deems plausible."""
+    """Whether a fit lies at the far edge of the effect's range (:data:`AT_BOUND_U`)."""
     u0 = cat.off_u(name)
     return bool((u_hat <= AT_BOUND_U and u0 > AT_BOUND_U) or (u_hat >= 1 - AT_BOUND_U and u0 < 1 - AT_BOUND_U))
+
+
+PINNED_U = 0.25
+"""A fit at the bound whose interval's inner end also lies within this distance (search
+coordinate) of that bound is *pinned*."""
+
+
+def pinned(e: Estimate) -> bool:
+    """Whether a fit at the bound is pinned there (:data:`PINNED_U`): the data then ask for a
+    value at or beyond the edge of what the catalogue deems plausible, the mark of a look-alike.
+    A fit at the bound whose interval reaches further in is not: these data cannot tell that
+    part of the range from its edge (an effect whose signature saturates)."""
+    if not at_bound(e.name, e.u_hat):
+        return False
+    return bool(e.u_low >= 1 - PINNED_U) if e.u_hat > 0.5 else bool(e.u_high <= PINNED_U)
 
 
 @dataclass
@@ -592,10 +608,16 @@ def _evaluate(rnd: int, name: str, state: _State, ctx: _Context, df: int) -> Can
 
 
 def _rank(results: list[Candidate], df: int, alpha: float):
-    """(order by reduction, the ranked indices fitted inside their range, best, ``candidates.csv`` rows)."""
+    """(order by reduction, the ranked indices fitted inside their range, best, ``candidates.csv`` rows).
+
+    The best is the first fitted inside its range; if that is not significant, the first
+    significant fit at the bound that is not :func:`pinned` stands in for it."""
     order = np.argsort([-c.reduction for c in results], kind="stable")
     inside = [i for i in order if not at_bound(results[i].estimate.name, results[i].estimate.u_hat)]
     best = results[inside[0] if inside else order[0]]
+    if not best.significant:
+        broad = [i for i in order if i not in inside and results[i].significant and not pinned(results[i].estimate)]
+        best = results[broad[0]] if broad else best
     rows = []
     for rank, i in enumerate(order, start=1):
         c = results[i]
@@ -631,11 +653,12 @@ def _run_round(rnd: int, state: _State, ctx: _Context, df: int, report) -> bool:
     results = [_evaluate(rnd, name, state, ctx, df) for name in todo]
     order, inside, best, round_rows = _rank(results, df, settings.alpha)
     state.rows += round_rows
-    if not inside:
+    nameable = best.significant and not pinned(best.estimate)
+    if not inside and not nameable:
         state.reason = f"round {rnd}: every candidate's fit lies at the edge of its range"
         return True
     alike = look_alikes(round_rows, best.estimate.name)
-    if not best.significant:
+    if not nameable:
         state.reason = _not_named_reason(rnd, results, order, inside, best, alike)
         return True
     e = best.estimate
