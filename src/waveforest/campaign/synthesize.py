@@ -276,12 +276,13 @@ def _plan_pulses(datasets: pd.DataFrame, fields: pd.DataFrame, targets: pd.DataF
     tree_r = float(cfg["select"]["tree_radius_m"])
     cap = camp["max_pulses_per_site"]
     design = camp["samples_per_species"] is None
+    species_of = fields.set_index("sample_id")["species"]
     plans, pulses = {}, {}
     for _, row in datasets.iterrows():
         ds, year = row["dataset"], int(row["year"])
         sites = _sites_table(fields, targets, year, margin, tree_r)
         if design:  # coverage.csv is fitted to Table 1's design counts
-            species = sites["site"].map(fields.set_index("sample_id")["species"]).to_numpy(object)
+            species = sites["site"].map(species_of).to_numpy(object)
             sites["coverage"] = np.where(pd.isna(species), 1.0, coverage(ds, species))
         plans[ds] = plan_flight(row, layout.frame, lay, float(camp["density_scale"]), seed,
                                 float(sites["ground_z"].mean()))

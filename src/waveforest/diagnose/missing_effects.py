@@ -166,10 +166,9 @@ def summary_markdown(result: SearchResult, gap: pd.DataFrame, cand: pd.DataFrame
         lines.append("")
         for e in result.named:
             if at_bound(e.name, cat.to_u(e.name, e.value)):
-                lines += [f"{e.name} was fitted at the edge of its range; its interval reaches far into the range: "
-                          f"these data do not tell the values from {_fmt(e.ci_low)} to {_fmt(e.ci_high)} apart "
-                          "(a signature that saturates): the effect is there, its size known only to lie in "
-                          "that interval.", ""]
+                lines += [f"{e.name} was fitted at the edge of its range: these data do not tell the values "
+                          f"from {_fmt(e.ci_low)} to {_fmt(e.ci_high)} apart (a signature that saturates); the "
+                          "effect is there, its size known only to lie in that interval.", ""]
             if e.look_alikes:
                 lines += [f"{', '.join(e.look_alikes)} reduced the gap significantly too in round {e.round}, by an "
                           f"amount not told apart from {e.name}'s: on these data, as good an explanation.", ""]
