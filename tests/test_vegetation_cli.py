@@ -68,3 +68,21 @@ def test_bad_input_exits_1_with_one_message_and_no_file(tmp_path, capsys, args, 
     err = capsys.readouterr().err
     assert message in err and err.count("\n") == 1
     assert not out.exists() and list(tmp_path.iterdir()) == []
+
+
+def test_rasteriser_covers_a_triangle_and_keeps_the_nearest():
+    """Sample centres inside a triangle are covered (its area in samples), and where two
+    overlap the nearer one's colour is kept whatever the drawing order."""
+    from waveforest.vegetation.render import _rasterise
+
+    big = [[0.0, 0.0], [40.0, 0.0], [0.0, 40.0]]  # area 800 samples
+    small = [[5.0, 5.0], [15.0, 5.0], [5.0, 15.0]]
+    red, blue = [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]
+    for order in ((0, 1), (1, 0)):
+        uv = np.array([big, small], float)[list(order)]
+        depth = np.array([2.0, 1.0])[list(order)]  # the small one is nearer
+        colour = np.array([red, blue])[list(order)]
+        img = _rasterise(uv, depth, colour, np.zeros(2), 1.0, 64, 64)
+        assert abs(img[..., 3].sum() - 800) <= 40  # edge samples: within the perimeter's share
+        assert img[63 - 8, 8, 2] == 1.0 and img[63 - 30, 5, 0] == 1.0  # row 0 is the top
+        assert img[63 - 50, 50, 3] == 0.0

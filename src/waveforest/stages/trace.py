@@ -27,7 +27,6 @@ from waveforest.mcrt.tracer import DEFAULT_WINDOW_NS, TraceResult
 from waveforest.mcrt.tracer import trace as trace_pulses
 from waveforest.report.plots import pyplot, save_png
 from waveforest.scene import Scene, read_ply
-from waveforest.vegetation import build_scene
 
 DEFAULT_DIVERGENCE_MRAD = 0.15
 """ALS60 1/e beam divergence (docs/method.md §(a)), used when neither footprint nor divergence is given."""
@@ -47,6 +46,8 @@ def load_scene(scene_path: str | Path | None, species: str | None = None, height
         return read_ply(scene_path)
     if height is None or not height > 0:
         raise WaveforestError("trace: --species needs --height (m, > 0)")
+    from waveforest.vegetation import build_scene  # not imported to trace a PLY file
+
     return build_scene(species, float(height), int(seed), **(vegetation_options or {}))
 
 

@@ -42,7 +42,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
-from scipy import integrate, special
+from scipy import special
 
 DEWIT = ("planophile", "erectophile", "plagiophile", "extremophile")
 LAD_NAMES = DEWIT + ("uniform", "spherical")
@@ -304,6 +304,8 @@ class LeafAngleDistribution:
 
 @functools.cache
 def _dewit_moments(name: str) -> tuple[float, float]:
+    from scipy import integrate  # imported here: ~0.3 s at import, used by few runs
+
     lad = LeafAngleDistribution(name)
     m1 = integrate.quad(lambda th: (th / HALF_PI) * lad.pdf(th), 0, HALF_PI, epsabs=1e-13)[0]
     m2 = integrate.quad(lambda th: (th / HALF_PI) ** 2 * lad.pdf(th), 0, HALF_PI, epsabs=1e-13)[0]
@@ -312,6 +314,8 @@ def _dewit_moments(name: str) -> tuple[float, float]:
 
 @functools.lru_cache(maxsize=256)
 def _g_integral(lad: LeafAngleDistribution, view: float) -> float:
+    from scipy import integrate
+
     def f(th):
         return float(lad.pdf(th) * _psi_projection(view, np.array([th]))[0])
 
