@@ -25,7 +25,7 @@ from waveforest.io.pulses import write_table
 from waveforest.mcrt.beams import Beams
 from waveforest.mcrt.tracer import DEFAULT_WINDOW_NS, TraceResult
 from waveforest.mcrt.tracer import trace as trace_pulses
-from waveforest.report.plots import pyplot, save_png
+from waveforest.plotting import pyplot, save_png
 from waveforest.scene import Scene, read_ply
 
 DEFAULT_DIVERGENCE_MRAD = 0.15
@@ -65,8 +65,6 @@ def write_sigma(result: TraceResult, path: str | Path, i: int = 0, metadata: dic
 
     The suffix chooses the format; Parquet files carry ``metadata`` (JSON) in the schema.
     """
-
-
     path = Path(path)
     if path.suffix.lower() not in TABLE_SUFFIXES:
         raise WaveforestError(f"{path}: expected a .parquet or .csv output file")
