@@ -53,6 +53,9 @@ accurate per ray; its own error is << that of the estimators):
   first-echo features (:func:`waveforest.sensor.features.first_echo_features`) of the
   noise-free waveform rendered (Eq. 7, :func:`waveforest.sensor.signal.analog_waveforms`) with
   a Gaussian S(t) of 7.2 ns FWHM (2010_12_1) and sampled at 1 ns; FWHM in ns;
+* ``<method>_err_share_order1``, ``..._order2``, ``..._order3plus``: each order's squared
+  error (sum over seeds, pulses and 1-ns bins of (s_k - s_k,ref)^2) over that of the total:
+  where the error lies (their sum differs from 1 by the orders' cross terms);
 * ``<method>_cpu_ms_per_pulse``: CPU time per pulse of the method's traces on one thread
   (median over the seeds: threads that wait for a core of a loaded machine burn CPU time and
   disturb the comparison), on the BVH quality of the method (:data:`METHODS`);
@@ -409,6 +412,11 @@ def bench_error(prefix: str, scene, beams, args, methods) -> dict:
         out(f"{m}_rel_err_apeak", rel_ap, "fraction")
         out(f"{m}_rel_err_e", rel_e, "fraction")
         out(f"{m}_err_fwhm", err_fwhm, "ns")
+        d_k = s - ref[None]  # per order: its share of the squared error (cross terms aside)
+        sq_k = (d_k**2).sum(axis=(0, 1, 3)) / (d_all**2).sum()
+        out(f"{m}_err_share_order1", sq_k[0], "fraction", ".3f")
+        out(f"{m}_err_share_order2", sq_k[1], "fraction", ".3f")
+        out(f"{m}_err_share_order3plus", sq_k[2:].sum(), "fraction", ".3f")
         out(f"{m}_cpu_ms_per_pulse", t * 1e3, "ms", ".1f")
         out(f"{m}_embree_rays_per_pulse", rays[m] / (args.seeds * n), "rays", ".0f")
     base = "random_30k" if "random_30k" in found else "random_1500" if "random_1500" in found else None
