@@ -145,6 +145,7 @@ REF_RAYS = 2**20
 
 METHODS = {
     "random_30k": dict(n_rays=30000, quality="medium"),
+    "random_16k": dict(n_rays=16384, quality="medium"),
     "random_rr_30k": dict(n_rays=30000, roulette=0.5, quality="medium"),
     "sobol_16k": dict(n_rays=16384, sampler="sobol", quality="medium"),
     "sobol_rr_8k": dict(n_rays=8192, sampler="sobol", roulette=0.5, quality="medium"),

@@ -36,12 +36,16 @@ import pyarrow.parquet as pq
 
 ROOT = Path(__file__).resolve().parents[1]
 
+CONSOLE_SCRIPT = "import waveforest.cli as c; (getattr(c, 'entry', None) or c.main)()"
+"""What the ``waveforest`` console script runs, in either copy (``main`` before ``entry``)."""
+
 
 def command(src: Path, *args: str) -> tuple[str, float]:
-    """Run ``waveforest ARGS`` from the source tree ``src`` in a new process: (stdout, wall s)."""
+    """Run ``waveforest ARGS`` from the source tree ``src`` in a new process, as its console
+    script does: (stdout, wall s)."""
     env = dict(os.environ, PYTHONPATH=str(src))
     t = time.perf_counter()
-    r = subprocess.run([sys.executable, "-c", "from waveforest.cli import main; main()", *args],
+    r = subprocess.run([sys.executable, "-c", CONSOLE_SCRIPT, *args],
                        env=env, capture_output=True, text=True)
     wall = time.perf_counter() - t
     if r.returncode:
