@@ -2,7 +2,7 @@
 
 For one vegetation instance (``waveforest vegetation``, timed for each copy, with its picture),
 every copy traces the same PLY with ``waveforest trace`` at its own defaults, once per seed,
-each call a new process as a user runs it. Figures (``name: value unit``), ``<tag>`` being
+each call a new process as a user runs it, the copies taking turns. Figures (``name: value unit``), ``<tag>`` being
 ``old`` (the frozen copy) or ``new`` (this checkout):
 
 * ``<tag>_n_rays``: rays per pulse of the copy's default;
@@ -59,29 +59,36 @@ def sigma_1ns(path: Path) -> np.ndarray:
     return np.bincount(np.floor(t["time_ns"] - t["time_ns"].iloc[0] + 1e-9).astype(int), weights=t["sigma"])
 
 
-def measure(tag: str, src: Path, scene: Path, work: Path, args) -> tuple[float, float, float, float]:
-    """Print one copy's figures; return (rel_spread, stage s, wall s, vegetation s)."""
-    _, veg = command(src, "vegetation", "--species", args.species, "--height", str(args.height),
-                     "--seed", "3", "--out", str(work / f"{tag}.ply"))
-    command(src, "trace", str(scene), "--out", str(work / f"{tag}_warm.parquet"))  # Numba caches
-    sig, stage, wall, rays = [], [], [], 0
+def measure(copies: dict[str, Path], scene: Path, work: Path, args) -> dict[str, tuple[float, float, float, float]]:
+    """Print each copy's figures: {tag: (rel_spread, stage s, wall s, vegetation s)}. The copies
+    take turns command by command, so that both see the same load of a shared machine."""
+    veg, sig, stage, wall, rays = {}, {}, {}, {}, {}
+    for tag, src in copies.items():
+        _, veg[tag] = command(src, "vegetation", "--species", args.species, "--height", str(args.height),
+                              "--seed", "3", "--out", str(work / f"{tag}.ply"))
+        command(src, "trace", str(scene), "--out", str(work / f"{tag}_warm.parquet"))  # Numba caches
+        sig[tag], stage[tag], wall[tag] = [], [], []
     for seed in range(args.seeds):
-        out = work / f"{tag}_{seed}.parquet"
-        text, w = command(src, "trace", str(scene), "--out", str(out), "--seed", str(seed))
-        m = re.search(r"(\d+) rays, ([0-9.]+) s", text)
-        rays, s = int(m.group(1)), float(m.group(2))
-        sig.append(sigma_1ns(out))
-        stage.append(s)
-        wall.append(w)
-    n = max(len(s) for s in sig)
-    a = np.array([np.pad(s, (0, n - len(s))) for s in sig])
-    spread = float(np.sqrt(a.var(axis=0, ddof=1).sum() / (a.mean(axis=0) ** 2).sum()))
-    print(f"{tag}_n_rays: {rays} rays")
-    print(f"{tag}_vegetation_s: {veg:.2f} s")
-    print(f"{tag}_trace_wall_s: {np.median(wall):.3f} s")
-    print(f"{tag}_trace_stage_s: {np.median(stage):.3f} s")
-    print(f"{tag}_rel_spread_1ns: {spread:.4f} fraction", flush=True)
-    return spread, float(np.median(stage)), float(np.median(wall)), veg
+        for tag, src in copies.items():
+            out = work / f"{tag}_{seed}.parquet"
+            text, w = command(src, "trace", str(scene), "--out", str(out), "--seed", str(seed))
+            m = re.search(r"(\d+) rays, ([0-9.]+) s", text)
+            rays[tag] = int(m.group(1))
+            sig[tag].append(sigma_1ns(out))
+            stage[tag].append(float(m.group(2)))
+            wall[tag].append(w)
+    found = {}
+    for tag in copies:
+        n = max(len(s) for s in sig[tag])
+        a = np.array([np.pad(s, (0, n - len(s))) for s in sig[tag]])
+        spread = float(np.sqrt(a.var(axis=0, ddof=1).sum() / (a.mean(axis=0) ** 2).sum()))
+        found[tag] = (spread, float(np.median(stage[tag])), float(np.median(wall[tag])), veg[tag])
+        print(f"{tag}_n_rays: {rays[tag]} rays")
+        print(f"{tag}_vegetation_s: {veg[tag]:.2f} s")
+        print(f"{tag}_trace_wall_s: {found[tag][2]:.3f} s")
+        print(f"{tag}_trace_stage_s: {found[tag][1]:.3f} s")
+        print(f"{tag}_rel_spread_1ns: {spread:.4f} fraction", flush=True)
+    return found
 
 
 def main() -> None:
@@ -106,8 +113,8 @@ def main() -> None:
             scene = work / "scene.ply"
             command(new_src, "vegetation", "--species", args.species, "--height", str(args.height),
                     "--seed", "3", "--out", str(scene), "--no-png")
-            e0, s0, w0, v0 = measure("old", old_src, scene, work, args)
-            e1, s1, w1, v1 = measure("new", new_src, scene, work, args)
+            found = measure({"old": old_src, "new": new_src}, scene, work, args)
+            (e0, s0, w0, v0), (e1, s1, w1, v1) = found["old"], found["new"]
         finally:
             if args.old_src is None:
                 subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree)],

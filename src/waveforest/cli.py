@@ -141,8 +141,8 @@ def entry() -> None:
 
     After the command, stdout and stderr are flushed and the ``atexit`` handlers run, as at
     any exit; then ``os._exit`` ends the process with main's exit code. That skips the
-    finalisation of every loaded module, ~0.3 s per command (Numba's and LLVM's clean-up),
-    which matters for short commands and for the workflow's many jobs. While another
+    finalisation of every loaded module (Numba's and LLVM's clean-up is a large share of a
+    short command: docs/validation.md, "The commands side by side"). While another
     non-daemon thread is alive the exit is the normal one.
     """
     try:
@@ -162,7 +162,7 @@ def entry() -> None:
         sys.stderr.flush()
     except OSError:  # a closed pipe: nothing left to say
         pass
-    atexit._run_exitfuncs()
+    atexit._run_exitfuncs()  # what the interpreter's own exit runs first
     os._exit(code)
 
 

@@ -304,7 +304,7 @@ class LeafAngleDistribution:
 
 @functools.cache
 def _dewit_moments(name: str) -> tuple[float, float]:
-    from scipy import integrate  # imported here: ~0.3 s at import, used by few runs
+    from scipy import integrate  # heavy to import, and few commands integrate
 
     lad = LeafAngleDistribution(name)
     m1 = integrate.quad(lambda th: (th / HALF_PI) * lad.pdf(th), 0, HALF_PI, epsabs=1e-13)[0]
