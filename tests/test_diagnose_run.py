@@ -509,7 +509,7 @@ ONE_CELL_PER_SPECIES = {"diagnose": {"near_stem_m": None}}
 stratum (the default since it was added for the XY error) a hidden trigger_loss 0.15 ends in none
 on SLOW_CONFIG's 1560 comparison pulses of 93 samples: gap 0.113 [0.0274, 0.422], floor 0.0908,
 its detection limit 0.311; the few near-stem pulses give the bootstrap a long tail. The same
-campaign's diagnose with one cell per species (this session, identical inputs): named 0.144
+campaign's diagnose with one cell per species (issue 27 session, identical inputs): named 0.144
 [0.116, 0.218], gap 0.0727 -> 0.0246, floor 0.0472 (10 min). docs/validation.md, One effect hidden."""
 
 OVERRIDES = {"clumping": MORE_SAMPLES, "xy_error": MORE_BIRCHES, "understory": UNDER_CROWNS,
