@@ -9,7 +9,7 @@ from pathlib import Path
 import click
 import pytest
 
-from waveforest.cli import COMMANDS
+from waveforest.cli import COMMANDS, short_help
 
 SRC = Path(__file__).resolve().parents[1] / "src"
 PACKAGE = SRC / "waveforest"
@@ -106,3 +106,21 @@ def test_every_subcommand_is_a_stage_module():
         assert isinstance(command, click.Command) and command.name == name
         seen.add(module.rsplit(".", 1)[1])
     assert seen == stages, f"stage modules without a subcommand: {stages - seen}"
+
+
+def test_group_help_lines_are_the_commands_own_without_importing_them():
+    """``waveforest --help`` reads each command's line from its source; it must be the line
+    click makes from the imported command, and the stage modules must stay unimported."""
+    import subprocess
+    import sys
+
+    code = ("import sys; from click.testing import CliRunner; from waveforest.cli import cli; "
+            "r = CliRunner().invoke(cli, ['--help']); print(r.output); "
+            "print(sorted(m for m in sys.modules if m.startswith('waveforest.stages.')))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.rstrip().endswith("[]"), out
+    for name, target in COMMANDS.items():
+        module, attr = target.split(":")
+        command = getattr(importlib.import_module(module), attr)
+        assert short_help(target) == command.get_short_help_str(limit=70), name
+        assert f"  {name} " in out, name

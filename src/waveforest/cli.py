@@ -6,6 +6,7 @@ lazily, so ``waveforest --help`` stays fast and a stage appears once it exists.
 
 from __future__ import annotations
 
+import ast
 import atexit
 import contextlib
 import importlib
@@ -15,6 +16,7 @@ import signal
 import sys
 import threading
 from collections.abc import Iterator
+from pathlib import Path
 
 import click
 
@@ -45,10 +47,22 @@ COMMANDS = {
 
 
 def _available(target: str) -> bool:
+    return importlib.util.find_spec(target.split(":")[0]) is not None
+
+
+def short_help(target: str, limit: int = 70) -> str:
+    """The one-line help of the command at ``target`` ("module:function"), read from the
+    module's source (its ``short_help=`` or docstring, as click makes it), without importing
+    the module and its dependencies."""
     module, attr = target.split(":")
-    if importlib.util.find_spec(module) is None:
-        return False
-    return hasattr(importlib.import_module(module), attr)
+    tree = ast.parse(Path(importlib.util.find_spec(module).origin).read_text(encoding="utf-8"))
+    fn = next(n for n in tree.body if isinstance(n, ast.FunctionDef) and n.name == attr)
+    decos = [d for d in fn.decorator_list if isinstance(d, ast.Call)
+             and getattr(d.func, "attr", getattr(d.func, "id", None)) == "command"]
+    given = {kw.arg: kw.value.value for d in decos for kw in d.keywords
+             if kw.arg in ("help", "short_help") and isinstance(kw.value, ast.Constant)}
+    given.setdefault("help", ast.get_docstring(fn, clean=False))
+    return click.Command(attr, **given).get_short_help_str(limit=limit)
 
 
 class _LazyGroup(click.Group):
@@ -62,11 +76,8 @@ class _LazyGroup(click.Group):
         module, attr = target.split(":")
         return getattr(importlib.import_module(module), attr)
 
-    def format_commands(self, ctx, formatter):  # keep pipeline order, not alphabetical
-        rows = []
-        for name in self.list_commands(ctx):
-            cmd = self.get_command(ctx, name)
-            rows.append((name, cmd.get_short_help_str(limit=70)))
+    def format_commands(self, ctx, formatter):  # pipeline order; no stage imported for its line
+        rows = [(name, short_help(COMMANDS[name])) for name in self.list_commands(ctx)]
         if rows:
             with formatter.section("Commands (pipeline order)"):
                 formatter.write_dl(rows)
