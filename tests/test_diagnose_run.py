@@ -462,7 +462,7 @@ the CFD tuned and armed on the recorded noise, and named effects' intervals clea
 0.129 [0.105, 0.165], reduction 0.093 [0.062, 0.123], gap 0.124 -> 0.0132, floor 0.0143 (47
 minutes, partly beside another run).
 
-Also the campaign of the noise_autocorr test (issue 27, next session). On SLOW_CONFIG a hidden
+Also the campaign of the noise_autocorr test (measured 2026-11-27). On SLOW_CONFIG a hidden
 0.7 lies at that campaign's detection limit: with the stratum near the stem it ended
 unexplained (ranked first, gap 0.110 [0.0397, 0.531], floor 0.0643, "not detectable within the
 bounds"); without the stratum, same inputs, none (gap 0.0548 [0.0224, 0.122], floor 0.0348,

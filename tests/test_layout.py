@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import ast
 import importlib
+import subprocess
+import sys
 from pathlib import Path
 
 import click
@@ -111,9 +113,6 @@ def test_every_subcommand_is_a_stage_module():
 def test_group_help_lines_are_the_commands_own_without_importing_them():
     """``waveforest --help`` reads each command's line from its source; it must be the line
     click makes from the imported command, and the stage modules must stay unimported."""
-    import subprocess
-    import sys
-
     code = ("import sys; from click.testing import CliRunner; from waveforest.cli import cli; "
             "r = CliRunner().invoke(cli, ['--help']); print(r.output); "
             "print(sorted(m for m in sys.modules if m.startswith('waveforest.stages.')))")
