@@ -27,6 +27,7 @@ from waveforest.diagnose.before_after import before_after
 from waveforest.diagnose.power import verdict_with_limits
 from waveforest.diagnose.search import SearchResult, SearchSettings, at_bound, search
 from waveforest.diagnose.simulations import effects_key, simulate_all
+from waveforest.diagnose.strata import NEAR_STEM_MIN_SAMPLES
 from waveforest.effects import CATALOGUE
 from waveforest.errors import WaveforestError
 
@@ -144,7 +145,8 @@ def summary_markdown(result: SearchResult, gap: pd.DataFrame, cand: pd.DataFrame
         "the noise floor is the gap that "
         "sampling noise alone gives (cluster bootstrap over field samples). With diagnose.near_stem_m "
         "(default 0.3 m), a tree species' pulses whose first echo lies that close to the stem form the "
-        "cells '<species> near stem' (an XY error moves them one way and those further out the other). With "
+        "cells '<species> near stem' (an XY error moves them one way and those further out the other), in the "
+        f"datasets where both parts come from at least {NEAR_STEM_MIN_SAMPLES} field samples. With "
         "diagnose.below_crown, a tree species' pulses whose first echo lies lower than "
         "select.tree_min_echo_h_m, the ground seen through gaps in its crowns, form the cells "
         "'<species> below crown'.",

@@ -3,7 +3,8 @@
 docs/method.md §(j) (the simulator and the strata). A pulse of the diagnosis is a row of
 ``select``'s ``comparison_set`` of a modelled species (``stratum`` ""); a tree's pulse whose
 first echo lies within ``diagnose.near_stem_m`` of the stem (``sample_distance_m``) is in the
-stratum :data:`NEAR_STEM`; with ``diagnose.below_crown``, a pulse of the stratum under the
+stratum :data:`NEAR_STEM`, where that species has enough field samples on both sides of the split
+(:data:`NEAR_STEM_MIN_SAMPLES`); with ``diagnose.below_crown``, a pulse of the stratum under the
 crowns (``stratum`` :data:`BELOW_CROWN`): one whose own first CFD echo lies within
 ``select.tree_radius_m`` of a compared stem and lower than ``select.tree_min_echo_h_m`` (the
 ground seen through gaps in the crown). The stratum near the stem splits cells only: it is
@@ -47,6 +48,11 @@ BELOW_CROWN = "below crown"
 
 NEAR_STEM = "near stem"
 """``stratum`` of the comparison pulses of trees within ``diagnose.near_stem_m`` of the stem."""
+
+NEAR_STEM_MIN_SAMPLES = 10
+"""A dataset's tree species is split at the stem only where both parts hold at least this many
+field samples: the intervals resample field samples, and cells of a few give the bootstrap a
+long tail (docs/validation.md, Near the stem)."""
 
 BELOW_CROWN_ATTEMPTS = 16
 """Most attempts at a twin under the crown per pulse of that stratum (:class:`.simulator.StudySimulator`)."""
@@ -223,9 +229,7 @@ def pulse_keys(selected: dict, cfg: dict, cap: int | None = None) -> pd.DataFram
             df = df.assign(_rank=rank).sort_values(["_rank", "pulse_id"])
             df = df.groupby(["species", "stratum"], sort=False).head(int(cap)).drop(columns="_rank")
         if near_m is not None:  # after the caps: a split of cells, not a choice of pulses
-            near = (df["stratum"] == "") & df["is_tree"].fillna(False).astype(bool) & (
-                df["sample_distance_m"].to_numpy(float) < float(near_m))
-            df["stratum"] = df["stratum"].where(~near, NEAR_STEM)
+            df["stratum"] = df["stratum"].where(~_near_stem(df, float(near_m)), NEAR_STEM)
         parts.append(df.drop(columns="sample_distance_m"))
     keys = pd.concat(parts, ignore_index=True) if parts else pd.DataFrame(
         columns=["dataset", "pulse_id", "sample_id", "species", "is_tree", "stratum"])
@@ -233,6 +237,18 @@ def pulse_keys(selected: dict, cfg: dict, cap: int | None = None) -> pd.DataFram
     keys["species"] = keys["species"].astype(str)
     keys["dataset"] = keys["dataset"].astype(str)
     return keys.sort_values(["dataset", "pulse_id"]).reset_index(drop=True)
+
+
+def _near_stem(df: pd.DataFrame, near_m: float) -> pd.Series:
+    """Which of one dataset's pulses form the stratum near the stem: tree comparison pulses whose
+    first echo lies within ``near_m`` of the stem, of the species whose pulses near the stem and
+    further out each come from at least :data:`NEAR_STEM_MIN_SAMPLES` field samples."""
+    tree = (df["stratum"] == "") & df["is_tree"].fillna(False).astype(bool)
+    near = df["sample_distance_m"].to_numpy(float) < near_m
+    samples = [df[tree & part].groupby("species")["sample_id"].nunique() for part in (near, ~near)]
+    split = samples[0].index[(samples[0] >= NEAR_STEM_MIN_SAMPLES)
+                             & (samples[1].reindex(samples[0].index, fill_value=0) >= NEAR_STEM_MIN_SAMPLES)]
+    return tree & near & df["species"].isin(split)
 
 
 def real_features(features: pd.DataFrame, keys: pd.DataFrame, cfg: dict) -> pd.DataFrame:
