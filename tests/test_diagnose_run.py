@@ -108,6 +108,9 @@ def test_tree_pulses_near_the_stem_are_a_stratum_of_the_same_pulses():
     assert on.drop(columns="stratum").equals(off.drop(columns="stratum"))
     for cap in (10, 25):
         assert keys(max_pulses=cap).index.tolist() == keys(max_pulses=cap, near_stem_m=None).index.tolist()
+    # the fit subset (a cap per species) keeps the whole's cells, though its own parts are smaller
+    fit = pulse_keys(tables, config.load(overrides={"diagnose": {"below_crown": True}}), cap=8).set_index("pulse_id")
+    assert fit["stratum"].to_dict() == {i: want[i] for i in fit.index} and (fit["stratum"] == NEAR_STEM).any()
 
 
 def test_a_blurred_crown_profile_cancels_in_one_cell_and_shows_split_at_the_stem():

@@ -224,12 +224,15 @@ def pulse_keys(selected: dict, cfg: dict, cap: int | None = None) -> pd.DataFram
             columns=["comparison_set", "below_crown_set"])
         if cfg["diagnose"]["max_pulses"] is not None:
             df = _whole_samples(df, int(cfg["diagnose"]["max_pulses"]), int(cfg["seed"]))
+        # which species to split at the stem: decided before the fit cap, so fits and tests share cells
+        split = [] if near_m is None else _split_species(df, float(near_m))
         if cap is not None:
             rank = hash_ids(stable_hash(int(cfg["seed"]), ds, "diagnose"), df["pulse_id"].to_numpy(np.int64))
             df = df.assign(_rank=rank).sort_values(["_rank", "pulse_id"])
             df = df.groupby(["species", "stratum"], sort=False).head(int(cap)).drop(columns="_rank")
         if near_m is not None:  # after the caps: a split of cells, not a choice of pulses
-            df["stratum"] = df["stratum"].where(~_near_stem(df, float(near_m)), NEAR_STEM)
+            near = _tree(df) & _near(df, float(near_m)) & df["species"].isin(split)
+            df["stratum"] = df["stratum"].where(~near, NEAR_STEM)
         parts.append(df.drop(columns="sample_distance_m"))
     keys = pd.concat(parts, ignore_index=True) if parts else pd.DataFrame(
         columns=["dataset", "pulse_id", "sample_id", "species", "is_tree", "stratum"])
@@ -239,16 +242,23 @@ def pulse_keys(selected: dict, cfg: dict, cap: int | None = None) -> pd.DataFram
     return keys.sort_values(["dataset", "pulse_id"]).reset_index(drop=True)
 
 
-def _near_stem(df: pd.DataFrame, near_m: float) -> pd.Series:
-    """Which of one dataset's pulses form the stratum near the stem: tree comparison pulses whose
-    first echo lies within ``near_m`` of the stem, of the species whose pulses near the stem and
-    further out each come from at least :data:`NEAR_STEM_MIN_SAMPLES` field samples."""
-    tree = (df["stratum"] == "") & df["is_tree"].fillna(False).astype(bool)
-    near = df["sample_distance_m"].to_numpy(float) < near_m
-    samples = [df[tree & part].groupby("species")["sample_id"].nunique() for part in (near, ~near)]
-    split = samples[0].index[(samples[0] >= NEAR_STEM_MIN_SAMPLES)
-                             & (samples[1].reindex(samples[0].index, fill_value=0) >= NEAR_STEM_MIN_SAMPLES)]
-    return tree & near & df["species"].isin(split)
+def _tree(df: pd.DataFrame) -> pd.Series:
+    """Tree comparison pulses (not under the crowns) of keys."""
+    return (df["stratum"] == "") & df["is_tree"].fillna(False).astype(bool)
+
+
+def _near(df: pd.DataFrame, near_m: float) -> np.ndarray:
+    """Pulses of keys whose first echo lies within ``near_m`` of the stem."""
+    return df["sample_distance_m"].to_numpy(float) < near_m
+
+
+def _split_species(df: pd.DataFrame, near_m: float) -> list[str]:
+    """The species of one dataset's keys whose tree pulses near the stem and those further out
+    each come from at least :data:`NEAR_STEM_MIN_SAMPLES` field samples."""
+    tree, near = _tree(df), _near(df, near_m)
+    count = [df[part].groupby("species")["sample_id"].nunique() for part in (tree & near, tree & ~near)]
+    both = pd.concat(count, axis=1).fillna(0).min(axis=1)
+    return [str(sp) for sp in both.index[both >= NEAR_STEM_MIN_SAMPLES]]
 
 
 def real_features(features: pd.DataFrame, keys: pd.DataFrame, cfg: dict) -> pd.DataFrame:
