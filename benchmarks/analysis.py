@@ -22,7 +22,7 @@ import pyarrow as pa
 
 
 def _select_rate(n: int = 200_000, n_fields: int = 2000) -> float:
-    from waveforest.stages.select import SelectRules, select_pulses
+    from waveforest.model.selection import SelectRules, select_pulses
 
     rng = np.random.default_rng(0)
     fx, fy = rng.uniform(0, 5000, n_fields), rng.uniform(0, 5000, n_fields)
@@ -41,7 +41,8 @@ def _select_rate(n: int = 200_000, n_fields: int = 2000) -> float:
 
 def _classify_time() -> float:
     from waveforest import config
-    from waveforest.stages.classify import classify_dataset
+    from waveforest.analysis.classify import classify_dataset
+    from waveforest.settings import classify_settings
 
     rng = np.random.default_rng(1)
     groups = ["conifer", "broadleaf", "low_green", "low_barren_abiotic"]
@@ -55,14 +56,15 @@ def _classify_time() -> float:
     t = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # no sand road here: features stay unnormalised
-        classify_dataset(df, config.load(overrides={"classify": {"normaliser": "none"}}))
+        classify_dataset(df, classify_settings(config.load()))
     return time.perf_counter() - t
 
 
 def _simulate(species: str, height: float, rays: int, n: int, cfg: dict) -> dict:
     from waveforest.mcrt import Beams, prepare, trace
-    from waveforest.model.forward import MCRTSetup, SensorSetup, render_sigma
+    from waveforest.model.forward import render_sigma
     from waveforest.sensor.reference import reference_sensor
+    from waveforest.settings import mcrt_setup, reference_system, sensor_setup
     from waveforest.vegetation import build_scene
 
     build_scene(species, height, 0)  # warm-up (Numba compilation, parameter files)
@@ -75,12 +77,12 @@ def _simulate(species: str, height: float, rays: int, n: int, cfg: dict) -> dict
     t = time.perf_counter()
     prepared = prepare(scene)
     prep = time.perf_counter() - t
-    mcrt = MCRTSetup.from_config(cfg, n_rays=rays)
+    mcrt = mcrt_setup(cfg, n_rays=rays)
     t = time.perf_counter()
     res = trace(prepared, beams, seed=1, **mcrt.kwargs())
     tr = (time.perf_counter() - t) / n
-    ref = reference_sensor(cfg)
-    setup = SensorSetup.from_config(cfg, ref.system, ref.noise_mean, ref.noise_sd, 1.0)
+    ref = reference_sensor(reference_system(cfg))
+    setup = sensor_setup(cfg, ref.system, ref.noise_mean, ref.noise_sd, 1.0)
     t = time.perf_counter()
     render_sigma(res.sigma, res.t0_ns, np.full(n, 1200.0), setup, rng)
     rd = (time.perf_counter() - t) / n

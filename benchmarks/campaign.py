@@ -21,10 +21,12 @@ import resource
 import sys
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 from waveforest import config
 from waveforest.campaign import run
+from waveforest.settings import campaign_settings
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -46,7 +48,10 @@ def main(argv=None) -> int:
 
             numba.set_num_threads(args.threads)
         t0, c0 = time.perf_counter(), time.process_time()
-        summary = run(cfg, out, effects=args.effect, seed=args.seed, progress=False)
+        settings = campaign_settings(cfg)
+        if args.seed is not None:
+            settings = replace(settings, seed=args.seed)
+        summary = run(settings, out, effects=args.effect, progress=False)
         wall, cpu = time.perf_counter() - t0, time.process_time() - c0
         size = sum(p.stat().st_size for p in out.iterdir()) / 1e6
     pulses = sum(summary.pulses.values())

@@ -32,31 +32,31 @@ def toy() -> None:
     study = SyntheticStudy(samples_per_species=12, pulses_per_sample=8, seed=1)
     real = study.real({"hotspot": 1.3, "clumping": 0.3})
     t = time.perf_counter()
-    res = search(study.keys, real, study.simulate, SearchSettings(rounds=3, n_boot=200), seed=3)
+    res = search(study.keys, real, study.simulate, SearchSettings(rounds=3, n_boot=200, replicates=2), seed=3)
     print(f"toy_search_two_effects: {time.perf_counter() - t:.2f} s")
     print(f"toy_search_simulations: {res.n_simulations} count")
 
 
 def real_chain(results: Path, config_path: Path) -> None:
     from waveforest import config
-    from waveforest.diagnose.simulator import StudySimulator
     from waveforest.diagnose.strata import pulse_keys
+    from waveforest.diagnose.twins import StudySimulator
     from waveforest.io.pulses import read_pulses
     from waveforest.io.tables import read_datasets
     from waveforest.sensor.calibration import load_calibration
-    from waveforest.stages.diagnose import diagnosed_datasets
+    from waveforest.settings import diagnose_settings
 
-    cfg = config.load(config_path)
-    ds = [d for d in diagnosed_datasets(cfg) if (results / "select" / f"{d}.parquet").exists()]
+    settings = diagnose_settings(config.load(config_path))
+    ds = [d for d in settings.datasets if (results / "select" / f"{d}.parquet").exists()]
     sel = {d: read_pulses(results / "select" / f"{d}.parquet") for d in ds}
     cals = {d: load_calibration(results / "calibration" / f"{d}.json", results / "calibration" / f"{d}.parquet")
             for d in ds}
     cal = {d: (c, c.meta) for d, c in cals.items()}
-    sim = StudySimulator(sel, read_datasets(results / "campaign" / "datasets.csv"), cal, cfg)
-    keys = pulse_keys(sel, cfg)
-    cap = cfg["diagnose"]["fit_pulses"]
+    sim = StudySimulator(sel, read_datasets(results / "campaign" / "datasets.csv"), cal, settings)
+    keys = pulse_keys(sel, settings.strata)
+    cap = settings.fit_pulses
     n, n_samples = len(keys), keys["sample_id"].nunique()
-    n_fit = n if cap is None else len(pulse_keys(sel, cfg, int(cap)))
+    n_fit = n if cap is None else len(pulse_keys(sel, settings.strata, int(cap)))
     sim(keys.head(5), {}, 0)  # compile
     timings = {}
     for label, eff in (("base", {}), ("vegetation_effect", {"clumping": 0.3}), ("sensor_effect", {"trigger_loss": 0.1})):
@@ -69,12 +69,12 @@ def real_chain(results: Path, config_path: Path) -> None:
     print(f"diagnosed_pulses: {n} count")
     print(f"fit_pulses: {n_fit} count")
     print(f"diagnosed_samples: {n_samples} count")
-    print(f"n_rays: {sim.n_rays} rays")
+    print(f"n_rays: {settings.simulate.mcrt.n_rays} rays")
     per_pulse = timings["sensor_effect"] / n
     per_scene = max(timings["vegetation_effect"] - timings["sensor_effect"], 0.0) / max(n_samples, 1)
     print(f"trace_render_per_pulse: {1000 * per_pulse:.2f} ms")
     print(f"scene_per_sample: {1000 * per_scene:.1f} ms")
-    s = SearchSettings.from_config(cfg)
+    s = settings.search
     fits_per_candidate = len(s.folds) * (s.values - 1 + s.refine) / 2  # full-study equivalents
     tests_per_candidate = len(s.folds) / 2
     n_veg = sum(CATALOGUE[c].stage == "vegetation" for c in s.candidates)

@@ -39,8 +39,8 @@ pa.set_io_thread_count(1)
 mode, las, out = sys.argv[1], sys.argv[2], sys.argv[3]
 t0, c0 = time.perf_counter(), time.process_time()
 if mode == "ingest":
-    from waveforest.stages.ingest import run
-    n = run(las, out).n_pulses
+    from waveforest.io.las.pulses import las_to_pulses
+    n = las_to_pulses(las, out).n_pulses
 else:
     from waveforest.io.las.read import WaveformPulseReader
     n = sum(t.num_rows for t in WaveformPulseReader(las))

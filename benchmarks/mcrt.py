@@ -144,17 +144,17 @@ REF_RAYS = 2**20
 """Rays of the reference sigma(t) of the error section (1,048,576, sampler ``sobol``)."""
 
 METHODS = {
-    "random_30k": dict(n_rays=30000, quality="medium"),
-    "random_16k": dict(n_rays=16384, quality="medium"),
-    "random_rr_30k": dict(n_rays=30000, roulette=0.5, quality="medium"),
-    "sobol_16k": dict(n_rays=16384, sampler="sobol", quality="medium"),
+    "random_30k": dict(n_rays=30000, sampler="random", roulette=0.0, quality="medium"),
+    "random_16k": dict(n_rays=16384, sampler="random", roulette=0.0, quality="medium"),
+    "random_rr_30k": dict(n_rays=30000, sampler="random", roulette=0.5, quality="medium"),
+    "sobol_16k": dict(n_rays=16384, sampler="sobol", roulette=0.0, quality="medium"),
     "sobol_rr_8k": dict(n_rays=8192, sampler="sobol", roulette=0.5, quality="medium"),
     "sobol_rr_12k": dict(n_rays=12288, sampler="sobol", roulette=0.5, quality="medium"),
     "sobol_rr_16k": dict(n_rays=16384, sampler="sobol", roulette=0.5, quality="medium"),
     "sobol_rr_16k_low": dict(n_rays=16384, sampler="sobol", roulette=0.5, quality="low"),
     "sobol_rr_24k": dict(n_rays=24576, sampler="sobol", roulette=0.5, quality="medium"),
     "sobol_rr_32k": dict(n_rays=32768, sampler="sobol", roulette=0.5, quality="medium"),
-    "random_1500": dict(n_rays=1500, quality="medium"),
+    "random_1500": dict(n_rays=1500, sampler="random", roulette=0.0, quality="medium"),
     "sobol_rr_256": dict(n_rays=256, sampler="sobol", roulette=0.5, quality="medium"),
     "sobol_rr_512": dict(n_rays=512, sampler="sobol", roulette=0.5, quality="medium"),
     "sobol_rr_768": dict(n_rays=768, sampler="sobol", roulette=0.5, quality="medium"),
@@ -195,7 +195,7 @@ def bench_bricks(beams, kw: dict, args, out) -> None:
     arrange(rng)
     out("scene_build_ms_instanced", best(lambda: arrange(rng), args.repeat) * 1e3, "ms")
     one = arrange(rng)
-    trace(one, beams[:2], n_rays=500, max_order=3)  # warm-up
+    trace(one, beams[:2], n_rays=500, max_order=3, sampler="random", roulette=0.0)  # warm-up
     out("trace_ms_per_pulse_instanced", best(lambda: trace(one, beams, threads=threads, **kw), args.repeat)
         / len(beams) * 1e3, "ms")
     streams = np.random.SeedSequence(args.seed).spawn(len(beams))
@@ -233,7 +233,7 @@ def bench_scene(prefix: str, scene, beams, args, full: bool, bricks: bool = Fals
         build_one = best(lambda: prepare(scene, quality=q1), args.repeat)
         out(f"scene_build_ms_{q1}", build_one * 1e3, "ms")
         one = prepare(scene, quality=q1)
-    trace(prepared, beams[:2], n_rays=500, max_order=3)  # compile / load the kernels
+    trace(prepared, beams[:2], n_rays=500, max_order=3, sampler="random", roulette=0.0)  # compile / load the kernels
 
     modes = [("pulses", threads), ("rays", threads)] if threads > 1 else [("rays", 1)]
     if full and threads > 1:
@@ -349,7 +349,7 @@ def bench_error(prefix: str, scene, beams, args, methods) -> dict:
     n = len(beams)
     prepared = prepare(scene, quality="high")
     trace(prepared, beams[:1], n_rays=256, max_order=3, sampler="sobol", roulette=0.5)  # compile
-    ref_res = trace(prepared, beams, n_rays=REF_RAYS, sampler="sobol", seed=10**6, by_order=True,
+    ref_res = trace(prepared, beams, n_rays=REF_RAYS, sampler="sobol", roulette=0.0, seed=10**6, by_order=True,
                     max_order=MAX_ORDER)
     ref = _one_ns(ref_res)
     ref_all, ref_1 = ref.sum(axis=1), ref[:, 0]

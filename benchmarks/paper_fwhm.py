@@ -2,10 +2,10 @@
 
 For each dataset of Table 3 (its footprint, pulse width, sampling and mean range, Table 2) and
 each of birch, raspberry and fireweed: ``--pulses`` pulses over ``--instances`` plants of the
-sensor study's field heights (:func:`waveforest.stages.sensor_study.species_pulses`, scan
+sensor study's field heights (:func:`waveforest.analysis.sensor_study.species_pulses`, scan
 zenith 0-15 deg, aimed within 0.5 m of the plant), MCRT with ``--rays`` rays and 10 orders,
 the virtual campaign's true S(t) and noise of that dataset (:class:`TruthSensor`), CFD echoes
-and the features of :func:`waveforest.stages.sensor_study.features_of`, first echoes from
+and the features of :func:`waveforest.analysis.sensor_study.features_of`, first echoes from
 ``simulate.compare_min_h_m`` up only (birch: 1.5 m) as in ``compare``. Issue 7 asks that these
 means agree with the paper's simulated column.
 
@@ -21,11 +21,11 @@ import argparse
 import numpy as np
 
 from waveforest import config
+from waveforest.analysis.sensor_study import features_of, species_pulses, trace_species
 from waveforest.campaign.params import load_datasets
 from waveforest.campaign.truth_sensor import TruthSensor
 from waveforest.io.paper import table3
-from waveforest.model.forward import MCRTSetup, SensorSetup
-from waveforest.stages.sensor_study import features_of, species_pulses, trace_species
+from waveforest.settings import sensor_setup, sensor_study_settings
 from waveforest.vegetation.params import PAPER_MODELS
 
 DATASETS = ("2010_12_1", "2012_05_1", "2012_10_1", "2012_20_1", "2012_27_1")
@@ -41,11 +41,12 @@ def measure(species: str, dataset: str, pulses: int = 240, instances: int = 48, 
     cfg = config.validate({"seed": seed, "sensor_study": {"pulses": pulses, "instances": instances,
                                                           "n_rays": n_rays, "range_m": r_m}})
     sensor = TruthSensor.from_row(row)
-    setup = SensorSetup.from_config(cfg, sensor.system_waveform(), sensor.noise_mean_dn, sensor.noise_sd_dn,
-                                    sensor.sampling_ns)
-    sp = species_pulses(cfg, species)
+    setup = sensor_setup(cfg, sensor.system_waveform(), sensor.noise_mean_dn, sensor.noise_sd_dn,
+                         sensor.sampling_ns)
+    st = sensor_study_settings(cfg)
+    sp = species_pulses(st, species)
     div = float(row["footprint_diameter_m"]) / r_m * 1e3
-    sigma, t0, total = trace_species(sp, [div], MCRTSetup.from_config(cfg, n_rays=n_rays), cfg)[div]
+    sigma, t0, total = trace_species(sp, [div], st)[div]
     df = features_of(sp, sigma, t0, total, setup, np.random.default_rng(seed),
                      cfg["simulate"]["compare_min_h_m"].get(species))
     return {"n": len(df), **df[["H", "Apeak", "FWHM", "E"]].mean().to_dict()}

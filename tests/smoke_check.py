@@ -1,6 +1,6 @@
 """Assertions on the outputs of a study (run by .ci/run after the smoke workflow).
 
-Usage: python tests/smoke_check.py RESULTS_DIR CONFIG_YAML [--paper-scale]
+Usage: python tests/smoke_check.py RESULTS_DIR CONFIG_YAML [--paper-scale] (``--help`` for more)
 
 Checks that every table is complete (each dataset, species and feature present), that every
 classify JSON holds all functional groups with pulses and numeric accuracies, that every
@@ -14,6 +14,7 @@ studies' pulses and rays at the paper's fidelity. Exits non-zero with a list of 
 
 from __future__ import annotations
 
+import argparse
 import json
 import math
 import sys
@@ -184,12 +185,26 @@ def _walk(obj, prefix=""):
         yield prefix, obj
 
 
-def main(argv: list[str]) -> int:
-    results, cfg_path = Path(argv[1]), Path(argv[2])
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """The command line of this script (``--help`` shows it)."""
+    parser = argparse.ArgumentParser(
+        prog="python tests/smoke_check.py",
+        description="Check the outputs of a study under RESULTS_DIR against its config; print every "
+                    "failure and exit 1 if there is any.")
+    parser.add_argument("results", type=Path, metavar="RESULTS_DIR", help="the study's results folder")
+    parser.add_argument("config", type=Path, metavar="CONFIG_YAML", help="the study's config file")
+    parser.add_argument("--paper-scale", action="store_true",
+                        help="also check the paper's scale (Table 3 counts, group sizes, rays and pulses)")
+    return parser.parse_args(argv)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the checks for ``argv`` (without the program name); 0 if all pass, else 1."""
+    args = parse_args(argv)
     from waveforest import config
 
-    cfg = config.load(cfg_path)
-    fails = check(results, cfg, paper_scale="--paper-scale" in argv[3:])
+    cfg = config.load(args.config)
+    fails = check(args.results, cfg, paper_scale=args.paper_scale)
     for f in fails:
         print(f"FAIL {f}")
     print(f"smoke check: {len(fails)} failure(s)")
@@ -197,4 +212,4 @@ def main(argv: list[str]) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main(sys.argv))
+    sys.exit(main())

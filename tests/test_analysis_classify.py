@@ -11,10 +11,11 @@ from sklearn.metrics import cohen_kappa_score
 from sklearn.metrics import confusion_matrix as sk_confusion
 
 from waveforest import config
+from waveforest.analysis.classify import classification_rows, classify_dataset
 from waveforest.cli import main
 from waveforest.io.paper import table4 as paper_table4
 from waveforest.report.build import table4
-from waveforest.stages.classify import classification_rows, classify_dataset
+from waveforest.settings import classify_settings
 from waveforest.stats import lda
 
 GROUPS = ["conifer", "broadleaf", "low_green", "low_barren_abiotic"]
@@ -63,7 +64,7 @@ def test_separable_groups_are_classified_perfectly():
     rng = np.random.default_rng(2)
     df = _features(rng)
     cfg = config.load(overrides={"select": {"min_pulses": 5}})
-    r = classify_dataset(df, cfg)
+    r = classify_dataset(df, classify_settings(cfg))
     for level in ("one_pulse", "mean_of_sample"):
         for scheme in ("resubstitution", "cross_validated"):
             assert r["main"][level][scheme]["accuracy"] == 1.0
@@ -80,7 +81,7 @@ def test_non_separable_groups_are_at_chance_when_cross_validated():
     rng = np.random.default_rng(3)
     df = _features(rng, separable=False, samples_per_group=10, pulses_per_sample=10)
     cfg = config.load(overrides={"select": {"min_pulses": 5}})
-    r = classify_dataset(df, cfg)
+    r = classify_dataset(df, classify_settings(cfg))
     cv = r["main"]["one_pulse"]["cross_validated"]
     assert cv["accuracy"] < 0.45 and abs(cv["kappa"]) < 0.2
     # resubstitution is optimistic, never below cross-validation here by much

@@ -8,10 +8,11 @@ import pytest
 from fixtures.tables import pulse_table
 
 from waveforest import config
+from waveforest.analysis.compare import order_check, table3, with_paper
 from waveforest.cli import main
 from waveforest.io.pulses import write_pulses
 from waveforest.sensor.waveforms import align_on_echo
-from waveforest.stages.compare import order_check, run, table3, with_paper
+from waveforest.stages.compare import run
 
 
 def _feat(dataset, species, source, h, apeak, e, fwhm, npeaks, start=0):

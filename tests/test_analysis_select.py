@@ -11,7 +11,8 @@ from waveforest import config
 from waveforest.cli import main
 from waveforest.io.pulses import read_pulses
 from waveforest.io.tables import CampaignTableError, read_datasets, read_fields
-from waveforest.stages.select import SelectRules, match_samples, run, select_pulses
+from waveforest.model.selection import SelectRules, match_samples, select_pulses
+from waveforest.stages.select import run
 
 FIELDS = pd.DataFrame(
     [

@@ -13,10 +13,11 @@ from fixtures.tables import plate_scene, pulse_table
 from waveforest import config
 from waveforest.constants import RANGE_PER_NS
 from waveforest.io.pulses import same_table
-from waveforest.model.forward import SensorSetup, render_sigma, split_effects
+from waveforest.model.forward import render_sigma, split_effects
+from waveforest.model.simulate import plan, simulate_pulses
 from waveforest.sensor import feature_table, gaussian_system_waveform
 from waveforest.sensor.calibration import Calibration, load_calibration
-from waveforest.stages.simulate import plan, simulate_pulses
+from waveforest.settings import sensor_setup, simulate_settings
 
 SAMPLES = {  # sample_id: species, x, y, ground_z, height
     "R1": ("raspberry", 100.0, 200.0, 50.0, 1.2),
@@ -68,8 +69,9 @@ def _cal():
 
 
 def _sim(cfg, chunk=0, chunks=1, effects=None, builder=plate_scene, threads=None):
-    table, summary = simulate_pulses(_selected(), _info(), _cal(), cfg, chunk=chunk, chunks=chunks,
-                                     effects=effects, progress=False, scene_builder=builder, threads=threads)
+    table, summary = simulate_pulses(_selected(), _info(), _cal(), simulate_settings(cfg), chunk=chunk,
+                                     chunks=chunks, effects=effects, progress=False, scene_builder=builder,
+                                     threads=threads)
     return table, summary
 
 
@@ -121,7 +123,8 @@ def test_twins_are_recorded_at_the_real_pulses_agc_gain():
 
     def run(gain):
         t = sel if gain is None else sel.append_column("agc_gain", pa.array(np.full(sel.num_rows, gain)))
-        out, _ = simulate_pulses(t, _info(), _cal(), cfg, progress=False, scene_builder=plate_scene)
+        out, _ = simulate_pulses(t, _info(), _cal(), simulate_settings(cfg), progress=False,
+                                 scene_builder=plate_scene)
         return out.sort_by("pulse_id")
 
     plain, ones, gained = run(None), run(1.0), run(g)
@@ -147,8 +150,8 @@ def test_a_twin_at_low_gain_arms_on_the_recorded_noise():
     g = 0.5 that put 6 % of first echoes > 5 ns before a plane's echo; armed on the recorded
     noise, 0.3 %, as at g = 1 (0.1 %)."""
     cfg, cal, n, r = _cfg(), _cal(), 3000, 1000.0
-    setup = SensorSetup.from_config(cfg, cal.system, cal.noise_mean, cal.noise_sd, 1.0,
-                                    render_effects={"noise_autocorr": 0.6})
+    setup = sensor_setup(cfg, cal.system, cal.noise_mean, cal.noise_sd, 1.0,
+                         render_effects={"noise_autocorr": 0.6})
     sigma = np.zeros((n, 400))
     sigma[:, 200] = 0.02  # a plane 10 ns into the profile: ~15 DN at gain 1
     t0 = np.full(n, r / RANGE_PER_NS - 10.0)  # two-way time of bin 0, ns
@@ -212,7 +215,7 @@ def test_an_instance_pool_keeps_the_between_instance_variance_of_a_new_instance_
     for k in (None, pool):
         cfg = config.load(overrides={"seed": 9, "mcrt": {"n_rays": 400, "max_order": 3},
                                      "simulate": {"instances_per_sample": k, "max_pulses": None}})
-        t, _ = simulate_pulses(sel, _info(), _cal(), cfg, progress=False)
+        t, _ = simulate_pulses(sel, _info(), _cal(), simulate_settings(cfg), progress=False)
         runs[k] = t.select(["sample_id", "sim_instance", "sigma_total"]).to_pandas()
     fresh, pooled = runs[None]["sigma_total"], runs[pool]
     assert len(fresh) >= 190 and len(pooled) >= 190
@@ -229,13 +232,13 @@ def test_an_instance_pool_keeps_the_between_instance_variance_of_a_new_instance_
 def test_plan_cap_and_instances():
     sel = _selected().to_pandas()
     cfg = _cfg(max_pulses=4)
-    p = plan(sel, cfg, "2010_12_1")
+    p = plan(sel, simulate_settings(cfg), "2010_12_1")
     assert p.groupby("species").size().to_dict() == {"birch": 4, "fireweed": 4, "raspberry": 4}
     assert set(p["instance"]) <= {0, 1} and (p["chunk_hash"] >= 0).all()
     # the same pulses whatever the chunking; the groups are whole in a chunk
     for _chunks in (2, 3):
         assert (p.groupby("group")["chunk_hash"].nunique() == 1).all()
-    one = plan(sel, _cfg(instances_per_sample=None), "2010_12_1")
+    one = plan(sel, simulate_settings(_cfg(instances_per_sample=None)), "2010_12_1")
     assert one["group"].nunique() == len(one)  # the paper's rule: an instance per pulse
 
 
@@ -323,8 +326,8 @@ def test_xy_error_moves_the_pulses_of_one_pass_together():
     k = pd.factorize(df["sample_id"])[0]
     df["gps_time"] = 40.0 * k + 1e-3 * df.groupby("sample_id").cumcount()  # passes 40 s apart
     sel = pa.Table.from_pandas(df, preserve_index=False)
-    table, _ = simulate_pulses(sel, _info(), _cal(), _cfg(instances_per_sample=1), effects={"xy_error": 0.5},
-                               progress=False, scene_builder=_half_plate)
+    table, _ = simulate_pulses(sel, _info(), _cal(), simulate_settings(_cfg(instances_per_sample=1)),
+                               effects={"xy_error": 0.5}, progress=False, scene_builder=_half_plate)
     hit = _first_echo_h(table) > 0.3
     d = df.set_index("pulse_id").loc[hit.index]
     dx = [e[0] for e in d["echo_x"]] - d["sample_x"]

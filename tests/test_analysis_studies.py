@@ -2,15 +2,20 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pandas as pd
 import pytest
 from fixtures.tables import plate_scene
 
 from waveforest import config
+from waveforest.analysis import sensitivity as sensitivity_lib
+from waveforest.analysis import sensor_study as sensor_study_lib
 from waveforest.cli import main
 from waveforest.sensor import gaussian_system_waveform
 from waveforest.sensor.reference import reference_sensor
+from waveforest.settings import reference_system, sensitivity_settings, sensor_study_settings
 from waveforest.stages import sensitivity, sensor_study
 
 RHO = {"birch": 0.20, "raspberry": 0.30, "fireweed": 0.25}
@@ -35,15 +40,28 @@ def _cfg(**over):
     return config.load(overrides=base)
 
 
+def test_study_settings_have_no_defaults_and_follow_the_config():
+    cfg = _cfg()
+    st, ss = sensitivity_settings(cfg), sensor_study_settings(cfg)
+    for obj in (st, ss):
+        assert all(f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING
+                   for f in dataclasses.fields(obj))
+    assert [(p, v) for p, v, _ in sensitivity_lib.sweep(st)][1:] == [
+        ("leaf_rho", 0.3), ("leaf_rho", 0.5), ("leaf_area_scale", 1.0)]
+    assert st.mcrt.n_rays == 100 and st.reference == ss.reference == reference_system(cfg)
+    assert list(ss.heights_m) == ["birch", "raspberry", "fireweed"] and sensor_study_lib.instances_of(ss) == 4
+    assert sensor_study_lib.divergences(ss) == [0.15, 0.3] and len(sensor_study_lib.sweep(ss)) == 2 + 3 + 3
+
+
 def test_reference_sensor_scale():
     cfg = _cfg()
-    ref = reference_sensor(cfg, None, None, 1200.0)
+    ref = reference_sensor(reference_system(cfg), None, None, 1200.0)
     r = cfg["sensitivity"]["reference_system"]
     # a spike of sigma = HDRF / pi at R peaks at plane_dn (Eq. 7)
     assert ref.system.peak * r["plane_hdrf"] / np.pi / 1200.0**2 == pytest.approx(r["plane_dn"], rel=1e-9)
     assert ref.system.fwhm_ns == pytest.approx(7.2, rel=1e-3)
     with pytest.raises(ValueError, match="no such file"):
-        reference_sensor(cfg, "/nonexistent/s.parquet")
+        reference_sensor(reference_system(cfg), "/nonexistent/s.parquet")
 
 
 def test_sensitivity_apeak_is_linear_in_rho(tmp_path):

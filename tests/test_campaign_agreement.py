@@ -70,16 +70,17 @@ def _cfg(**campaign) -> dict:
 def _real_features(tmp, cfg, effects=None, simulate=False):
     """Synthesize a campaign and run the real-data stages; optionally simulate its selection."""
     from waveforest.campaign import run as synthesize
+    from waveforest.io.las.pulses import las_to_pulses as ingest
+    from waveforest.io.results import attach_selection
     from waveforest.io.tables import read_datasets, read_targets
+    from waveforest.settings import campaign_settings
     from waveforest.stages import agc as agc_stage
     from waveforest.stages import calibrate as calibration
     from waveforest.stages import features, select
     from waveforest.stages import simulate as sim_stage
-    from waveforest.stages.classify import attach_selection
-    from waveforest.stages.ingest import run as ingest
 
     camp = tmp / "campaign"
-    synthesize(cfg, camp, effects=effects, progress=False)
+    synthesize(campaign_settings(cfg), camp, effects=effects, progress=False)
     targets, datasets = read_targets(camp / "targets.csv"), read_datasets(camp / "datasets.csv")
     ingest(camp / f"{DATASET}.las", tmp / "pulses.parquet", dataset=DATASET,
            trajectory=camp / f"{DATASET}_trajectory.csv")
@@ -118,13 +119,13 @@ def _table(a: pd.DataFrame, b: pd.DataFrame, cfg, cluster_a: bool = False) -> pd
     ``cluster_a``: the SE of ``a``'s mean is cluster-robust over field samples. A campaign's
     pulses on one sample all see the same plant, while ``simulate`` gives every pulse a plant
     of its own, so the campaign mean also carries the spread between plants."""
-    from waveforest.stages.compare import _h_filter, table3
+    from waveforest.analysis.compare import h_filter, table3
 
     min_h = {k: float(v) for k, v in cfg["simulate"]["compare_min_h_m"].items()}
     t = table3(a, b, min_h, FEATURES)
     se_a = t["real_sd"] / np.sqrt(t["n_real"])
     if cluster_a:
-        wf = _h_filter(a, min_h)
+        wf = h_filter(a, min_h)
         for i, row in t.iterrows():
             rows = (a["dataset"] == row["dataset"]) & (a["species"] == row["species"])
             if row["feature"] != "H":

@@ -9,7 +9,7 @@ import pytest
 from waveforest.campaign.flight import plan_flight, site_pulses
 from waveforest.campaign.layout import area_frame
 from waveforest.campaign.params import load_datasets, load_layout
-from waveforest.campaign.synthesize import _record_dataset, resolve_effects
+from waveforest.campaign.synthesize import record_dataset, resolve_effects
 from waveforest.campaign.truth_sensor import TruthSensor
 from waveforest.constants import BIN_NS, C_M_PER_NS, RANGE_PER_NS
 
@@ -33,8 +33,8 @@ def _planar_dataset(tmp_path, xy_error=0.0):
     sensor = TruthSensor.from_row(row)
     a0 = np.zeros(n)
     rows = np.arange(n)
-    eff = resolve_effects({"campaign": {"effects": {"xy_error": xy_error}}})
-    table, info, truth = _record_dataset(row, sensor, plan, p, a0, [("plane", rows, sigma, t0, r)], eff, 5, lay,
+    eff = resolve_effects({"xy_error": xy_error})
+    table, info, truth = record_dataset(row, sensor, plan, p, a0, [("plane", rows, sigma, t0, r)], eff, 5, lay,
                                          tmp_path, None)
     return p, sensor, table, info, truth
 

@@ -39,14 +39,15 @@ def _campaign_through_calibrate(tmp, campaign: dict):
     (truth, {dataset: (agc fit, calibration JSON, S(t) path, pulse table, targets.csv)})."""
     pytest.importorskip("waveforest.vegetation")
     from waveforest.campaign import run
+    from waveforest.io.las.pulses import las_to_pulses as ingest
     from waveforest.io.tables import read_datasets, read_targets
+    from waveforest.settings import campaign_settings
     from waveforest.stages import agc as agc_stage
     from waveforest.stages import calibrate as calibration
-    from waveforest.stages.ingest import run as ingest
 
     cfg = config.validate(yaml.safe_load(yaml.safe_dump({"seed": 3, "datasets": DATASETS, "campaign": campaign})))
     camp = tmp / "campaign"
-    run(cfg, camp, progress=False)
+    run(campaign_settings(cfg), camp, progress=False)
     truth = json.loads((camp / "truth.json").read_text())
     targets, datasets = read_targets(camp / "targets.csv"), read_datasets(camp / "datasets.csv")
     out = {}

@@ -11,8 +11,9 @@ from waveforest.campaign.agc_loop import AGCParams, agc_sequence
 from waveforest.campaign.dr_cfd import AMP_POST_FWHM, AMP_PRE_FWHM, SEARCH_FWHM, dr_cfd
 from waveforest.campaign.params import load_datasets
 from waveforest.campaign.system_pulse import emg, fwhm, true_system_waveform
-from waveforest.campaign.truth_sensor import TruthSensor, record, sample_analog, unit_gain_peaks
+from waveforest.campaign.truth_sensor import TruthSensor, record, unit_gain_peaks
 from waveforest.constants import BIN_NS, C_M_PER_NS, RANGE_PER_NS
+from waveforest.sensor.signal import sample_analog
 
 FWHM_TOL = 0.005
 """Relative tolerance of the tabulated pulse width."""

@@ -24,6 +24,7 @@ pytest.importorskip("waveforest.mcrt")
 las_write = pytest.importorskip("waveforest.io.las.write")
 
 from waveforest.campaign import run  # noqa: E402
+from waveforest.settings import campaign_settings  # noqa: E402
 
 SMALL = {
     "seed": 11,
@@ -46,7 +47,7 @@ def small_cfg(**campaign) -> dict:
 @pytest.fixture(scope="module")
 def base(tmp_path_factory):
     out = tmp_path_factory.mktemp("base") / "campaign"
-    summary = run(small_cfg(), out, progress=False)
+    summary = run(campaign_settings(small_cfg()), out, progress=False)
     return out, summary
 
 
@@ -57,8 +58,8 @@ def truth(base):
 
 @pytest.fixture(scope="module")
 def ingested(base, tmp_path_factory):
+    from waveforest.io.las.pulses import las_to_pulses as ingest
     from waveforest.io.pulses import read_pulses
-    from waveforest.stages.ingest import run as ingest
 
     out = tmp_path_factory.mktemp("pulses")
     tables = {}
@@ -72,7 +73,8 @@ def ingested(base, tmp_path_factory):
 def test_folder_has_every_file_with_its_schema(base):
     out, summary = base
     names = {p.name for p in out.iterdir()}
-    expect = {"datasets.csv", "fields.csv", "targets.csv", "README.md", "truth.json", "truth_pulses.parquet"}
+    expect = {"datasets.csv", "fields.csv", "targets.csv", "README.md", "truth.json", "truth_pulses.parquet",
+              ".waveforest"}
     expect |= {f"{d}.las" for d in SMALL["datasets"]} | {f"{d}_trajectory.csv" for d in SMALL["datasets"]}
     assert names == expect
     assert not any(p.name.startswith(".") for p in out.parent.iterdir())  # no temporary folder left
@@ -98,7 +100,7 @@ def test_folder_has_every_file_with_its_schema(base):
 
 def test_same_seed_gives_byte_identical_files(base, tmp_path):
     again = tmp_path / "again"
-    run(small_cfg(), again, progress=False)
+    run(campaign_settings(small_cfg()), again, progress=False)
     for name in [f"{d}.las" for d in SMALL["datasets"]] + ["fields.csv", "targets.csv", "2010_12_1_trajectory.csv"]:
         assert (base[0] / name).read_bytes() == (again / name).read_bytes(), name
 
@@ -151,8 +153,8 @@ def test_xy_error_moves_recorded_positions_only(base, ingested, tmp_path):
     from click.testing import CliRunner
 
     from waveforest.cli import cli
+    from waveforest.io.las.pulses import las_to_pulses as ingest
     from waveforest.io.pulses import list_to_padded, read_pulses
-    from waveforest.stages.ingest import run as ingest
 
     cfg_path = tmp_path / "config.yaml"
     cfg_path.write_text(yaml.safe_dump(SMALL))
@@ -181,11 +183,11 @@ def test_xy_error_moves_recorded_positions_only(base, ingested, tmp_path):
 
 
 def test_noise_autocorr_shows_in_the_ingested_noise(base, ingested, tmp_path):
+    from waveforest.io.las.pulses import las_to_pulses as ingest
     from waveforest.io.pulses import list_to_padded, read_pulses
-    from waveforest.stages.ingest import run as ingest
 
     out = tmp_path / "ar"
-    run(small_cfg(), out, effects=[f"noise_autocorr={AR_TEST}"], progress=False)
+    run(campaign_settings(small_cfg()), out, effects=[f"noise_autocorr={AR_TEST}"], progress=False)
     ds = "2010_12_1"
     ingest(out / f"{ds}.las", tmp_path / "ar.parquet", dataset=ds, trajectory=out / f"{ds}_trajectory.csv")
     truth = json.loads((out / "truth.json").read_text())["datasets"][ds]
@@ -216,19 +218,28 @@ def test_bad_input_is_one_clear_error_and_keeps_the_old_folder(tmp_path, capsys)
     raw = yaml.safe_load(yaml.safe_dump(SMALL))
     raw["datasets"] = ["2010_12_1", "2011_99_1"]
     cfg_path.write_text(yaml.safe_dump(raw))
-    with pytest.raises(SystemExit):
-        main(["synthesize", "--config", str(cfg_path), "--out", str(out), "--quiet"])
+    with pytest.raises(SystemExit):  # --force passes the folder check; the failing run still keeps the folder
+        main(["synthesize", "--config", str(cfg_path), "--out", str(out), "--quiet", "--force"])
     assert "2011_99_1" in capsys.readouterr().err
     assert (out / "keep.txt").read_text() == "old"
 
 
-def test_existing_folder_is_replaced(base, tmp_path):
+def test_existing_folder_is_replaced_only_if_synthesize_wrote_it(base, tmp_path):
+    from waveforest.atomic import FolderNotOursError
+
     out = tmp_path / "c"
     out.mkdir()
     (out / "stale.txt").write_text("x")
-    run(small_cfg(species=["sand_road"], max_pulses_per_site=3), out, progress=False)
+    settings = campaign_settings(small_cfg(species=["sand_road"], max_pulses_per_site=3))
+    with pytest.raises(FolderNotOursError, match="holds stale.txt, which synthesize did not write"):
+        run(settings, out, progress=False)
+    assert (out / "stale.txt").exists()
+    run(settings, out, progress=False, force=True)
     assert not (out / "stale.txt").exists() and (out / "truth.json").exists()
     assert Path(out / "2010_12_1.las").stat().st_size > 0
+    first = (out / "2010_12_1.las").read_bytes()
+    run(settings, out, progress=False)  # its own earlier campaign: replaced without --force
+    assert (out / "2010_12_1.las").read_bytes() == first
 
 
 def test_waveforest_info_summarises_the_las_files(base, truth):
@@ -260,7 +271,7 @@ def test_las_files_do_not_depend_on_the_thread_count(base, tmp_path):
     before = numba.get_num_threads()
     numba.set_num_threads(1)
     try:
-        run(small_cfg(), tmp_path / "serial", progress=False)
+        run(campaign_settings(small_cfg()), tmp_path / "serial", progress=False)
     finally:
         numba.set_num_threads(before)
     for name in [f"{d}.las" for d in SMALL["datasets"]] + ["truth_pulses.parquet"]:
@@ -288,16 +299,16 @@ def test_design_campaign_records_samples_at_their_coverage_and_every_target():
     targets and a samples_per_species campaign are never thinned."""
     from waveforest.campaign.layout import build_layout
     from waveforest.campaign.params import coverage, load_datasets, load_layout
-    from waveforest.campaign.synthesize import _campaign_sites, _plan_pulses
+    from waveforest.campaign.synthesize import campaign_sites, plan_pulses
 
     ds = load_datasets(["2012_05_1"])
     lay = load_layout()
     layout = build_layout(veg.species_table(), None, 11)
-    fields, targets = _campaign_sites(layout, [2012], None)
+    fields, targets = campaign_sites(layout, [2012], None)
     visits = {}
     for per_species in (None, 1000):  # design counts; a campaign with samples_per_species set
         cfg = small_cfg(samples_per_species=per_species, max_pulses_per_site=None, density_scale=1.0)
-        _, pulses = _plan_pulses(ds, fields, targets, layout, lay, cfg, 11, 0.3)
+        _, pulses = plan_pulses(ds, fields, targets, layout, lay, campaign_settings(cfg))
         visits[per_species] = pulses["2012_05_1"].groupby(["site", "strip"]).size()
     full, thin = visits[1000], visits[None]
     species = full.index.get_level_values(0).map(fields.set_index("sample_id")["species"])

@@ -10,9 +10,11 @@ import pandas as pd
 import pytest
 
 from waveforest import config
+from waveforest.analysis.classify import add_sample_features, classify_dataset, species_table
 from waveforest.cli import main
 from waveforest.errors import WaveforestError, WaveforestWarning
-from waveforest.stages.classify import add_sample_features, classify_dataset, run, species_table
+from waveforest.settings import classify_settings
+from waveforest.stages.classify import run
 from waveforest.stats import lda
 
 CENTRES = {"conifer": (0.5, 0.4), "broadleaf": (0.7, 0.6), "low_green": (1.2, 1.3),
@@ -67,7 +69,7 @@ def test_species_rule_counts_over_every_dataset():
 
     cfg = config.load()  # min_pulses 30
     for df, n_pine in ((a, 35), (b, 10)):
-        r = classify_dataset(df, cfg, selection=pd.concat([a, b]))
+        r = classify_dataset(df, classify_settings(cfg), selection=pd.concat([a, b]))
         assert r["species"] == {"heather": 40, "raspberry": 40, "scots_pine": n_pine}
         assert r["pulses_per_group"] == {"conifer": n_pine, "broadleaf": 0, "low_green": 40,
                                          "low_barren_abiotic": 40}
@@ -78,7 +80,7 @@ def test_species_rule_counts_over_every_dataset():
         assert rows["birch"]["pulses"] == {"A": 20, "B": 20} and not rows["birch"]["included"]
         assert r["species_rule"]["datasets"] == ["A", "B"]
     # without the other dataset, B's 10 pine pulses fall under the rule (counted within B)
-    alone = classify_dataset(b, cfg)
+    alone = classify_dataset(b, classify_settings(cfg))
     assert "scots_pine" not in alone["species"] and alone["pulses_per_group"]["conifer"] == 0
     assert alone["species_rule"]["datasets"] == ["B"]
 
@@ -114,7 +116,7 @@ def test_max_h_is_the_sample_maximum_and_not_normalised():
     df["H"] += rng.uniform(0, 0.05, len(df))
     cfg = config.load(overrides={"select": {"min_pulses": 5},
                                  "classify": {"extra_feature_sets": [["maxH"], ["E", "Apeak", "maxH"]]}})
-    r = classify_dataset(df, cfg)
+    r = classify_dataset(df, classify_settings(cfg))
     assert set(r["normaliser"]) == {"species", "n", "E", "Apeak", "FWHM"}  # no height is divided
     only_h, with_h = r["extra"]
     for level in ("one_pulse", "mean_of_sample"):
@@ -167,7 +169,7 @@ def test_degenerate_input_says_why():
     rng = np.random.default_rng(14)
     cfg = config.load(overrides={"select": {"min_pulses": 5}})
     one = _pulses("A", {"scots_pine": ("conifer", 3, 6), "birch": ("broadleaf", 1, 2)}, rng)
-    r = classify_dataset(one, cfg)
+    r = classify_dataset(one, classify_settings(cfg))
     assert r["main"]["one_pulse"] is None and r["main"]["mean_of_sample"] is None
     assert "only conifer" in r["main"]["reason"] and "broadleaf" in r["main"]["reason"]
     assert r["main"]["groups_missing"] == ["broadleaf", "low_green", "low_barren_abiotic"]
@@ -177,12 +179,12 @@ def test_degenerate_input_says_why():
     ts = r["three_species"]
     assert ts["one_pulse"] is None and "0 pulses: birch, raspberry, fireweed" in ts["reason"]
     # nothing passes the rule
-    none = classify_dataset(one, config.load())
+    none = classify_dataset(one, classify_settings(config.load()))
     assert none["n_pulses"] == 0 and "none has any" in none["main"]["reason"]
     # two groups of one pulse each: LDA runs, cross-validation cannot
     two = _pulses("A", {"scots_pine": ("conifer", 1, 1), "raspberry": ("low_green", 1, 1)}, rng, sand=0)
     with pytest.warns(WaveforestWarning, match="not normalised"):
-        r2 = classify_dataset(two, config.load(overrides={"select": {"min_pulses": 1}}))
+        r2 = classify_dataset(two, classify_settings(config.load(overrides={"select": {"min_pulses": 1}})))
     assert "features are not normalised" in r2["normaliser"]["reason"]
     level = r2["main"]["one_pulse"]
     assert level["resubstitution"]["n"] == 2 and level["cross_validated"] is None
@@ -190,6 +192,6 @@ def test_degenerate_input_says_why():
     assert r2["main"]["reason"] is None and level["resubstitution"]["accuracy"] == 1.0
     # a five-pulse mean needs five pulses of one sample
     few = _pulses("A", {"birch": ("broadleaf", 3, 3), "raspberry": ("low_green", 3, 6)}, rng)
-    ts = classify_dataset(few, config.load(overrides={"select": {"min_pulses": 2}}))["three_species"]
+    ts = classify_dataset(few, classify_settings(config.load(overrides={"select": {"min_pulses": 2}})))["three_species"]
     assert ts["one_pulse"] is not None and ts["multi_pulse"] is None
     assert "only raspberry" in ts["multi_pulse_reason"]

@@ -30,9 +30,13 @@ def test_success_prints_everything_runs_atexit_and_writes_the_file(tmp_path):
     assert pq.read_table(out).num_rows > 0
 
 
-def test_errors_keep_their_exit_codes():
-    bad = _run("trace", "no_such.ply", "--out", "x.parquet")
-    assert bad.returncode == 1 and bad.stderr.count("waveforest: error:") == 1
+def test_errors_keep_their_exit_codes(tmp_path):
+    junk = tmp_path / "junk.ply"
+    junk.write_text("not a PLY file\n")
+    bad = _run("trace", junk, "--out", tmp_path / "x.parquet")  # bad input content
+    assert bad.returncode == 1 and bad.stderr.count("waveforest: error:") == 1, bad.stderr
     assert "atexit ran" in bad.stdout
-    assert _run("no-such-command").returncode == 2  # click's usage error
+    usage = _run("no-such-command")  # a usage error: one line
+    assert usage.returncode == 2 and usage.stderr.strip().startswith("waveforest: error: No such command")
+    assert len(usage.stderr.strip().splitlines()) == 1, usage.stderr
     assert _run("--version").returncode == 0

@@ -103,8 +103,9 @@ def test_bounds_too_small_to_see_give_an_empty_limit():
 
 def test_power_settings_are_checked_and_read_from_the_config():
     from waveforest import config
+    from waveforest.settings import diagnose_settings
 
-    assert PowerSettings.from_config(config.load()) == PowerSettings()
+    assert diagnose_settings(config.load()).power == PowerSettings()
     assert PowerSettings(replicates=3, power=0.8).needed == 3 and PowerSettings(replicates=5, power=0.8).needed == 4
     with pytest.raises(WaveforestError, match="diagnose.power"):
         PowerSettings(replicates=0)

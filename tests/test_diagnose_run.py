@@ -17,11 +17,12 @@ from fixtures.study import SyntheticStudy
 from waveforest.constants import RANGE_PER_NS
 from waveforest.diagnose import catalogue as cat
 from waveforest.diagnose.missing_effects import find_missing_effects
-from waveforest.diagnose.model import model_dict, read_model, write_model
 from waveforest.diagnose.power import LIMIT_COLUMNS, PowerSettings, detection_limits
 from waveforest.diagnose.search import NamedEffect, SearchSettings
 from waveforest.effects import CATALOGUE
 from waveforest.errors import WaveforestError
+from waveforest.io.results import model_dict, read_model, write_model
+from waveforest.settings import diagnose_settings
 from waveforest.stages.diagnose import OUTPUT_NAMES, write_outputs
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -40,6 +41,13 @@ def _synthetic_outputs(tmp_path, effects):
     return result, paths
 
 
+def _strata(**diagnose):
+    """The StrataSettings of the default study with these ``diagnose`` keys."""
+    from waveforest import config
+
+    return diagnose_settings(config.load(overrides={"diagnose": diagnose})).strata
+
+
 def _select_table(rows):
     import pyarrow as pa
 
@@ -50,25 +58,24 @@ def test_pulses_under_the_crowns_are_a_stratum_with_the_mirror_rule():
     """With diagnose.below_crown, below_crown_set pulses join the diagnosis as the stratum
     "below crown", capped on their own; a twin stays in its pulse's stratum only when its first echo meets the same height
     rule, and compare's height rule blanks the waveform features of low crown pulses only."""
-    from waveforest import config
     from waveforest.diagnose.strata import BELOW_CROWN, apply_rules, pulse_keys
 
     base = dict(dataset="2010_12_1", species="birch", is_tree=True)
     rows = [dict(base, pulse_id=i, sample_id=f"s{i % 3}", comparison_set=i < 20, below_crown_set=i >= 20)
             for i in range(26)]
     rows.append(dict(base, pulse_id=99, sample_id="s9", species="pine", comparison_set=False, below_crown_set=True))
-    off = pulse_keys({"2010_12_1": _select_table(rows)}, config.load())
+    off = pulse_keys({"2010_12_1": _select_table(rows)}, _strata())
     assert off["pulse_id"].tolist() == list(range(20)) and (off["stratum"] == "").all()
-    cfg = config.load(overrides={"diagnose": {"below_crown": True}})
-    keys = pulse_keys({"2010_12_1": _select_table(rows)}, cfg)
+    strata = _strata(below_crown=True)
+    keys = pulse_keys({"2010_12_1": _select_table(rows)}, strata)
     assert keys.set_index("pulse_id")["stratum"].to_dict() == {i: BELOW_CROWN if i >= 20 else "" for i in range(26)}
-    capped = pulse_keys({"2010_12_1": _select_table(rows)}, cfg, cap=4)
+    capped = pulse_keys({"2010_12_1": _select_table(rows)}, strata, cap=4)
     assert capped.groupby("stratum").size().to_dict() == {"": 4, BELOW_CROWN: 4}
-    lo, hi = cfg["select"]["tree_min_echo_h_m"], cfg["simulate"]["compare_min_h_m"]["birch"]
+    lo, hi = strata.rules.tree_min_echo_h_m, strata.compare_min_h_m["birch"]
     feats = pd.DataFrame({"species": ["birch"] * 6 + ["raspberry"], "is_tree": [True] * 6 + [False],
                           "stratum": ["", "", "", BELOW_CROWN, BELOW_CROWN, ""] + [""],
                           "H": [lo - 0.1, lo + 0.1, hi + 0.1, lo - 0.1, lo + 0.1, np.nan, 0.2], "E": 500.0})
-    out = apply_rules(feats, cfg)
+    out = apply_rules(feats, strata)
     assert out["H"].tolist() == pytest.approx([lo + 0.1, hi + 0.1, lo - 0.1, 0.2])
     assert out["E"].isna().tolist() == [True, False, False, False]
 
@@ -78,7 +85,6 @@ def test_tree_pulses_near_the_stem_are_a_stratum_of_the_same_pulses():
     from the stem where both parts come from enough field samples (not in a dataset of 7 birches);
     herbs and the stratum under the crowns keep theirs, and the split comes after the caps: the
     same pulses of the same samples with and without it."""
-    from waveforest import config
     from waveforest.diagnose.strata import BELOW_CROWN, NEAR_STEM, NEAR_STEM_MIN_SAMPLES, pulse_keys
 
     def birches(ds, n_samples, first_id):
@@ -96,7 +102,7 @@ def test_tree_pulses_near_the_stem_are_a_stratum_of_the_same_pulses():
         assert len({r["sample_id"] for r in split if near[r["pulse_id"]] == part}) >= NEAR_STEM_MIN_SAMPLES
 
     def keys(**diagnose):
-        return pulse_keys(tables, config.load(overrides={"diagnose": {"below_crown": True, **diagnose}})).set_index(
+        return pulse_keys(tables, _strata(below_crown=True, **diagnose)).set_index(
             "pulse_id")
 
     on, off = keys(), keys(near_stem_m=None)
@@ -109,7 +115,7 @@ def test_tree_pulses_near_the_stem_are_a_stratum_of_the_same_pulses():
     for cap in (10, 25):
         assert keys(max_pulses=cap).index.tolist() == keys(max_pulses=cap, near_stem_m=None).index.tolist()
     # the fit subset (a cap per species) keeps the whole's cells, though its own parts are smaller
-    fit = pulse_keys(tables, config.load(overrides={"diagnose": {"below_crown": True}}), cap=8).set_index("pulse_id")
+    fit = pulse_keys(tables, _strata(below_crown=True), cap=8).set_index("pulse_id")
     assert fit["stratum"].to_dict() == {i: want[i] for i in fit.index} and (fit["stratum"] == NEAR_STEM).any()
 
 
@@ -150,7 +156,6 @@ def test_max_pulses_keeps_whole_samples_the_same_in_every_dataset_and_nested():
     """diagnose.max_pulses: whole field samples per dataset x species, in one seeded order of the
     samples for every dataset, at most the cap of pulses (at least one sample); a smaller cap
     keeps a subset of a larger one's samples; null keeps every comparison pulse."""
-    from waveforest import config
     from waveforest.diagnose.strata import pulse_keys
 
     rng = np.random.default_rng(3)
@@ -166,7 +171,7 @@ def test_max_pulses_keeps_whole_samples_the_same_in_every_dataset_and_nested():
         tables[ds] = _select_table(rows)
 
     def keys(cap):
-        return pulse_keys(tables, config.load(overrides={"diagnose": {"max_pulses": cap}}))
+        return pulse_keys(tables, _strata(max_pulses=cap))
 
     every = keys(None)
     assert len(every) == 2 * sizes.sum()
@@ -196,6 +201,7 @@ def test_real_below_crown_echoes_are_found_as_a_twins_are():
     from waveforest.io.pulses import padded_to_list
     from waveforest.sensor import gaussian_system_waveform
     from waveforest.sensor.calibration import Calibration
+    from waveforest.settings import sensor_settings
 
     mean, sd, t = 10.0, 1.0, np.arange(120.0)
 
@@ -208,7 +214,8 @@ def test_real_below_crown_echoes_are_found_as_a_twins_are():
     table = table.set_column(table.schema.get_field_index("samples"), "samples",
                              padded_to_list(rows, np.full(3, len(t)), pa.float32()))
     table = table.append_column("agc_gain", pa.array([1.0, 4.0, 1.0]))
-    out = own_cfd_echoes(table, Calibration(gaussian_system_waveform(7.0, 1.0), mean, sd), config.load())
+    out = own_cfd_echoes(table, Calibration(gaussian_system_waveform(7.0, 1.0), mean, sd),
+                         sensor_settings(config.load()))
     assert out.column("pulse_id").to_pylist() == [0, 1]
     first = [e[0] for e in out.column("echo_time_ns").to_pylist()]
     assert first == pytest.approx([60.0, 30.0], abs=1.0)
@@ -226,11 +233,10 @@ def test_pulses_under_the_crowns_are_chosen_by_their_own_cfd_echo():
     both stays. The rows carry their CFD echo positions."""
     from fixtures.tables import pulse_table
 
-    from waveforest import config
     from waveforest.diagnose.strata import with_pulses_under_crowns
+    from waveforest.model.selection import select_pulses
     from waveforest.sensor import gaussian_system_waveform
     from waveforest.sensor.calibration import Calibration
-    from waveforest.stages.select import SelectRules, select_pulses
 
     fields = pd.DataFrame([dict(sample_id="T1", year=2010, species="birch", functional_group="broadleaf", x=0.0,
                                 y=0.0, ground_z=100.0, height_m=3.0, radius_m=0.5, is_tree=True)])
@@ -241,12 +247,12 @@ def test_pulses_under_the_crowns_are_chosen_by_their_own_cfd_echo():
     dr = pulse_table("2010_12_1", seen_by_dr)
     for name in ("n_echoes", "echo_x", "echo_y", "echo_z", "echo_time_ns", "echo_intensity"):
         agc = agc.set_column(agc.schema.get_field_index(name), name, dr.column(name))
-    cfg = config.load()
-    selected = select_pulses(agc, fields, 2010, SelectRules.from_config(cfg))
+    strata = _strata()
+    selected = select_pulses(agc, fields, 2010, strata.rules)
     assert selected.column("pulse_id").to_pylist() == [1, 2, 3]  # by the DR: 1 under the crown, 2 and 3 in it
     assert selected.column("below_crown_set").to_pylist() == [True, False, False]
     out = with_pulses_under_crowns(selected, agc, fields, 2010, Calibration(gaussian_system_waveform(7.0, 1.0),
-                                                                             10.0, 1.0), cfg).to_pandas()
+                                                                             10.0, 1.0), strata).to_pandas()
     assert out.set_index("pulse_id")["below_crown_set"].to_dict() == {2: False, 0: True, 3: True}
     own = out[out["pulse_id"] == 0].iloc[0]
     assert own["echo_z"][0] == pytest.approx(100.0, abs=0.05) and own["first_echo_h_m"] == pytest.approx(0.0, abs=0.05)
@@ -408,11 +414,11 @@ def test_study_simulator_recalibrates_under_a_calibration_shaping_candidate():
     from test_sensor_calibration import true_system
 
     from waveforest import config
-    from waveforest.diagnose.simulator import StudySimulator
+    from waveforest.diagnose.twins import StudySimulator
     from waveforest.io.pulses import list_to_padded
+    from waveforest.model.calibration_pulses import CalibrationPulses
     from waveforest.sensor import noise_stats
     from waveforest.sensor.calibration import Calibration
-    from waveforest.stages.calibrate import CalibrationPulses
 
     table, tr = target_pulses(np.random.default_rng(3), true_system(), per_target=20, b_true=0.0, n_other=0,
                               sensor_effects={"trigger_loss": 0.2})
@@ -423,7 +429,8 @@ def test_study_simulator_recalibrates_under_a_calibration_shaping_candidate():
                                hdrf / math.pi, tr["target_index"], np.ones(len(x)), noise_stats(x, lens, 50),
                                (-15.0, 45.0))
     stage = (Calibration(pulses.system_waveform(), 10.0, 1.5), {"fwhm_ns": 6.5, "noise_mean": 10.0})
-    sim = StudySimulator({}, pd.DataFrame(), {}, config.validate({}), calibration_pulses={"2010_12_1": pulses})
+    sim = StudySimulator({}, pd.DataFrame(), {}, diagnose_settings(config.validate({})),
+                         calibration_pulses={"2010_12_1": pulses})
     sim.calibrations = {"2010_12_1": stage, "2012_10_1": stage}
     assert sim.calibration("2010_12_1", {"hotspot": 1.3}) is stage
     assert sim.calibration("2012_10_1", {"trigger_loss": 0.2}) is stage  # no target pulses: as calibrated
@@ -569,7 +576,7 @@ def test_real_chain_no_effect_names_nothing(tmp_path, overrides):
 # noise_autocorr 0.666 [0.424, 0.793] around 0.7, gap 0.0355 -> 0.021, floor 0.0251 (not named
 # with fits on 40 pulses per dataset x species: 0.91 [0.46, 0.95]); trigger_loss 0.143 [0.112,
 # 0.202] around 0.15, gap 0.069 -> 0.0345, floor 0.0266. ``nonlinearity`` passes since S(t) is
-# recalibrated under each value tried (:mod:`waveforest.diagnose.simulator`), the saturation acts
+# recalibrated under each value tried (:mod:`waveforest.diagnose.twins`), the saturation acts
 # after the AGC gain and each fit takes 3 refinement steps: 152 [144, 172] around 150, gap 0.417
 # -> 0.048, floor 0.071 (fits and tests on 240 pulses).
 # Re-measured with twins at their pulse's AGC gain and the CFD tuned against the DR ranges:
@@ -628,9 +635,9 @@ def test_real_chain_two_effects_over_two_rounds(tmp_path):
 def test_scene_cache_keeps_base_plants_at_once_and_candidate_plants_from_their_second_request():
     """A candidate's vegetation value is mostly simulated once: its plants must not push the
     base model's plants (traced again by every other candidate) out of the cache."""
-    from waveforest.diagnose.simulator import _SceneCache
+    from waveforest.diagnose.twins import SceneCache
 
-    cache = _SceneCache(base_effects={"hotspot": 1.3})  # no vegetation effect in the base model
+    cache = SceneCache(base_effects={"hotspot": 1.3})  # no vegetation effect in the base model
     kw = dict(ground_rho=0.3, lai_jitter=0.1)
     a = cache("birch", 1.2, 7, **kw)
     assert cache("birch", 1.2, 7, **kw, leaf_albedo=1.0) is a  # an off value is the base plant

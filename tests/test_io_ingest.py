@@ -1,4 +1,4 @@
-"""``waveforest.stages.ingest.run``: the stage function behind ``waveforest ingest``."""
+"""``waveforest.io.las.pulses.las_to_pulses``: the LAS -> pulse table streaming behind ``waveforest ingest``."""
 
 import numpy as np
 import pyarrow.parquet as pq
@@ -8,8 +8,8 @@ from test_io_las_roundtrip import assert_round_trip, assert_tables_equal
 
 from waveforest.errors import WaveforestError
 from waveforest.io.las import LasWaveformWarning, read_waveform_las, summarise, write_waveform_las
+from waveforest.io.las.pulses import las_to_pulses as run
 from waveforest.io.pulses import PULSE_SCHEMA, read_pulses
-from waveforest.stages.ingest import run
 
 
 def test_run_writes_the_pulse_table(tmp_path):

@@ -26,14 +26,14 @@ def _write(tmp_path, table, name="f.las", **kw):
     return write_waveform_las(tmp_path / "in" / name, table, **kw)
 
 
-def _ingest_fails(tmp_path, las, capsys, *extra, named=None):
+def _ingest_fails(tmp_path, las, capsys, *extra, named=None, code=1):
     out_dir = tmp_path / "out"
     out_dir.mkdir(exist_ok=True)
     out = out_dir / "pulses.parquet"
     out.write_bytes(b"previous output")
     with pytest.raises(SystemExit) as exc:
         main(["ingest", str(las), "--out", str(out), "--no-progress", *extra])
-    assert exc.value.code == 1
+    assert exc.value.code == code
     err = capsys.readouterr().err
     lines = [ln for ln in err.strip().splitlines() if ln.startswith("waveforest: error:")]
     assert len(lines) == 1, err
@@ -67,7 +67,9 @@ def test_not_a_las_file(tmp_path, capsys):
 
 
 def test_missing_file(tmp_path, capsys):
-    assert "no such file" in _ingest_fails(tmp_path, tmp_path / "nope.las", capsys)
+    """A missing input file is a usage error (exit 2) naming the argument and the path."""
+    err = _ingest_fails(tmp_path, tmp_path / "nope.las", capsys, code=2)
+    assert "does not exist" in err and "nope.las" in err
 
 
 @pytest.mark.parametrize("storage", ["internal", "external"])

@@ -30,7 +30,8 @@ def _time_moments(res, i=0):
 @pytest.mark.parametrize("rho", [0.1, 0.3, 0.8])
 def test_horizontal_plane_at_nadir(backend, rho):
     res = trace(prepare(syn.plane(6.0, 0.0, rho), backend=backend),
-                Beams.from_divergence([0, 0, 1200.0], [0, 0, -1.0], 0.15, 1200.0), n_rays=3000, seed=1)
+                Beams.from_divergence([0, 0, 1200.0], [0, 0, -1.0], 0.15, 1200.0), n_rays=3000, seed=1,
+                sampler="random", roulette=0.0)
     assert res.total[0] == pytest.approx(rho / math.pi, rel=PLANE_RTOL)
     assert np.all(res.order_totals[0, 1:] == 0)
     assert res.first_hit_counts[0].tolist() == [3000, 0, 0, 0, 0]
@@ -58,7 +59,7 @@ def test_tilted_plane_sigma_and_spread(tilt, tilt_az, zenith, az, diverging):
     kw = {"divergence_mrad": d / 1000.0 * 1e3} if diverging else {"footprint_m": d}
     beams = Beams.toward([0, 0, 0], 1000.0, zenith, az, **kw)
     assert beams.footprint_m[0] == pytest.approx(d)
-    res = trace(sc, beams, n_rays=n, max_order=3, seed=2)
+    res = trace(sc, beams, n_rays=n, max_order=3, seed=2, sampler="random", roulette=0.0)
     normal = sc.normals[0]
     cos_g = float(normal @ -beams.direction[0])
     assert res.total[0] == pytest.approx(rho * cos_g / math.pi, rel=TILT_RTOL)
@@ -89,7 +90,7 @@ def test_sheet_over_ground_order_series(rho, tau, rho_g):
     n, orders = 40000, 7
     sc = syn.sheet_over_ground(40.0, 0.05, rho, tau, rho_g)
     res = trace(sc, Beams.toward([0, 0, 0.05], 1000.0, footprint_m=0.2), n_rays=n, max_order=orders,
-                viewed_diameter_m=30.0, seed=11)
+                viewed_diameter_m=30.0, seed=11, sampler="random", roulette=0.0)
     for order in range(1, orders + 1):
         mean, se = _sheet_expected(order, rho, tau, rho_g, n)
         got = res.order_totals[0, order - 1]
@@ -114,7 +115,7 @@ def test_gap_fraction_of_random_leaves(leaf_layers, lai, zenith):
     targets = np.array([[x, y, 0.0] for x in g for y in g])
     beams = Beams.toward(targets, 1000.0, zenith, 60.0, footprint_m=0.25)
     n = 2000
-    res = trace(leaf_layers[lai], beams, n_rays=n, max_order=1, seed=5)
+    res = trace(leaf_layers[lai], beams, n_rays=n, max_order=1, seed=5, sampler="random", roulette=0.0)
     assert np.all(res.first_hit_counts.sum(axis=1) == n)
     assert np.all(res.first_hit_counts[:, 2:] == 0)  # no wood, no other, no misses
     gap = res.first_hit_counts[:, 0] / n  # per independent beam (footprints 0.9 m apart)
@@ -128,7 +129,7 @@ def test_specular_leaf_sheet_at_nadir_gives_the_phong_value(s):
     rho = 0.47
     sheet = syn.plane(6.0, 0.0, rho=rho, tau=0.5, kind=1)
     res = trace(sheet, Beams.from_divergence([0, 0, 1200.0], [0, 0, -1.0], 0.15, 1200.0),
-                n_rays=2000, max_order=1, seed=1, specular=s)
+                n_rays=2000, max_order=1, seed=1, specular=s, sampler="random", roulette=0.0)
     expected = (1 - s) * rho / math.pi + s * rho * (PHONG + 2) / (2 * math.pi)
     assert res.order_totals[0, 0] == pytest.approx(expected, rel=F32_RTOL)
 
@@ -141,27 +142,29 @@ def test_specular_leaf_sheet_off_nadir(zenith):
     # a thin beam: the receiver direction of a ray offset by r differs by r / R from -axis,
     # which the steep lobe (n = 40) would feel at the 1e-5 level
     res = trace(sheet, Beams.toward([0, 0, 0], 1200.0, zenith, 0.0, footprint_m=0.01), n_rays=1000,
-                max_order=1, seed=1, specular=s)
+                max_order=1, seed=1, specular=s, sampler="random", roulette=0.0)
     th = math.radians(zenith)
     brdf = (1 - s) * rho / math.pi + s * rho * (PHONG + 2) / (2 * math.pi) * math.cos(2 * th) ** PHONG
     assert res.order_totals[0, 0] == pytest.approx(brdf * math.cos(th), rel=F32_RTOL)
 
 
 def test_specular_does_not_touch_the_ground():
-    res0 = trace(syn.plane(6.0, 0.0, 0.3), Beams.toward([0, 0, 0], 1000.0, footprint_m=0.2), n_rays=500, seed=1)
+    res0 = trace(syn.plane(6.0, 0.0, 0.3), Beams.toward([0, 0, 0], 1000.0, footprint_m=0.2), n_rays=500, seed=1,
+                 sampler="random", roulette=0.0)
     res1 = trace(syn.plane(6.0, 0.0, 0.3), Beams.toward([0, 0, 0], 1000.0, footprint_m=0.2), n_rays=500, seed=1,
-                 specular=0.8)
+                 specular=0.8, sampler="random", roulette=0.0)
     assert np.array_equal(res0.sigma, res1.sigma)
 
 
 def test_hotspot_scales_first_order_vegetation_only():
     sc = syn.sheet_over_ground(40.0, 0.05, 0.47, 0.5, 0.3)
     beams = Beams.toward([0, 0, 0.05], 1000.0, footprint_m=0.2)
-    base = trace(sc, beams, n_rays=3000, max_order=5, viewed_diameter_m=30.0, seed=4)
-    hot = trace(sc, beams, n_rays=3000, max_order=5, viewed_diameter_m=30.0, seed=4, hotspot=1.3)
+    base = trace(sc, beams, n_rays=3000, max_order=5, viewed_diameter_m=30.0, seed=4, sampler="random", roulette=0.0)
+    hot = trace(sc, beams, n_rays=3000, max_order=5, viewed_diameter_m=30.0, seed=4, hotspot=1.3, sampler="random",
+                roulette=0.0)
     assert hot.order_totals[0, 0] == pytest.approx(1.3 * base.order_totals[0, 0], rel=1e-12)
     np.testing.assert_array_equal(hot.order_totals[0, 1:], base.order_totals[0, 1:])
     ground = syn.plane(6.0, 0.0, 0.3)
-    g0 = trace(ground, beams, n_rays=500, seed=4)
-    g1 = trace(ground, beams, n_rays=500, seed=4, hotspot=1.3)
+    g0 = trace(ground, beams, n_rays=500, seed=4, sampler="random", roulette=0.0)
+    g1 = trace(ground, beams, n_rays=500, seed=4, hotspot=1.3, sampler="random", roulette=0.0)
     assert np.array_equal(g0.sigma, g1.sigma)

@@ -2,6 +2,7 @@
 
 import json
 import math
+from dataclasses import replace
 
 import numpy as np
 import pandas as pd
@@ -9,9 +10,12 @@ import pyarrow.parquet as pq
 import pytest
 from fixtures import scenes as syn
 
+from waveforest import config
 from waveforest.cli import main
+from waveforest.mcrt import BeamSpec
 from waveforest.scene import write_ply
-from waveforest.stages.trace import run
+from waveforest.settings import mcrt_setup
+from waveforest.stages.trace import SceneSpec, run
 
 
 @pytest.fixture()
@@ -45,8 +49,11 @@ def test_trace_plane_to_csv_and_plot(plane_ply, tmp_path, capsys):
 
 def test_trace_parquet_carries_metadata(plane_ply, tmp_path):
     out = tmp_path / "sigma.parquet"
-    res = run(plane_ply, out, n_rays=500, max_order=2, range_m=800.0, divergence_mrad=0.2, seed=1,
-              effects=["hotspot=1.5"])
+    cfg = config.load()
+    mcrt = replace(mcrt_setup(cfg, n_rays=500, effects={"hotspot": 1.5}), max_order=2)
+    scene = SceneSpec(path=plane_ply, species=None, height_m=None, ground_rho=0.3, lai_jitter=0.1)
+    beam = BeamSpec(target=(0.0, 0.0, 0.0), range_m=800.0, scan_zenith_deg=0.0, azimuth_deg=0.0, divergence_mrad=0.2)
+    res = run(scene, beam, mcrt, out, seed=1, window_ns=cfg["mcrt"]["window_ns"])
     t = pq.read_table(out)
     meta = json.loads(t.schema.metadata[b"waveforest.trace"])
     assert meta["footprint_m"] == pytest.approx(0.16)
@@ -62,20 +69,23 @@ def test_trace_parquet_carries_metadata(plane_ply, tmp_path):
         (["--out", "x.csv", "--effect", "understory=1"], "not an MCRT effect"),
         (["--out", "x.csv", "--effect", "specular"], "NAME=VALUE"),
         (["--out", "x.csv", "--footprint", "0.2", "--divergence", "0.1"], "not both"),
-        (["--out", "x.csv", "--rays", "0"], "n_rays"),
+        (["--out", "x.csv", "--rays", "0"], "'--rays'"),
+        (["--out", "x.csv", "--range", "-100"], "'--range'"),
     ],
 )
 def test_trace_bad_options(plane_ply, tmp_path, capsys, extra, match):
+    """Content errors exit 1, usage errors (an option's value out of range) exit 2; both name
+    what was typed and leave nothing behind."""
     extra = [str(tmp_path / e) if e.startswith("x.") else e for e in extra]
     code, cap = _run(["trace", str(plane_ply), *extra], capsys)
-    assert code == 1
+    assert code == (2 if match.startswith("'--") else 1)
     assert match in cap.err and cap.err.startswith("waveforest: error:")
     assert not list(tmp_path.glob("x.*"))  # nothing half-written
 
 
 def test_trace_bad_scene_files(tmp_path, capsys):
     code, cap = _run(["trace", str(tmp_path / "missing.ply"), "--out", str(tmp_path / "s.csv")], capsys)
-    assert code == 1 and "no such file" in cap.err
+    assert code == 2 and "does not exist" in cap.err
     bad = tmp_path / "bad.ply"
     bad.write_text("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
                    "property float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n"
@@ -90,7 +100,7 @@ def test_trace_bad_scene_files(tmp_path, capsys):
 def test_trace_existing_output_survives_a_failure(plane_ply, tmp_path, capsys):
     out = tmp_path / "s.csv"
     out.write_text("keep me")
-    code, _ = _run(["trace", str(plane_ply), "--out", str(out), "--rays", "0"], capsys)
+    code, _ = _run(["trace", str(plane_ply), "--out", str(out), "--effect", "understory=1"], capsys)
     assert code == 1 and out.read_text() == "keep me"
 
 

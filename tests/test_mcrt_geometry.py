@@ -173,7 +173,8 @@ def test_no_stuck_rays_on_a_single_sheet(backend, zenith, rng_m):
     """A ray leaving a surface must not re-hit it: a lone sheet scatters exactly once."""
     sheet = syn.plane(6.0, 0.5, rho=0.5, tau=0.5, kind=1)
     beams = Beams.toward([0.3, -0.2, 0.5], rng_m, zenith, 33.0, footprint_m=0.5)
-    res = trace(prepare(sheet, backend=backend), beams, n_rays=4000, max_order=4, seed=1)
+    res = trace(prepare(sheet, backend=backend), beams, n_rays=4000, max_order=4, seed=1, sampler="random",
+                roulette=0.0)
     assert res.first_hit_counts[0, 1] == 4000
     assert res.order_totals[0, 0] > 0
     assert np.all(res.order_totals[0, 1:] == 0)
@@ -221,7 +222,7 @@ def test_stuck_rays_in_a_closed_box_keep_scattering(backend):
 def test_far_sensor_float_precision(rng_m):
     """sigma of a plane and its return time do not depend on how far the sensor is."""
     res = trace(syn.plane(6.0, 0.0, rho=0.3), Beams.toward([0, 0, 0], rng_m, 12.0, 200.0, footprint_m=0.05),
-                n_rays=2000, max_order=2, seed=3)
+                n_rays=2000, max_order=2, seed=3, sampler="random", roulette=0.0)
     cos = np.cos(np.radians(12.0))
     assert res.total[0] == pytest.approx(0.3 * cos / np.pi, rel=1e-6)
     t = res.times_ns()[0] + 0.5 * res.bin_ns

@@ -40,7 +40,7 @@ def test_kernels_match_the_numpy_reference(small_canopy, backend, specular, hots
     beams = _beams()
     kw = dict(n_rays=120, max_order=5, bin_ns=0.05, viewed_diameter_m=0.8, seed=7)
     res = trace(prepare(small_canopy, backend=backend), beams, specular=specular, hotspot=hotspot,
-                window_ns=20.0, **kw)
+                window_ns=20.0, sampler="random", roulette=0.0, **kw)
     ref = reference_trace(small_canopy, beams.origin, beams.direction, beams.footprint_m, beams.range_m,
                           kw["n_rays"], kw["max_order"], kw["bin_ns"], kw["viewed_diameter_m"], kw["seed"],
                           specular, hotspot, window_ns=20.0)
@@ -54,7 +54,7 @@ def test_kernels_match_the_numpy_reference(small_canopy, backend, specular, hots
 
 def test_conservation_and_by_order(small_canopy):
     res = trace(small_canopy, _beams(), n_rays=3000, max_order=6, viewed_diameter_m=0.8, seed=3,
-                by_order=True, window_ns=12.0)
+                by_order=True, window_ns=12.0, sampler="random", roulette=0.0)
     assert np.all(res.first_hit_counts.sum(axis=1) == 3000)
     np.testing.assert_allclose(res.sigma.sum(axis=1) + res.sigma_dropped, res.total, rtol=1e-12)
     np.testing.assert_allclose(res.sigma_by_order.sum(axis=1), res.sigma, rtol=1e-12, atol=1e-15)
@@ -68,8 +68,9 @@ def test_conservation_and_by_order(small_canopy):
 def test_short_window_drops_late_light_but_counts_it():
     sc = syn.sheet_over_ground(40.0, 0.5, 0.47, 0.5, 0.3)
     beams = Beams.toward([0, 0, 0.5], 1000.0, footprint_m=0.2)
-    full = trace(sc, beams, n_rays=3000, max_order=5, viewed_diameter_m=30.0, seed=2)
-    short = trace(sc, beams, n_rays=3000, max_order=5, viewed_diameter_m=30.0, seed=2, window_ns=2.0)
+    full = trace(sc, beams, n_rays=3000, max_order=5, viewed_diameter_m=30.0, seed=2, sampler="random", roulette=0.0)
+    short = trace(sc, beams, n_rays=3000, max_order=5, viewed_diameter_m=30.0, seed=2, window_ns=2.0,
+                  sampler="random", roulette=0.0)
     assert full.sigma_dropped[0] == 0.0 and short.sigma_dropped[0] > 0.0
     assert short.n_bins == 40
     np.testing.assert_allclose(short.order_totals, full.order_totals, rtol=1e-12)
@@ -80,7 +81,7 @@ def test_short_window_drops_late_light_but_counts_it():
 
 def test_same_seed_identical_whatever_threads_and_chunks(small_canopy):
     beams = Beams.toward(np.array([[0.1 * i, 0.0, 0.0] for i in range(5)]), 1000.0, 8.0, 30.0, footprint_m=0.3)
-    kw = dict(n_rays=2000, max_order=6, viewed_diameter_m=1.0, seed=42)
+    kw = dict(n_rays=2000, max_order=6, viewed_diameter_m=1.0, seed=42, sampler="random", roulette=0.0)
     a = trace(small_canopy, beams, **kw)
     b = trace(small_canopy, beams, chunk_rays=2000, threads=1, **kw)
     prev = numba.get_num_threads()
@@ -104,7 +105,8 @@ def test_different_seeds_differ_by_the_monte_carlo_error():
     rho, tau, rho_g, n, k = 0.47, 0.5, 0.3, 5000, 12
     sc = prepare(syn.sheet_over_ground(40.0, 0.05, rho, tau, rho_g))
     beams = Beams.toward([0, 0, 0.05], 1000.0, footprint_m=0.2)
-    runs = [trace(sc, beams, n_rays=n, max_order=3, viewed_diameter_m=30.0, seed=s) for s in range(k)]
+    runs = [trace(sc, beams, n_rays=n, max_order=3, viewed_diameter_m=30.0, seed=s, sampler="random",
+                  roulette=0.0) for s in range(k)]
     assert not np.array_equal(runs[0].sigma, runs[1].sigma)
     # order 3: a ray contributes c with probability p = tau / (rho + tau)
     p = tau / (rho + tau)
@@ -218,14 +220,18 @@ def test_scatter_validates_inputs():
         scatter(1, False, rays, t, np.zeros(4, np.int32), sc, frame, 10, 0.05, 5.0, out=Scattered.empty(2))
 
 
+VALID = dict(n_rays=100, sampler="random", roulette=0.0)
+"""The arguments ``trace`` needs besides the scene and the beams."""
+
+
 @pytest.mark.parametrize(
     "kwargs,match",
     [({"n_rays": 0}, "n_rays"), ({"max_order": 0}, "max_order"), ({"bin_ns": 0.0}, "bin_ns"),
      ({"specular": 1.5}, "specular"), ({"hotspot": -1.0}, "hotspot"), ({"seed": -3}, "seed"),
-     ({"window_ns": np.inf}, "window_ns")],
+     ({"window_ns": np.inf}, "window_ns"), ({"sampler": "halton"}, "sampler"), ({"roulette": 1.5}, "roulette")],
 )
 def test_trace_validates_arguments(kwargs, match):
     with pytest.raises(ValueError, match=match):
-        trace(syn.plane(2.0), Beams.toward([0, 0, 0], 1000.0, footprint_m=0.1), **kwargs)
+        trace(syn.plane(2.0), Beams.toward([0, 0, 0], 1000.0, footprint_m=0.1), **{**VALID, **kwargs})
     with pytest.raises(TypeError, match="Beams"):
-        trace(syn.plane(2.0), np.zeros((1, 3)))
+        trace(syn.plane(2.0), np.zeros((1, 3)), **VALID)

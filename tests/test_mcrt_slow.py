@@ -22,8 +22,10 @@ def test_full_canopy_modes_agree_and_conserve(canopy):
     n = 4
     beams = Beams.toward(np.column_stack([rng.uniform(-1, 1, n), rng.uniform(-1, 1, n), np.zeros(n)]), 1200.0,
                          rng.uniform(0, 15, n), rng.uniform(0, 360, n), divergence_mrad=0.15)
-    a = trace(canopy, beams, n_rays=30000, max_order=10, seed=3, parallel="pulses", threads=2)
-    b = trace(canopy, beams, n_rays=30000, max_order=10, seed=3, parallel="rays", threads=2)
+    a = trace(canopy, beams, n_rays=30000, max_order=10, seed=3, parallel="pulses", threads=2, sampler="random",
+              roulette=0.0)
+    b = trace(canopy, beams, n_rays=30000, max_order=10, seed=3, parallel="rays", threads=2, sampler="random",
+              roulette=0.0)
     assert np.array_equal(a.sigma, b.sigma) and np.array_equal(a.order_totals, b.order_totals)
     assert np.all(a.first_hit_counts.sum(axis=1) == 30000)
     np.testing.assert_allclose(a.sigma.sum(axis=1) + a.sigma_dropped, a.total, rtol=1e-12)
@@ -41,7 +43,8 @@ def test_gap_fraction_many_beams(zenith):
     ps = prepare(syn.random_leaves(lai, (0.2, 0.8), 8.0, 5e-4, seed=21))
     g = np.linspace(-2.0, 2.0, 6)
     targets = np.array([[x, y, 0.0] for x in g for y in g])
-    res = trace(ps, Beams.toward(targets, 1000.0, zenith, 10.0, footprint_m=0.3), n_rays=3000, max_order=1, seed=8)
+    res = trace(ps, Beams.toward(targets, 1000.0, zenith, 10.0, footprint_m=0.3), n_rays=3000, max_order=1, seed=8,
+                sampler="random", roulette=0.0)
     gap = res.first_hit_counts[:, 0] / 3000
     se = gap.std(ddof=1) / math.sqrt(len(gap))
     expected = math.exp(-0.5 * lai / math.cos(math.radians(zenith)))

@@ -60,16 +60,16 @@ def test_survival_by_order():
             survival_by_order(bad, 4)
 
 
-def test_defaults_are_the_pseudo_random_estimator():
+def test_default_survival_lets_every_ray_continue():
     sc = syn.random_leaves(2.0, (0.1, 0.6), 1.0, 4e-3, seed=5)
     beams = Beams.toward([0, 0, 0], 1000.0, 10.0, 30.0, footprint_m=0.3)
-    a = trace(sc, beams, n_rays=2000, max_order=5, viewed_diameter_m=0.8, seed=3)
+    a = trace(sc, beams, n_rays=2000, max_order=5, viewed_diameter_m=0.8, seed=3, sampler="random", roulette=0.0)
     b = trace(sc, beams, n_rays=2000, max_order=5, viewed_diameter_m=0.8, seed=3, sampler="random",
               survival=1.0, roulette=0.0)
     assert np.array_equal(a.sigma, b.sigma) and np.array_equal(a.order_totals, b.order_totals)
 
 
-@pytest.mark.parametrize("kw", [dict(sampler="sobol"), dict(sampler="sobol", roulette=0.5)])
+@pytest.mark.parametrize("kw", [dict(sampler="sobol", roulette=0.0), dict(sampler="sobol", roulette=0.5)])
 def test_same_seed_same_result_whatever_the_threads(kw):
     sc = prepare(syn.random_leaves(2.0, (0.1, 0.6), 2.0, 4e-3, seed=5))
     beams = Beams.toward([[0, 0, 0], [0.2, 0.1, 0], [-0.1, 0.3, 0]], 1000.0, 10.0, 30.0, footprint_m=0.3)
@@ -85,12 +85,12 @@ def test_same_seed_same_result_whatever_the_threads(kw):
 def test_sobol_plane_is_exact_and_tilted_plane_spread_is_gaussian():
     rho = 0.3
     res = trace(syn.plane(6.0, 0.0, rho), Beams.from_divergence([0, 0, 1200.0], [0, 0, -1.0], 0.15, 1200.0),
-                n_rays=1024, seed=1, sampler="sobol")
+                n_rays=1024, seed=1, sampler="sobol", roulette=0.0)
     assert res.total[0] == pytest.approx(rho / math.pi, rel=1e-6)
     # a 30-degree slope: the range spread is the Gaussian footprint's (test_mcrt_analytic)
     sc = syn.plane(8.0, 0.0, rho, tilt_deg=30.0)
     res = trace(sc, Beams.toward([0, 0, 0], 1000.0, footprint_m=0.5), n_rays=4096, max_order=1, seed=2,
-                sampler="sobol")
+                sampler="sobol", roulette=0.0)
     t = res.times_ns()[0] + 0.5 * res.bin_ns
     w = res.sigma[0] / res.sigma[0].sum()
     sd = math.sqrt(np.sum(w * t**2) - np.sum(w * t) ** 2 - res.bin_ns**2 / 12)
@@ -107,8 +107,9 @@ def _sheet_expected(order, rho, tau, rho_g):
     return tau**2 * rho_g**k * rho ** (k - 1) / math.pi
 
 
-@pytest.mark.parametrize("kw", [dict(sampler="sobol"), dict(sampler="sobol", roulette=0.5),
-                                dict(roulette=0.9), dict(sampler="sobol", survival=[0.5, 1.0])])
+@pytest.mark.parametrize("kw", [dict(sampler="sobol", roulette=0.0), dict(sampler="sobol", roulette=0.5),
+                                dict(sampler="random", roulette=0.9),
+                                dict(sampler="sobol", roulette=0.0, survival=[0.5, 1.0])])
 def test_sheet_over_ground_order_series_is_unbiased(kw):
     rho, tau, rho_g, orders = 0.47, 0.5, 0.3, 7
     sc = prepare(syn.sheet_over_ground(40.0, 0.05, rho, tau, rho_g))
@@ -131,12 +132,13 @@ def test_sobol_gap_fraction_of_random_leaves(lai, zenith):
     sc = prepare(syn.random_leaves(lai, (0.2, 1.0), 6.0, 1e-3, seed=int(10 * lai), ground=True))
     g = np.linspace(-1.35, 1.35, 4)
     beams = Beams.toward(np.array([[x, y, 0.0] for x in g for y in g]), 1000.0, zenith, 60.0, footprint_m=0.25)
-    res = trace(sc, beams, n_rays=2048, max_order=1, seed=5, sampler="sobol")
+    res = trace(sc, beams, n_rays=2048, max_order=1, seed=5, sampler="sobol", roulette=0.0)
     gap = res.first_hit_counts[:, 0] / 2048
     se = gap.std(ddof=1) / math.sqrt(len(gap))
     assert abs(gap.mean() - math.exp(-0.5 * lai / math.cos(math.radians(zenith)))) < N_SE * se
     # and beam by beam the pseudo-random estimate of many rays
-    rnd = trace(sc, beams, n_rays=2**15, max_order=1, seed=6).first_hit_counts[:, 0] / 2**15
+    rnd = trace(sc, beams, n_rays=2**15, max_order=1, seed=6, sampler="random",
+                roulette=0.0).first_hit_counts[:, 0] / 2**15
     assert np.all(np.abs(gap - rnd) < 4 * np.sqrt(rnd * (1 - rnd) / 2**15) + 0.5 / math.sqrt(2048) * 0.3)
 
 
@@ -147,12 +149,12 @@ def canopy_reference():
     beams = Beams.toward([[0, 0, 0], [0.4, -0.3, 0], [-0.5, 0.2, 0]], 1200.0, [0.0, 10.0, 15.0],
                          [0.0, 60.0, 200.0], divergence_mrad=0.15)
     kw = dict(max_order=10, viewed_diameter_m=2.5)
-    ref = trace(sc, beams, n_rays=2**19, seed=1000, **kw)
+    ref = trace(sc, beams, n_rays=2**19, seed=1000, sampler="random", roulette=0.0, **kw)
     return sc, beams, kw, ref
 
 
-@pytest.mark.parametrize("method", [dict(sampler="sobol"), dict(sampler="sobol", roulette=0.5),
-                                    dict(roulette=0.5)])
+@pytest.mark.parametrize("method", [dict(sampler="sobol", roulette=0.0), dict(sampler="sobol", roulette=0.5),
+                                    dict(sampler="random", roulette=0.5)])
 def test_canopy_mean_over_seeds_matches_the_high_ray_reference(canopy_reference, method):
     sc, beams, kw, ref = canopy_reference
     n = 4096
@@ -161,7 +163,8 @@ def test_canopy_mean_over_seeds_matches_the_high_ray_reference(canopy_reference,
     ns = np.array([r.sigma.reshape(len(beams), -1, 20).sum(axis=2) for r in runs])  # 1-ns bins
     # the reference's own error: a pseudo-random estimate of 2**19 rays, SD ~ the 4096-ray
     # pseudo-random SD / 11; allowed for by adding its variance, estimated from a few seeds
-    rnd = np.array([trace(sc, beams, n_rays=n, seed=100 + s, **kw).order_totals for s in range(4)])
+    rnd = np.array([trace(sc, beams, n_rays=n, seed=100 + s, sampler="random", roulette=0.0,
+                          **kw).order_totals for s in range(4)])
     ref_var = rnd.var(axis=0, ddof=1) * n / 2**19
     se = np.sqrt(tot.var(axis=0, ddof=1) / SEEDS + ref_var)
     z = (tot.mean(axis=0) - ref.order_totals) / np.where(se > 0, se, np.inf)
@@ -184,7 +187,8 @@ def test_sobol_with_specular_leaves_matches_the_pseudo_random_estimator(canopy_r
     n, seeds = 4096, 12
     a = np.array([trace(sc, beams, n_rays=n, seed=s, specular=0.3, sampler="sobol", roulette=0.5, **kw)
                   .order_totals for s in range(seeds)])
-    b = np.array([trace(sc, beams, n_rays=n, seed=50 + s, specular=0.3, **kw).order_totals
+    b = np.array([trace(sc, beams, n_rays=n, seed=50 + s, specular=0.3, sampler="random", roulette=0.0,
+                        **kw).order_totals
                   for s in range(seeds)])
     se = np.sqrt(a.var(axis=0, ddof=1) / seeds + b.var(axis=0, ddof=1) / seeds)
     z = np.abs(a.mean(axis=0) - b.mean(axis=0))[:, :4] / se[:, :4]

@@ -10,9 +10,10 @@ import pandas as pd
 from test_analysis_classify import _features
 
 from waveforest import config
+from waveforest.analysis.classify import classify_dataset
 from waveforest.cli import main
 from waveforest.report import plots
-from waveforest.stages.classify import classify_dataset
+from waveforest.settings import classify_settings
 from waveforest.stages.report import run
 
 
@@ -36,7 +37,7 @@ def _results(tmp_path):
     plots.fig9_sensor(ss, res / "sensor_study" / "fig9.png")
     (res / "classify").mkdir()
     cfg = config.load(overrides={"select": {"min_pulses": 5}})
-    r = classify_dataset(_features(np.random.default_rng(0)), cfg)
+    r = classify_dataset(_features(np.random.default_rng(0)), classify_settings(cfg))
     r["dataset"] = "2012_10_1"
     (res / "classify" / "2012_10_1.json").write_text(json.dumps(r))
     (res / "calibration").mkdir()

@@ -42,12 +42,13 @@ def test_summary_first_with_both_tables_and_paper_values(tmp_path):
     out = run(res, res / "report" / "report.html", cfg)
     md = out.markdown.read_text()
     sections = _sections(md)
-    title, body = sections[0]
+    assert sections[0][0] == "What this report ran on"
+    title, body = sections[1]
     assert title.startswith("Summary")
     # the summary precedes every detail section, calibration included
     titles = [t for t, _ in sections]
     assert titles.index("System waveform calibration and AGC (docs/method.md §(b), e)") > titles.index(
-        "Real-data classification (Table 4; docs/method.md §(i4))") > 0
+        "Real-data classification (Table 4; docs/method.md §(i4))") > 1
     assert "Table 3 in brief" in body and "Table 4 in brief" in body
     rows = {line.split("|")[1].strip() + "/" + line.split("|")[2].strip(): line for line in body.splitlines()
             if line.startswith("| 20")}
@@ -58,7 +59,9 @@ def test_summary_first_with_both_tables_and_paper_values(tmp_path):
     # ...the features not in our table are explained, and so are datasets of the paper we did not compare
     assert "— (H not compared)" in birch
     assert "— (dataset not in comparison)" in rows["2012_05_1/birch"]
-    assert "— (dataset not in this run)" in rows["2012_27_1/birch"]
+    # ...and the paper's datasets not in this run are left out, with one line saying so
+    assert "2012_27_1/birch" not in rows and "dataset not in this run" not in md
+    assert "Left out of Table 3 in brief: the paper's datasets 2012_20_1, 2012_27_1, not in this run." in body
     # Table 4: the paper's 2012_10_1 (83.1 %, kappa 0.76) beside ours; an old-style JSON with null
     # levels explained from its pulses_per_group
     t4 = [c.strip() for c in [ln for ln in body.splitlines() if ln.startswith("| 2012_10_1 | ")
@@ -87,14 +90,15 @@ def test_missing_values_explained_from_new_style_json_and_detection_limits(tmp_p
                       upper_bound=[2.0, 3.0], power=[0.8, 0.8], replicates=[4, 4])).to_csv(
         res / "diagnose" / "detection_limits.csv", index=False)
     md = run(res, res / "report" / "report.html", cfg).markdown.read_text()
-    title, body = _sections(md)[0]
+    title, body = _sections(md)[1]
     assert "— (LDA needs at least 2 functional groups with pulses; only low_green has any (0 pulses: conifer))" in body
     assert "Detection limits of the diagnosis" in body
     lim = {ln.split("|")[1].strip(): [c.strip() for c in ln.split("|")[1:-1]]
            for ln in body.splitlines() if ln.startswith(("| understory", "| clumping"))}
     assert lim["understory"][1] == "0.4" and lim["clumping"][1] == "— (nothing up to 3 m is detectable)"
     assert ("Detection limits (power 0.80): understory from 0.4 would have been detected; 1 of 2 effects are not "
-            "detectable within their bounds.") in body
+            "detectable within their bounds. The range tried") in body
+    assert "one pseudo-real replicate" not in body  # 4 replicates
     assert "verdict" in body  # model.yaml of the fixture has none: said so in place
     assert "— (model.yaml holds no verdict)" in body
     cells = _cells(body)

@@ -5,7 +5,7 @@ from __future__ import annotations
 from fixtures.tables import pulse_table
 from test_analysis_select import ECHOES, FIELDS
 
-from waveforest.stages.select import SelectRules, select_pulses
+from waveforest.model.selection import SelectRules, select_pulses
 
 
 def test_single_echo_set_is_one_dr_echo_outside_below_crown():

@@ -18,6 +18,7 @@ from waveforest.config import validate
 from waveforest.constants import RANGE_PER_NS
 from waveforest.errors import WaveforestError
 from waveforest.io.pulses import list_to_padded, read_pulses, write_pulses
+from waveforest.io.results import read_agc_metadata
 from waveforest.io.tables import read_datasets, read_targets
 from waveforest.sensor import agc as agc_mod
 from waveforest.sensor import (
@@ -140,7 +141,7 @@ def test_agc_stage(tmp_path):
     assert sum(saved["n_per_target"].values()) + saved["n_saturated"] == 600
     assert (tmp_path / "cv.png").stat().st_size > 1000
     out = read_pulses(tmp_path / "norm.parquet")
-    meta = agc_stage.read_agc_metadata(tmp_path / "norm.parquet")
+    meta = read_agc_metadata(tmp_path / "norm.parquet")
     assert meta["b"] == pytest.approx(fit.b) and meta["n0"] == pytest.approx(fit.n0)
     g = out.column("agc_gain").to_numpy()
     assert np.allclose(g, 1 + (table.column("agc").to_numpy() - fit.a) * fit.b)

@@ -11,7 +11,9 @@ from scipy.special import erf
 from waveforest.config import validate
 from waveforest.errors import WaveforestError
 from waveforest.io.pulses import list_to_padded, write_pulses
+from waveforest.io.results import read_calibration_json
 from waveforest.io.tables import read_datasets, read_targets
+from waveforest.model.calibration_pulses import CalibrationPulses
 from waveforest.sensor import (
     CFDParams,
     SystemWaveform,
@@ -21,7 +23,6 @@ from waveforest.sensor import (
     load_system_waveform,
     noise_stats,
     range_correction_of,
-    read_calibration_json,
 )
 from waveforest.sensor import calibration as cal_mod
 from waveforest.stages import agc as agc_stage
@@ -118,8 +119,8 @@ def test_calibration_pulses_saturate_after_the_agc_gain():
             hdrf / math.pi, tr["target_index"][keep])
     noise = noise_stats(x, lens[keep], 50)
     assert g.min() < 0.85 and g.max() > 1.15
-    per_pulse = cal_stage.CalibrationPulses(*args, g, noise, (-15.0, 45.0)).system_waveform({"nonlinearity": 150.0})
-    one_level = cal_stage.CalibrationPulses(*args, np.ones(len(x)), noise, (-15.0, 45.0)).system_waveform(
+    per_pulse = CalibrationPulses(*args, g, noise, (-15.0, 45.0)).system_waveform({"nonlinearity": 150.0})
+    one_level = CalibrationPulses(*args, np.ones(len(x)), noise, (-15.0, 45.0)).system_waveform(
         {"nonlinearity": 150.0})
     err = rel_l2(per_pulse.aligned_to_cfd(), truth)
     assert err < S_L2_TOL, err

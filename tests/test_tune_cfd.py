@@ -82,7 +82,7 @@ def riegl_pulses(tmp_path_factory):
     """The bundled real RIEGL file (tests/data/real/README.md) as ``ingest`` writes it."""
     from reference_io import RIEGL
 
-    from waveforest.stages.ingest import run as ingest
+    from waveforest.io.las.pulses import las_to_pulses as ingest
 
     out = tmp_path_factory.mktemp("riegl") / "riegl.parquet"
     ingest(RIEGL, out, agc_attribute=None)
@@ -110,12 +110,13 @@ def campaign(tmp_path_factory):
     """A small virtual campaign with vegetation (one dataset, ~3,600 pulses; 15-25 s: slow)."""
     pytest.importorskip("waveforest.vegetation")
     from waveforest.campaign import run as synthesize
-    from waveforest.stages.ingest import run as ingest
+    from waveforest.io.las.pulses import las_to_pulses as ingest
+    from waveforest.settings import campaign_settings
 
     tmp = tmp_path_factory.mktemp("campaign")
     cfg = config.validate(yaml.safe_load(yaml.safe_dump(
         {"seed": 5, "datasets": ["2010_12_1"], "campaign": {"samples_per_species": 2, "n_rays": 300, "max_order": 3}})))
-    synthesize(cfg, tmp / "c", progress=False)
+    synthesize(campaign_settings(cfg), tmp / "c", progress=False)
     ingest(tmp / "c" / "2010_12_1.las", tmp / "p.parquet", dataset="2010_12_1")
     return cfg, json.loads((tmp / "c" / "truth.json").read_text()), tmp / "p.parquet"
 

@@ -49,7 +49,8 @@ def test_config_values_effects_and_options_reach_the_scene(tmp_path):
 
 
 def test_png_path_option_and_run_summary(tmp_path):
-    s = run("sand_road", 0.0, 1, tmp_path / "a" / "road.ply", png=tmp_path / "pics" / "road.png")
+    s = run("sand_road", 0.0, 1, tmp_path / "a" / "road.ply", png=tmp_path / "pics" / "road.png", ground_rho=0.3,
+            lai_jitter=0.1)
     assert s.ply.exists() and s.png.read_bytes()[:8] == PNG_MAGIC
     assert s.kind_counts[0] == s.n_triangles and s.lai == 0.0
 
@@ -73,7 +74,7 @@ def test_bad_input_exits_1_with_one_message_and_no_file(tmp_path, capsys, args, 
 def test_rasteriser_covers_a_triangle_and_keeps_the_nearest():
     """Sample centres inside a triangle are covered (its area in samples), and where two
     overlap the nearer one's colour is kept whatever the drawing order."""
-    from waveforest.vegetation.render import _rasterise
+    from waveforest.vegetation.render import rasterise
 
     big = [[0.0, 0.0], [40.0, 0.0], [0.0, 40.0]]  # area 800 samples
     small = [[5.0, 5.0], [15.0, 5.0], [5.0, 15.0]]
@@ -82,7 +83,7 @@ def test_rasteriser_covers_a_triangle_and_keeps_the_nearest():
         uv = np.array([big, small], float)[list(order)]
         depth = np.array([2.0, 1.0])[list(order)]  # the small one is nearer
         colour = np.array([red, blue])[list(order)]
-        img = _rasterise(uv, depth, colour, np.zeros(2), 1.0, 64, 64)
+        img = rasterise(uv, depth, colour, np.zeros(2), 1.0, 64, 64)
         assert abs(img[..., 3].sum() - 800) <= 40  # edge samples: within the perimeter's share
         assert img[63 - 8, 8, 2] == 1.0 and img[63 - 30, 5, 0] == 1.0  # row 0 is the top
         assert img[63 - 50, 50, 3] == 0.0

@@ -7,7 +7,7 @@ import pytest
 from reference_vegetation import coverage_reference, place_leaves_reference
 
 from waveforest.scene import Scene
-from waveforest.vegetation.gaps import _coverage_kernel, nadir_coverage, nadir_gap_fraction
+from waveforest.vegetation.gaps import coverage_kernel, nadir_coverage, nadir_gap_fraction
 from waveforest.vegetation.ground import ground_plane, heightfield_triangles, relief_field
 from waveforest.vegetation.leaves import (
     crossed_planes,
@@ -196,7 +196,7 @@ def test_coverage_kernel_agrees_with_brute_force_reference():
     rng = np.random.default_rng(8)
     tri = rng.uniform(-1, 1, (60, 3, 2)) * rng.uniform(0.05, 0.4, (60, 1, 1))
     tri += rng.uniform(-0.8, 0.8, (60, 1, 2))
-    fast = _coverage_kernel(tri, -1.0, -1.0, 0.02, 100, 100)
+    fast = coverage_kernel(tri, -1.0, -1.0, 0.02, 100, 100)
     ref = coverage_reference(tri, -1.0, -1.0, 0.02, 100, 100)
     np.testing.assert_array_equal(fast, ref)
 

@@ -34,7 +34,7 @@ def test_mcrt_nadir_gap_fraction_matches_lai_and_g_function(slug, h):
     g = np.array([-1.5, -0.5, 0.5, 1.5])
     xy = np.array([(x, y) for x in g for y in g])
     beams = Beams.toward(np.c_[xy, np.zeros(len(xy))], 1000.0, 0.0, 0.0, footprint_m=1.0)
-    res = trace(scene, beams, n_rays=4000, max_order=1, seed=3)
+    res = trace(scene, beams, n_rays=4000, max_order=1, seed=3, sampler="random", roulette=0.0)
     hits = res.first_hit_counts.sum(axis=0)
     p_mcrt = (hits[GROUND] + hits[MISS]) / hits.sum()
     p_raster = nadir_gap_fraction(scene, cell_m=0.01, extent_m=2.0)
@@ -49,7 +49,7 @@ def test_first_order_share_and_order_convergence_match_the_paper(slug, h, spread
     rng = np.random.default_rng(5)
     xy = rng.uniform(-spread, spread, (8, 2))  # birch: pulses through the crown
     beams = Beams.toward(np.c_[xy, np.zeros(8)], 1200.0, 0.0, 0.0, divergence_mrad=0.15)
-    res = trace(prepared, beams, n_rays=6000, max_order=MAX_ORDER, seed=9)
+    res = trace(prepared, beams, n_rays=6000, max_order=MAX_ORDER, seed=9, sampler="random", roulette=0.0)
     tot = res.order_totals.sum(axis=0)
     first = tot[0] / tot.sum()
     assert FIRST_ORDER_RANGE[0] <= first <= FIRST_ORDER_RANGE[1], f"first-order share {first:.3f}"

@@ -2,6 +2,14 @@
 
 Each subcommand lives in its stage module (``waveforest.stages.<stage>``) and is loaded
 lazily, so ``waveforest --help`` stays fast and a stage appears once it exists.
+
+Errors and exit codes: every error is one line on stderr, ``waveforest: error: ...``, naming
+what was typed (the option as given, e.g. ``--range``, or the file). Exit status 2 is a usage
+error, something typed on the command line: an unknown command or option (with a "did you
+mean" suggestion), a bad option value, a missing argument, an input file that does not exist.
+Exit status 1 is bad input content: a file that exists but is wrong (a ``WaveforestError``
+naming the file and the row or field), or an invalid config. Ctrl-C exits with 130, SIGTERM
+with 143 and SIGHUP with 129, each after the partial outputs are removed; 0 is success.
 """
 
 from __future__ import annotations
@@ -9,6 +17,7 @@ from __future__ import annotations
 import ast
 import atexit
 import contextlib
+import difflib
 import importlib
 import importlib.util
 import os
@@ -50,10 +59,33 @@ def _available(target: str) -> bool:
     return importlib.util.find_spec(target.split(":")[0]) is not None
 
 
-def short_help(target: str, limit: int = 70) -> str:
-    """The one-line help of the command at ``target`` ("module:function"), read from the
-    module's source (its ``short_help=`` or docstring, as click makes it), without importing
-    the module and its dependencies."""
+def first_sentence(text: str) -> str:
+    """The first sentence of the first paragraph of ``text``, whole, whitespace collapsed.
+
+    A period ends the sentence when it closes the paragraph or the next word starts with a
+    capital letter, so "Eq. 8", "e.g. a" and "vs. b" do not end it.
+    """
+    words = text.split("\f")[0].partition("\n\n")[0].split()
+    if words and words[0] == "\b":  # click's no-rewrap marker
+        words = words[1:]
+    for i, word in enumerate(words):
+        if word.endswith(".") and (i + 1 == len(words) or words[i + 1][:1].isupper()):
+            return " ".join(words[: i + 1])
+    return " ".join(words)
+
+
+def help_line(command: click.Command) -> str:
+    """A command's line in ``waveforest --help``: its ``short_help``, else the first sentence of
+    its help, never shortened."""
+    if command.short_help:
+        return " ".join(command.short_help.split())
+    return first_sentence(command.help or "")
+
+
+def short_help(target: str) -> str:
+    """:func:`help_line` of the command at ``target`` ("module:function"), read from the
+    module's source (its ``short_help=``/``help=`` or docstring) without importing the module
+    and its dependencies."""
     module, attr = target.split(":")
     tree = ast.parse(Path(importlib.util.find_spec(module).origin).read_text(encoding="utf-8"))
     fn = next(n for n in tree.body if isinstance(n, ast.FunctionDef) and n.name == attr)
@@ -62,7 +94,16 @@ def short_help(target: str, limit: int = 70) -> str:
     given = {kw.arg: kw.value.value for d in decos for kw in d.keywords
              if kw.arg in ("help", "short_help") and isinstance(kw.value, ast.Constant)}
     given.setdefault("help", ast.get_docstring(fn, clean=False))
-    return click.Command(attr, **given).get_short_help_str(limit=limit)
+    return help_line(click.Command(attr, **given))
+
+
+def _no_such_command(name: str, commands: list[str]) -> str:
+    """The message for an unknown command ``name``, suggesting the closest of ``commands``."""
+    close = difflib.get_close_matches(name, commands, n=3)
+    message = f"No such command '{name}'."
+    if close:
+        message += " Did you mean " + " or ".join(f"'{c}'" for c in close) + "?"
+    return message
 
 
 class _LazyGroup(click.Group):
@@ -75,6 +116,12 @@ class _LazyGroup(click.Group):
             return None
         module, attr = target.split(":")
         return getattr(importlib.import_module(module), attr)
+
+    def resolve_command(self, ctx, args):
+        name = click.utils.make_str(args[0])
+        if not ctx.resilient_parsing and not name.startswith("-") and self.get_command(ctx, name) is None:
+            raise click.UsageError(_no_such_command(name, self.list_commands(ctx)), ctx)
+        return super().resolve_command(ctx, args)
 
     def format_commands(self, ctx, formatter):  # pipeline order; no stage imported for its line
         rows = [(name, short_help(COMMANDS[name])) for name in self.list_commands(ctx)]
@@ -122,8 +169,27 @@ def _terminate_cleanly() -> Iterator[None]:
             signal.signal(sig, handler)
 
 
+_NO_ARGS_IS_HELP = getattr(click.exceptions, "NoArgsIsHelpError", ())
+"""The usage error of a bare ``waveforest`` (click >= 8.2; older click prints the help and exits 0)."""
+
+
+def _error(message: str, code: int) -> None:
+    """End with ``waveforest: error: message`` on stderr and exit status ``code``."""
+    click.echo(f"waveforest: error: {message}", err=True)
+    sys.exit(code)
+
+
+def _usage_message(exc: click.UsageError) -> str:
+    """One line: click's message and where to read the command's options."""
+    message = " ".join(exc.format_message().split())
+    if exc.ctx is None:
+        return message
+    return f"{message} (see '{exc.ctx.command_path} --help')"
+
+
 def main(argv: list[str] | None = None) -> None:
-    """Entry point: bad input ends with one message on stderr and exit code 1.
+    """Entry point: every error is one line ``waveforest: error: ...`` on stderr; exit 2 for a
+    usage error, 1 for bad input content (module docstring).
 
     Ctrl-C exits with 130, SIGTERM with 143 and SIGHUP with 129, each after the partial
     outputs are removed.
@@ -132,17 +198,20 @@ def main(argv: list[str] | None = None) -> None:
         with _terminate_cleanly():
             cli.main(args=argv, prog_name="waveforest", standalone_mode=False)
     except WaveforestError as exc:
-        click.echo(f"waveforest: error: {exc}", err=True)
-        sys.exit(1)
+        _error(str(exc), 1)
     except Terminated as exc:
         click.echo(f"waveforest: terminated by signal {signal.Signals(exc.signum).name}; partial outputs removed", err=True)
         sys.exit(exc.code)
     except click.exceptions.Abort:
-        click.echo("Aborted.", err=True)
+        click.echo("waveforest: interrupted; partial outputs removed", err=True)
         sys.exit(130)
-    except click.ClickException as exc:
+    except _NO_ARGS_IS_HELP as exc:  # bare ``waveforest``: the help on stderr, as click shows it
         exc.show()
         sys.exit(exc.exit_code)
+    except click.UsageError as exc:
+        _error(_usage_message(exc), 2)
+    except click.ClickException as exc:
+        _error(" ".join(exc.format_message().split()), exc.exit_code)
     except click.exceptions.Exit as exc:
         sys.exit(exc.exit_code)
 

@@ -14,6 +14,7 @@ import numba
 from tqdm import tqdm
 
 from waveforest import config as _config
+from waveforest.atomic import FolderNotOursError
 
 EXISTING_FILE = click.Path(exists=True, dir_okay=False, path_type=Path)
 """An input file that must exist."""
@@ -33,19 +34,50 @@ def _set_threads(threads: int | None) -> None:
 def stage_options(func):
     """Add ``--config``, ``--seed`` and ``--threads``; pass the loaded config as ``cfg``.
 
-    ``--seed`` (>= 0) overrides the config's master seed; ``--threads`` must be >= 1. A bad
-    config ends in one :class:`~waveforest.config.ConfigError` (file: key path: expected).
+    ``--config`` must name an existing file; ``--seed`` (>= 0) overrides the config's master
+    seed; ``--threads`` must be >= 1 (more than Numba's threads are capped). A bad config ends
+    in one :class:`~waveforest.config.ConfigError` naming where the bad value came from: the
+    config file (``file: key path: expected``) or the option (``--seed: ...``).
     """
 
-    @click.option("--config", "config_path", type=click.Path(dir_okay=False), default=None,
+    @click.option("--config", "config_path", type=click.Path(exists=True, dir_okay=False), default=None,
                   help="Study config YAML (default: built-in defaults).")
-    @click.option("--seed", type=click.IntRange(min=0), default=None, help="Override the config's master seed.")
-    @click.option("--threads", type=click.IntRange(min=1), default=None, help="Numba threads (default: all cores).")
+    @click.option("--seed", type=click.IntRange(min=0), default=None,
+                  help="Master seed of every random draw, an integer >= 0 (default: the config's seed).")
+    @click.option("--threads", type=click.IntRange(min=1), default=None,
+                  help="Numba threads, 1 or more; capped at the cores available (default: all cores).")
     @functools.wraps(func)
     def wrapper(*args, config_path=None, seed=None, threads=None, **kwargs):
-        cfg = _config.load(config_path, overrides=None if seed is None else {"seed": seed})
+        overrides = None if seed is None else {"seed": seed}
+        if overrides is not None:  # an error in the options names the option, not the file
+            _config.validate(dict(overrides), source="--seed")
+        cfg = _config.load(config_path, overrides=overrides)
         _set_threads(threads)
         return func(*args, cfg=cfg, **kwargs)
+
+    return wrapper
+
+
+class _Refused(click.ClickException):
+    """A refused output folder: a usage error (exit status 2)."""
+
+    exit_code = 2
+
+
+def force_option(func):
+    """Add ``--force``, passed as ``force``: replace an output folder even if it holds files
+    the command did not write (:class:`waveforest.atomic.OutputFolder`). Without it such a
+    folder is refused with one line naming a file it holds and exit status 2."""
+
+    @click.option("--force", is_flag=True, default=False,
+                  help="Replace the output folder even if it holds files this command did not write "
+                       "(they are deleted).")
+    @functools.wraps(func)
+    def wrapper(*args, **kwargs):
+        try:
+            return func(*args, **kwargs)
+        except FolderNotOursError as exc:
+            raise _Refused(str(exc)) from exc
 
     return wrapper
 
@@ -67,22 +99,37 @@ def dataset_pulses_options(func):
     return click.argument("pulses", type=EXISTING_FILE)(func)
 
 
+def dataset_fit_options(out_help: str, record: tuple[str, str, str], plot_help: str):
+    """Add :func:`dataset_pulses_options`, then the outputs of a stage that fits one dataset:
+    ``--out`` (a file; help ``out_help``), a JSON record (``record`` = (flag, dest, help)) and an
+    optional ``--plot`` PNG, passed as ``out``, ``record[1]`` and ``plot``."""
+
+    def decorate(func):
+        func = click.option("--plot", "plot", type=OUT_FILE, default=None, help=plot_help)(func)
+        func = click.option(record[0], record[1], type=OUT_FILE, required=True, help=record[2])(func)
+        func = click.option("--out", "out", type=OUT_FILE, required=True, help=out_help)(func)
+        return dataset_pulses_options(func)
+
+    return decorate
+
+
 def reference_sensor_options(outputs: str):
     """Add the options of a study on the reference sensor (docs/method.md §(i2), §(i3)).
 
-    ``--system`` (S(t) Parquet, optional), ``--calibration`` (its JSON, optional) and ``--out``
-    (a folder; ``outputs`` names what it receives, for the help text), passed as ``system``,
-    ``calibration`` and ``out``; then :func:`stage_options`.
+    ``--system`` (S(t) Parquet, optional), ``--calibration`` (its JSON, optional), each an
+    existing file when given, and ``--out`` (a folder; ``outputs`` names what it receives, for
+    the help text) with :func:`force_option`, passed as ``system``, ``calibration``, ``out``
+    and ``force``; then :func:`stage_options`.
     """
 
     def decorate(func):
-        func = stage_options(func)
+        func = force_option(stage_options(func))
         func = click.option("--out", type=OUT_DIR, required=True, help=f"Output folder ({outputs}).")(func)
-        func = click.option("--calibration", type=click.Path(dir_okay=False, path_type=Path), default=None,
+        func = click.option("--calibration", type=EXISTING_FILE, default=None,
                             help="Calibration JSON with noise_mean/noise_sd (default: beside --system).")(func)
-        return click.option("--system", type=click.Path(dir_okay=False, path_type=Path), default=None,
-                            help="S(t) of 2010_12_1 (Parquet); omitted = Gaussian of "
-                                 "sensitivity.reference_system.fwhm_ns.")(func)
+        return click.option("--system", type=EXISTING_FILE, default=None,
+                            help="The reference dataset's S(t) (config reference_dataset), Parquet; omitted = "
+                                 "Gaussian of sensitivity.reference_system.fwhm_ns.")(func)
 
     return decorate
 

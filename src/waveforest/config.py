@@ -143,3 +143,15 @@ def load(path: str | Path | None = None, overrides: dict | None = None) -> dict[
     for key, value in (overrides or {}).items():
         config[key] = value
     return validate(config, source)
+
+
+def changes(config: dict, default: dict | None = None, path: str = "") -> list[tuple[str, Any, Any]]:
+    """(dotted key path, default, value) of every leaf of ``config`` that differs from ``default``
+    (None: the schema's defaults, :func:`load` of no file), in key order."""
+    default = load(None) if default is None and not path else default
+    if isinstance(config, dict) and isinstance(default, dict):
+        out = []
+        for k in sorted(set(config) | set(default), key=str):
+            out += changes(config.get(k), default.get(k), f"{path}.{k}" if path else str(k))
+        return out
+    return [] if config == default else [(path, default, config)]

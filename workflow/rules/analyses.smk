@@ -4,7 +4,7 @@
 
 rule compare:
     input:
-        config=stage_config("compare", "simulate", "seed"),
+        config=stage_config("compare"),
         real=expand(result("features", "{dataset}_real.parquet"), dataset=COMPARE_DATASETS),
         sim=expand(result("features", "{dataset}_sim.parquet"), dataset=COMPARE_DATASETS),
         selected=expand(result("select", "{dataset}.parquet"), dataset=COMPARE_DATASETS),
@@ -34,7 +34,7 @@ rule compare:
 
 rule sensitivity:
     input:
-        config=stage_config("sensitivity", "sensitivity", "mcrt", "vegetation", "sensor", "seed"),
+        config=stage_config("sensitivity"),
         system=reference_system,
     output:
         table=result("sensitivity", "sensitivity.csv"),
@@ -58,7 +58,7 @@ rule sensitivity:
 
 rule sensor_study:
     input:
-        config=stage_config("sensor_study", "sensor_study", "sensitivity/reference_system", "mcrt", "vegetation", "sensor", "seed"),
+        config=stage_config("sensor_study"),
         system=reference_system,
     output:
         table=result("sensor_study", "sensor_study.csv"),
@@ -84,7 +84,7 @@ rule sensor_study:
 # select tables of all datasets.
 rule classify:
     input:
-        config=stage_config("classify", "classify", "select", "seed"),
+        config=stage_config("classify"),
         features=result("features", "{dataset}_real.parquet"),
         selected=expand(result("select", "{dataset}.parquet"), dataset=DATASETS),
     output:

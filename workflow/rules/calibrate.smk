@@ -3,7 +3,7 @@
 
 rule agc:
     input:
-        config=stage_config("agc", "agc", "calibrate", "sensor"),
+        config=stage_config("agc"),
         pulses=result("pulses", "{dataset}.parquet"),
         targets=campaign_file("targets.csv"),
         datasets=campaign_file("datasets.csv"),
@@ -24,7 +24,7 @@ rule agc:
 
 rule calibrate:
     input:
-        config=stage_config("calibrate", "calibrate", "sensor", "seed", "simulate/effects"),
+        config=stage_config("calibrate"),
         pulses=result("agc", "{dataset}.parquet"),
         targets=campaign_file("targets.csv"),
         datasets=campaign_file("datasets.csv"),

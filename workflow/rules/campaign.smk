@@ -4,7 +4,7 @@ if not config["data"]:
 
     rule synthesize:
         input:
-            config=stage_config("synthesize", "campaign", "datasets", "seed", "select", "vegetation"),
+            config=stage_config("synthesize"),
         output:
             datasets=result("campaign", "datasets.csv"),
             fields=result("campaign", "fields.csv"),

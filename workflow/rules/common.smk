@@ -6,6 +6,7 @@ import yaml
 from snakemake.utils import validate
 
 from waveforest import config as waveforest_config
+from waveforest.config_keys import stage_keys
 from waveforest.errors import WaveforestError
 from waveforest.io.tables import read_datasets
 
@@ -67,6 +68,10 @@ except waveforest_config.ConfigError as _exc:
     sys.exit(f"waveforest: error: {_exc}")
 validate(config, schema=SCHEMA)
 
+STUDY_CONFIG = ", ".join(_sources or ["config/config.yaml"]) + (
+    " with --config overrides" if workflow.config_settings.config else "")
+"""The config the study ran with, as the report names it."""
+
 RESULTS = "results"
 CAMPAIGN = config["data"] if config["data"] else os.path.join(RESULTS, "campaign")
 DATASETS = config["datasets"]
@@ -75,16 +80,19 @@ CHUNKS = list(range(config["simulate"]["chunks"]))
 REFERENCE_DATASET = config["reference_dataset"]
 
 # The CLI of every stage reads the validated config (defaults filled) from a file that rule
-# `config` writes when the workflow runs, one per stage: results/config/<stage>.yaml. A stage
-# declares the config keys it uses (stage_config); its file is rewritten, and the stage rerun,
-# only when those keys change (they are the `config` job's params), so a config change reruns
-# exactly the steps that depend on it, and planning (-n, --lint) writes nothing.
+# `config` writes when the workflow runs, one per stage: results/config/<stage>.yaml. The config
+# keys a stage depends on are derived from its source (waveforest.config_keys: every read of
+# `cfg` in the stage module and in the settings builders it calls); its file is rewritten, and
+# the stage rerun, only when those keys change (they are the `config` job's params), so a config
+# change reruns exactly the steps that depend on it, and planning (-n, --lint) writes nothing.
 STAGE_KEYS = {}
 
 
-def stage_config(stage, *keys):
-    """The config file of ``stage``, which depends on config ``keys`` ("section" or "section/key")."""
-    STAGE_KEYS[stage] = keys
+def stage_config(stage, module=None):
+    """The config file of ``stage``, whose keys are those its module (default: the stage's name)
+    reads; a stage that reads the whole config depends on every key."""
+    keys = stage_keys("waveforest.stages.{}".format(module or stage))
+    STAGE_KEYS[stage] = tuple(sorted(config)) if "*" in keys else keys
     return result("config", "{}.yaml".format(stage))
 
 

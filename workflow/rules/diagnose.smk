@@ -3,7 +3,7 @@
 
 rule diagnose:
     input:
-        config=stage_config("diagnose", "diagnose", "datasets", "simulate", "select", "mcrt", "vegetation", "sensor", "seed"),
+        config=stage_config("diagnose"),
         selected=expand(result("select", "{dataset}.parquet"), dataset=COMPARE_DATASETS),
         real=expand(result("features", "{dataset}_real.parquet"), dataset=COMPARE_DATASETS),
         calibration=expand(result("calibration", "{dataset}.json"), dataset=COMPARE_DATASETS),

@@ -3,7 +3,7 @@
 
 rule features_real:
     input:
-        config=stage_config("features_real", "sensor/features", "sensor/cfd"),
+        config=stage_config("features_real", "features"),
         pulses=result("select", "{dataset}.parquet"),
         calibration=result("calibration", "{dataset}.json"),
     output:
@@ -22,7 +22,7 @@ rule features_real:
 
 rule features_sim:
     input:
-        config=stage_config("features_sim", "sensor/features", "sensor/cfd"),
+        config=stage_config("features_sim", "features"),
         pulses=expand(result("simulate", "{{dataset}}", "{chunk}.parquet"), chunk=CHUNKS),
         calibration=result("calibration", "{dataset}.json"),
     output:

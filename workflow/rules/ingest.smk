@@ -3,7 +3,7 @@
 
 rule ingest:
     input:
-        config=stage_config("ingest", "ingest", "agc"),
+        config=stage_config("ingest"),
         las=las_file,
         trajectory=trajectory_file,
     output:

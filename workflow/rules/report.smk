@@ -3,7 +3,7 @@
 
 rule report:
     input:
-        config=stage_config("report", *sorted(config)),
+        config=stage_config("report"),
         table3=result("compare", "table3.csv"),
         sensitivity=result("sensitivity", "sensitivity.csv"),
         sensor_study=result("sensor_study", "sensor_study.csv"),
@@ -17,6 +17,7 @@ rule report:
         table4_md=result("report", "table4.md"),
     params:
         results=results_dir,
+        study_config=STUDY_CONFIG,
     log:
         result("logs", "report.log"),
     benchmark:
@@ -27,4 +28,4 @@ rule report:
     shell:
         "waveforest report {input.table3} {input.sensitivity} {input.sensor_study} {input.classify} "
         "{input.calibration} {input.diagnose} --results {params.results} --config {input.config} "
-        "--out {output.html} --markdown {output.markdown} > {log} 2>&1"
+        "--study-config {params.study_config:q} --out {output.html} --markdown {output.markdown} > {log} 2>&1"

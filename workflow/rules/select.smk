@@ -3,7 +3,7 @@
 
 rule select:
     input:
-        config=stage_config("select", "select", "simulate"),
+        config=stage_config("select"),
         pulses=result("agc", "{dataset}.parquet"),
         fields=campaign_file("fields.csv"),
         datasets=campaign_file("datasets.csv"),

@@ -3,7 +3,7 @@
 
 rule simulate:
     input:
-        config=stage_config("simulate", "simulate", "mcrt", "vegetation", "sensor", "seed"),
+        config=stage_config("simulate"),
         selected=result("select", "{dataset}.parquet"),
         fields=campaign_file("fields.csv"),
         datasets=campaign_file("datasets.csv"),

@@ -23,12 +23,12 @@ Modules:
 from waveforest.campaign.agc_loop import AGCParams, agc_sequence
 from waveforest.campaign.layout import Frame, Layout, build_layout
 from waveforest.campaign.params import load_datasets, load_layout, load_targets
-from waveforest.campaign.synthesize import CampaignSummary, resolve_effects, run
+from waveforest.campaign.synthesize import CampaignSettings, CampaignSummary, resolve_effects, run
 from waveforest.campaign.system_pulse import TrueSystemWaveform, true_system_waveform
 from waveforest.campaign.truth_sensor import TruthSensor, record
 
 __all__ = [
     "AGCParams", "agc_sequence", "Frame", "Layout", "build_layout", "load_datasets", "load_layout",
-    "load_targets", "CampaignSummary", "resolve_effects", "run", "TrueSystemWaveform",
+    "load_targets", "CampaignSettings", "CampaignSummary", "resolve_effects", "run", "TrueSystemWaveform",
     "true_system_waveform", "TruthSensor", "record",
 ]

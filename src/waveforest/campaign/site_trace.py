@@ -48,10 +48,10 @@ class TraceSettings:
     vegetation_effects: tuple[tuple[str, float], ...]
     sensors: tuple[TruthSensor, ...]
     """True sensor of each dataset, by dataset index."""
-    bvh_quality: str = "medium"
+    bvh_quality: str
     """Embree BVH build quality of the site scenes (config ``campaign.bvh_quality``)."""
-    sampler: str = "sobol"
-    roulette: float = 0.5
+    sampler: str
+    roulette: float
     """MCRT estimator (config ``mcrt.sampler``, ``mcrt.roulette``: the model's)."""
 
 

@@ -1,4 +1,4 @@
-"""Generate the virtual ALS60 campaign: ``run(cfg, out_dir, effects, seed)``.
+"""Generate the virtual ALS60 campaign: ``run(settings, out_dir, effects)``.
 
 Order of work (each step's randomness has its own keyed stream, :func:`waveforest.rng.stream_generator`):
 
@@ -35,8 +35,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -47,6 +45,7 @@ import pandas as pd
 import pyarrow as pa
 
 from waveforest import __version__
+from waveforest.atomic import OutputFolder, plain
 from waveforest.campaign.agc_loop import agc_sequence
 from waveforest.campaign.flight import georeferencing_error, plan_flight, site_pulses
 from waveforest.campaign.layout import FIELD_COLUMNS, TARGET_COLUMNS, build_layout
@@ -84,6 +83,51 @@ class SynthesizeError(WaveforestError):
     """The campaign cannot be generated as configured."""
 
 
+@dataclass(frozen=True)
+class CampaignSettings:
+    """The virtual campaign as configured (built by :func:`waveforest.settings.campaign_settings`).
+
+    Attributes
+    ----------
+    seed : int
+        Master seed.
+    datasets : tuple of str
+        Datasets to generate (names of ``resources/campaign/datasets.csv``).
+    effects : dict
+        Hidden effects of config ``campaign.effects``, name -> value.
+    samples_per_species, density_scale, n_rays, max_order, viewed_diameter_m, disc_margin_m,
+    max_pulses_per_site, species, bvh_quality
+        Config section ``campaign`` (``species`` None = every species of Table 1).
+    ground_rho, lai_jitter : float
+        Config section ``vegetation``.
+    tree_radius_m : float
+        Config ``select.tree_radius_m``, m.
+    sampler, roulette
+        The MCRT estimator (config ``mcrt.sampler``, ``mcrt.roulette``: the model's).
+    record : dict
+        The config sections as ``truth.json`` records them (``campaign``, ``vegetation``); written, not read.
+    """
+
+    seed: int
+    datasets: tuple[str, ...]
+    effects: dict
+    samples_per_species: int | None
+    density_scale: float
+    n_rays: int
+    max_order: int
+    viewed_diameter_m: float
+    disc_margin_m: float
+    max_pulses_per_site: int | None
+    species: tuple[str, ...] | None
+    bvh_quality: str
+    ground_rho: float
+    lai_jitter: float
+    tree_radius_m: float
+    sampler: str
+    roulette: float
+    record: dict
+
+
 @dataclass
 class CampaignSummary:
     """What :func:`run` wrote."""
@@ -105,10 +149,11 @@ class CampaignSummary:
                 f"{self.n_targets} targets; hidden effects: {eff}; {self.seconds:.0f} s")
 
 
-def resolve_effects(cfg: dict, effects=None) -> dict[str, float]:
-    """All ten effects with their values: off values, then config ``campaign.effects``, then ``effects``."""
+def resolve_effects(configured, effects=None) -> dict[str, float]:
+    """All ten effects with their values: off values, then ``configured`` (config
+    ``campaign.effects``), then ``effects`` (each a mapping or "NAME=VALUE" strings)."""
     values = {name: e.off for name, e in CATALOGUE.items()}
-    values.update(parse_effects(cfg["campaign"]["effects"]))
+    values.update(parse_effects(configured))
     values.update(parse_effects(effects))
     for name, v in values.items():
         lo, hi, text = EFFECT_LIMITS[name]
@@ -129,49 +174,43 @@ def _sites_table(fields: pd.DataFrame, targets: pd.DataFrame, year: int, margin:
     ], ignore_index=True)
 
 
-def _swap_in(tmp: Path, out: Path) -> None:
-    """Rename the finished folder ``tmp`` onto ``out`` (an existing folder is replaced)."""
-    if out.exists() and not out.is_dir():
-        raise SynthesizeError(f"{out}: exists and is not a folder")
-    old = None
-    if out.exists():
-        old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
-        old.rmdir()
-        os.replace(out, old)
-    try:
-        os.replace(tmp, out)
-    except BaseException:
-        if old is not None:
-            os.replace(old, out)
-        raise
-    if old is not None:
-        shutil.rmtree(old, ignore_errors=True)
-
-
 def _crs_wkt() -> str | None:
     path = CAMPAIGN_RESOURCES / "crs.wkt"
     return path.read_text().strip() if path.exists() else None
 
 
-def run(cfg: dict, out_dir: str | os.PathLike, effects=None, seed: int | None = None, *,
-        progress: bool = True) -> CampaignSummary:
+@dataclass
+class _Sites:
+    """The planned campaign: datasets, their true sensors, the layout, its sites and the pulses."""
+
+    datasets: pd.DataFrame
+    sensors: dict
+    lay: dict
+    layout: object
+    fields: pd.DataFrame
+    targets: pd.DataFrame
+    plans: dict
+    pulses: dict
+    allp: pd.DataFrame
+    site_info: pd.DataFrame
+
+
+def run(settings: CampaignSettings, out_dir: str | os.PathLike, effects=None, *,
+        progress: bool = True, force: bool = False) -> CampaignSummary:
     """Generate the virtual campaign into ``out_dir`` (module docstring).
 
     Parameters
     ----------
-    cfg : dict
-        A loaded study config (:func:`waveforest.config.load`): ``datasets``, ``seed``,
-        ``campaign`` (effects, samples_per_species, density_scale, n_rays, max_order,
-        viewed_diameter_m, disc_margin_m, max_pulses_per_site, species, bvh_quality), ``vegetation`` (ground_rho,
-        lai_jitter), ``select.tree_radius_m``.
+    settings : CampaignSettings
     out_dir : path
-        Campaign folder to write (replaced atomically if it exists).
+        Campaign folder to write, whole or not at all (:class:`waveforest.atomic.OutputFolder`:
+        an existing folder is replaced only if synthesize wrote all it holds).
     effects : mapping or list of "NAME=VALUE", optional
-        Hidden effects on top of ``campaign.effects``.
-    seed : int, optional
-        Master seed (default: ``cfg["seed"]``).
+        Hidden effects on top of ``settings.effects``.
     progress : bool
         Progress bars on stderr.
+    force : bool
+        Replace ``out_dir`` even if it holds files synthesize did not write.
 
     Returns
     -------
@@ -179,80 +218,82 @@ def run(cfg: dict, out_dir: str | os.PathLike, effects=None, seed: int | None = 
     """
     t_start = time.perf_counter()
     out = Path(out_dir)
-    if out.exists() and not out.is_dir():  # before the minutes of generation, not after
-        raise SynthesizeError(f"{out}: exists and is not a folder; refusing to replace it (give a folder path)")
-    seed = int(cfg["seed"] if seed is None else seed)
-    camp = cfg["campaign"]
-    eff = resolve_effects(cfg, effects)
-    datasets = load_datasets(list(cfg["datasets"]))
-    if datasets.empty:
-        raise SynthesizeError("config datasets: no dataset to generate")
-    sensors = {row["dataset"]: TruthSensor.from_row(row) for _, row in datasets.iterrows()}
-    lay = load_layout()
-    per_species = camp["samples_per_species"]
-    layout = build_layout(species_table(), None if per_species is None else int(per_species), seed)
-    fields, targets = _campaign_sites(layout, sorted(set(int(y) for y in datasets["year"])), camp["species"])
-
-    # 3. pulses of every dataset near its sites
-    margin = float(camp["disc_margin_m"])
-    plans, pulses = _plan_pulses(datasets, fields, targets, layout, lay, cfg, seed, margin)
+    eff = resolve_effects(settings.effects, effects)
+    folder = OutputFolder(out, "synthesize", force=force)  # before the minutes of generation, not after
+    sites = _plan_sites(settings)
     timings = {"plan": time.perf_counter() - t_start, "sites_wall": 0.0, "scenes": 0.0, "trace": 0.0,
                "record_write": 0.0}
-    allp = pd.concat(pulses.values(), ignore_index=True)
-    if allp.empty:
-        raise SynthesizeError("no pulse reaches any site (check density_scale and the layout)")
-    allp["row"] = np.concatenate([np.arange(len(p)) for p in pulses.values()])
-
     # 4. trace every site once
-    site_info = _site_info(fields, targets, margin)
-    for p in pulses.values():
-        p["kind"] = p["site"].map(site_info["kind"]).to_numpy()
-    a0, batches, cover_true = _trace_sites(allp, site_info, datasets, sensors, cfg, eff, seed, timings, progress)
+    a0, batches, cover_true = _trace_sites(sites.allp, sites.site_info, sites.datasets, sites.sensors, settings,
+                                           eff, timings, progress)
     t_rec = time.perf_counter()
-    fields["canopy_cover_pct"] = fields["sample_id"].map(_canopy_cover(layout, cover_true, lay, seed)).to_numpy()
-
-    # 5. record, write LAS and trajectories
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
-    try:
-        summary = CampaignSummary(out_dir=out, effects=eff, timings=timings)
-        truth_ds, truth_rows = {}, []
-        wkt = _crs_wkt()
-
-        def record(row):
-            ds = row["dataset"]
-            _, info_ds, rows_ds = _record_dataset(
-                row, sensors[ds], plans[ds], pulses[ds], a0[ds], batches[ds], eff, seed, lay, tmp, wkt)
-            batches[ds] = None  # free sigma
-            return ds, info_ds, rows_ds
-
-        rows = [row for _, row in datasets.iterrows()]  # datasets share the worker threads
-        done = dict(unordered_map(record, rows, max(1, int(numba.get_num_threads()))))
-        for i in range(len(rows)):  # dataset order, whatever order the workers finished in
-            ds, info_ds, rows_ds = done[i]
-            truth_ds[ds] = info_ds
-            truth_rows.append(rows_ds)
-            summary.pulses[ds] = info_ds["n_pulses"]
-            summary.points[ds] = info_ds["n_points"]
-        # 6. the tables, the truth and the README
-        _write_tables(tmp, datasets, fields, targets, camp)
-        write_table(pa.Table.from_pandas(pd.concat(truth_rows, ignore_index=True), preserve_index=False),
-                    tmp / "truth_pulses.parquet")
-        manifest = _truth_manifest(cfg, seed, eff, datasets, layout, targets, truth_ds, cover_true)
-        with open(tmp / "truth.json", "w") as fh:
-            json.dump(_jsonable(manifest), fh, indent=1, sort_keys=False)
-        (tmp / "README.md").write_text(readme_text())
-        summary.n_fields, summary.n_targets = len(fields), len(targets)
-        _swap_in(tmp, out)
-        timings["record_write"] = time.perf_counter() - t_rec
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+    sites.fields["canopy_cover_pct"] = sites.fields["sample_id"].map(
+        _canopy_cover(sites.layout, cover_true, sites.lay, settings.seed)).to_numpy()
+    # 5. and 6. in a folder beside out, renamed onto it at the end
+    summary = CampaignSummary(out_dir=out, effects=eff, timings=timings)
+    with folder as tmp:
+        _write_campaign(tmp, settings, sites, eff, a0, batches, cover_true, summary)
+    timings["record_write"] = time.perf_counter() - t_rec
     summary.seconds = time.perf_counter() - t_start
     return summary
 
 
-def _campaign_sites(layout, years: list[int], only) -> tuple[pd.DataFrame, pd.DataFrame]:
+def _plan_sites(settings: CampaignSettings) -> _Sites:
+    """Steps 1-3: the datasets and their true sensors, the layout, and the pulses near its sites."""
+    datasets = load_datasets(list(settings.datasets))
+    if datasets.empty:
+        raise SynthesizeError("config datasets: no dataset to generate")
+    sensors = {row["dataset"]: TruthSensor.from_row(row) for _, row in datasets.iterrows()}
+    lay = load_layout()
+    per_species = settings.samples_per_species
+    layout = build_layout(species_table(), None if per_species is None else int(per_species), settings.seed)
+    fields, targets = campaign_sites(layout, sorted(set(int(y) for y in datasets["year"])), settings.species)
+    plans, pulses = plan_pulses(datasets, fields, targets, layout, lay, settings)
+    allp = pd.concat(pulses.values(), ignore_index=True)
+    if allp.empty:
+        raise SynthesizeError("no pulse reaches any site (check density_scale and the layout)")
+    allp["row"] = np.concatenate([np.arange(len(p)) for p in pulses.values()])
+    site_info = _site_info(fields, targets, float(settings.disc_margin_m))
+    for p in pulses.values():
+        p["kind"] = p["site"].map(site_info["kind"]).to_numpy()
+    return _Sites(datasets, sensors, lay, layout, fields, targets, plans, pulses, allp, site_info)
+
+
+def _write_campaign(tmp: Path, settings: CampaignSettings, sites: _Sites, eff: dict, a0: dict, batches: dict,
+                    cover_true: dict, summary: CampaignSummary) -> None:
+    """Steps 5 and 6 into the folder ``tmp``: per dataset its LAS file and trajectory (datasets
+    shared over worker threads), then the tables, ``truth_pulses.parquet``, ``truth.json`` and
+    the README; fills ``summary``."""
+    seed = settings.seed
+    truth_ds, truth_rows = {}, []
+    wkt = _crs_wkt()
+
+    def record(row):
+        ds = row["dataset"]
+        _, info_ds, rows_ds = record_dataset(row, sites.sensors[ds], sites.plans[ds], sites.pulses[ds], a0[ds],
+                                             batches[ds], eff, seed, sites.lay, tmp, wkt)
+        batches[ds] = None  # free sigma
+        return ds, info_ds, rows_ds
+
+    rows = [row for _, row in sites.datasets.iterrows()]  # datasets share the worker threads
+    done = dict(unordered_map(record, rows, max(1, int(numba.get_num_threads()))))
+    for i in range(len(rows)):  # dataset order, whatever order the workers finished in
+        ds, info_ds, rows_ds = done[i]
+        truth_ds[ds] = info_ds
+        truth_rows.append(rows_ds)
+        summary.pulses[ds] = info_ds["n_pulses"]
+        summary.points[ds] = info_ds["n_points"]
+    _write_tables(tmp, sites.datasets, sites.fields, sites.targets, float(settings.density_scale))
+    write_table(pa.Table.from_pandas(pd.concat(truth_rows, ignore_index=True), preserve_index=False),
+                tmp / "truth_pulses.parquet")
+    manifest = _truth_manifest(settings, eff, sites.datasets, sites.layout, sites.targets, truth_ds, cover_true)
+    with open(tmp / "truth.json", "w") as fh:
+        json.dump(plain(manifest), fh, indent=1, sort_keys=False)
+    (tmp / "README.md").write_text(readme_text())
+    summary.n_fields, summary.n_targets = len(sites.fields), len(sites.targets)
+
+
+def campaign_sites(layout, years: list[int], only) -> tuple[pd.DataFrame, pd.DataFrame]:
     """The field samples and targets of ``years`` (samples only of the species ``only``, if given).
 
     Raises SynthesizeError for a species of ``only`` the layout does not have.
@@ -267,15 +308,15 @@ def _campaign_sites(layout, years: list[int], only) -> tuple[pd.DataFrame, pd.Da
     return fields, targets
 
 
-def _plan_pulses(datasets: pd.DataFrame, fields: pd.DataFrame, targets: pd.DataFrame, layout, lay: dict,
-                 cfg: dict, seed: int, margin: float) -> tuple[dict, dict]:
+def plan_pulses(datasets: pd.DataFrame, fields: pd.DataFrame, targets: pd.DataFrame, layout, lay: dict,
+                settings: CampaignSettings) -> tuple[dict, dict]:
     """Per dataset, its flight plan (:func:`.flight.plan_flight`) and the pulses near its year's
     sites (:func:`.flight.site_pulses`, with columns ``dataset`` first and ``year``). With Table 1's
     design counts a field sample is recorded with its ``coverage.csv`` coverage; targets always."""
-    camp = cfg["campaign"]
-    tree_r = float(cfg["select"]["tree_radius_m"])
-    cap = camp["max_pulses_per_site"]
-    design = camp["samples_per_species"] is None
+    seed, margin = settings.seed, float(settings.disc_margin_m)
+    tree_r = float(settings.tree_radius_m)
+    cap = settings.max_pulses_per_site
+    design = settings.samples_per_species is None
     species_of = fields.set_index("sample_id")["species"]
     plans, pulses = {}, {}
     for _, row in datasets.iterrows():
@@ -284,7 +325,7 @@ def _plan_pulses(datasets: pd.DataFrame, fields: pd.DataFrame, targets: pd.DataF
         if design:  # coverage.csv is fitted to Table 1's design counts
             species = sites["site"].map(species_of).to_numpy(object)
             sites["coverage"] = np.where(pd.isna(species), 1.0, coverage(ds, species))
-        plans[ds] = plan_flight(row, layout.frame, lay, float(camp["density_scale"]), seed,
+        plans[ds] = plan_flight(row, layout.frame, lay, float(settings.density_scale), seed,
                                 float(sites["ground_z"].mean()))
         p = site_pulses(plans[ds], sites, lay, seed, None if cap is None else int(cap))
         p.insert(0, "dataset", ds)
@@ -309,18 +350,16 @@ def _canopy_cover(layout, cover_true: dict, lay: dict, seed: int) -> pd.Series:
                      index=layout.fields["sample_id"])
 
 
-def _truth_manifest(cfg: dict, seed: int, eff: dict, datasets: pd.DataFrame, layout, targets: pd.DataFrame,
+def _truth_manifest(settings: CampaignSettings, eff: dict, datasets: pd.DataFrame, layout, targets: pd.DataFrame,
                     truth_ds: dict, cover_true: dict) -> dict:
     """The content of ``truth.json``: seed, effects, config, frame, per-dataset truth, targets, true cover."""
-    camp = cfg["campaign"]
     return {
         "description": "Truth of the virtual ALS60 campaign. No analysis step reads this file.",
         "waveforest_version": __version__,
-        "seed": seed,
+        "seed": settings.seed,
         "effects": eff,
         "active_effects": active(eff),
-        "config": {"datasets": list(datasets["dataset"]), "campaign": camp,
-                   "vegetation": {k: cfg["vegetation"][k] for k in ("ground_rho", "lai_jitter")}},
+        "config": {"datasets": list(datasets["dataset"]), **settings.record},
         "frame": {"origin_x": layout.frame.origin_x, "origin_y": layout.frame.origin_y,
                   "azimuth_deg": layout.frame.azimuth_deg},
         "datasets": truth_ds,
@@ -344,8 +383,8 @@ def _site_info(fields: pd.DataFrame, targets: pd.DataFrame, margin: float) -> pd
     ], ignore_index=True).set_index("site")
 
 
-def _trace_sites(allp: pd.DataFrame, site_info: pd.DataFrame, datasets: pd.DataFrame, sensors: dict, cfg: dict,
-                 eff: dict, seed: int, timings: dict, progress: bool):
+def _trace_sites(allp: pd.DataFrame, site_info: pd.DataFrame, datasets: pd.DataFrame, sensors: dict,
+                 settings: CampaignSettings, eff: dict, timings: dict, progress: bool):
     """Build each site's true scene once and trace all its pulses of all datasets in one call
     (:mod:`.site_trace`; the sites are shared over Numba's thread count of worker threads).
 
@@ -354,42 +393,13 @@ def _trace_sites(allp: pd.DataFrame, site_info: pd.DataFrame, datasets: pd.DataF
     the true cover (share of first hits on vegetation) of every traced sample.
     """
 
-    camp, vcfg = cfg["campaign"], cfg["vegetation"]
     names = list(datasets["dataset"])
-    ds_index = {ds: i for i, ds in enumerate(names)}
-    divergence = datasets.set_index("dataset")["divergence_mrad"]
-    settings = TraceSettings(
-        seed=seed, n_rays=int(camp["n_rays"]), max_order=int(camp["max_order"]),
-        viewed_diameter_m=float(camp["viewed_diameter_m"]), specular=float(eff["specular"]),
-        hotspot=float(eff["hotspot"]), trigger_loss=float(eff["trigger_loss"]),
-        ground_rho=float(vcfg["ground_rho"]), lai_jitter=float(vcfg["lai_jitter"]),
-        vegetation_effects=tuple((k, float(eff[k])) for k in VEGETATION_EFFECTS),
-        sensors=tuple(sensors[ds] for ds in names), bvh_quality=str(camp["bvh_quality"]),
-        sampler=str(cfg["mcrt"]["sampler"]), roulette=float(cfg["mcrt"]["roulette"]))
     groups = allp.groupby("site", sort=False).indices
     sites = [s for s in site_info.index if s in groups]
-    # per-pulse and per-site arrays once: a site's job is then slices (no pandas per site)
-    sensor = allp[["sensor_x", "sensor_y", "sensor_z"]].to_numpy(np.float64)
-    direction = allp[["dir_x", "dir_y", "dir_z"]].to_numpy(np.float64)
-    div = allp["dataset"].map(divergence).to_numpy(np.float64)
-    ds_of = allp["dataset"].map(ds_index).to_numpy(np.int64)
-    range_m = allp["range_ground_m"].to_numpy(np.float64)
-    row = allp["row"].to_numpy(np.int64)
-    si = site_info.loc[sites]
-    xyz = si[["x", "y", "z"]].to_numpy(np.float64)
-    num = {c: si[c].to_numpy(np.float64) for c in ("height_m", "rho", "side_m", "on_ground_rho", "disc_m")}
-    kind, species = si["kind"].astype(str).to_numpy(), si["species"].astype(str).to_numpy()
-    jobs = []
-    for k, site in enumerate(sites):
-        idx = groups[site]
-        jobs.append(SiteJob(
-            site=site, kind=kind[k], species=species[k], height_m=float(num["height_m"][k]),
-            rho=float(num["rho"][k]), side_m=float(num["side_m"][k]),
-            on_ground_rho=float(num["on_ground_rho"][k]), reach_m=float(num["disc_m"][k]) + 1.0,
-            origin=sensor[idx] - xyz[k], direction=direction[idx], divergence_mrad=div[idx],
-            range_m=range_m[idx], dataset=ds_of[idx], rows=row[idx]))
+    jobs = _site_jobs(allp, site_info.loc[sites], groups, datasets)
     t0 = time.perf_counter()
-    results = trace_sites(jobs, settings, workers=max(1, int(numba.get_num_threads())), progress=progress)
+    results = trace_sites(jobs, _site_trace_settings(settings, eff, tuple(sensors[ds] for ds in names)),
+                          workers=max(1, int(numba.get_num_threads())), progress=progress)
     timings["sites_wall"] = time.perf_counter() - t0
     timings["scenes"] = sum(r.scene_s for r in results.values())
     timings["trace"] = sum(r.trace_s for r in results.values())
@@ -408,24 +418,47 @@ def _trace_sites(allp: pd.DataFrame, site_info: pd.DataFrame, datasets: pd.DataF
     return a0, batches, cover_true
 
 
-def _jsonable(obj):
-    if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return [_jsonable(v) for v in obj.tolist()]
-    if isinstance(obj, (np.floating, float)):
-        v = float(obj)
-        return v if np.isfinite(v) else None
-    if isinstance(obj, (np.integer,)):
-        return int(obj)
-    if isinstance(obj, np.bool_):
-        return bool(obj)
-    return obj
+def _site_trace_settings(settings: CampaignSettings, eff: dict, sensors: tuple) -> TraceSettings:
+    """What every site's tracing shares: the campaign's MCRT and vegetation settings, its true
+    effects and the true sensor of each dataset (by dataset index)."""
+    return TraceSettings(
+        seed=settings.seed, n_rays=int(settings.n_rays), max_order=int(settings.max_order),
+        viewed_diameter_m=float(settings.viewed_diameter_m), specular=float(eff["specular"]),
+        hotspot=float(eff["hotspot"]), trigger_loss=float(eff["trigger_loss"]),
+        ground_rho=float(settings.ground_rho), lai_jitter=float(settings.lai_jitter),
+        vegetation_effects=tuple((k, float(eff[k])) for k in VEGETATION_EFFECTS),
+        sensors=sensors, bvh_quality=str(settings.bvh_quality),
+        sampler=str(settings.sampler), roulette=float(settings.roulette))
 
 
-def _record_dataset(row, sensor: TruthSensor, plan, p: pd.DataFrame, a0: np.ndarray, batches, eff, seed,
+def _site_jobs(allp: pd.DataFrame, si: pd.DataFrame, groups: dict, datasets: pd.DataFrame) -> list[SiteJob]:
+    """One :class:`.site_trace.SiteJob` per site of ``si`` (rows of :func:`_site_info`), its pulses
+    the rows ``groups[site]`` of ``allp`` in scene-local coordinates."""
+    ds_index = {ds: i for i, ds in enumerate(datasets["dataset"])}
+    divergence = datasets.set_index("dataset")["divergence_mrad"]
+    # per-pulse and per-site arrays once: a site's job is then slices (no pandas per site)
+    sensor = allp[["sensor_x", "sensor_y", "sensor_z"]].to_numpy(np.float64)
+    direction = allp[["dir_x", "dir_y", "dir_z"]].to_numpy(np.float64)
+    div = allp["dataset"].map(divergence).to_numpy(np.float64)
+    ds_of = allp["dataset"].map(ds_index).to_numpy(np.int64)
+    range_m = allp["range_ground_m"].to_numpy(np.float64)
+    row = allp["row"].to_numpy(np.int64)
+    xyz = si[["x", "y", "z"]].to_numpy(np.float64)
+    num = {c: si[c].to_numpy(np.float64) for c in ("height_m", "rho", "side_m", "on_ground_rho", "disc_m")}
+    kind, species = si["kind"].astype(str).to_numpy(), si["species"].astype(str).to_numpy()
+    jobs = []
+    for k, site in enumerate(si.index):
+        idx = groups[site]
+        jobs.append(SiteJob(
+            site=site, kind=kind[k], species=species[k], height_m=float(num["height_m"][k]),
+            rho=float(num["rho"][k]), side_m=float(num["side_m"][k]),
+            on_ground_rho=float(num["on_ground_rho"][k]), reach_m=float(num["disc_m"][k]) + 1.0,
+            origin=sensor[idx] - xyz[k], direction=direction[idx], divergence_mrad=div[idx],
+            range_m=range_m[idx], dataset=ds_of[idx], rows=row[idx]))
+    return jobs
+
+
+def record_dataset(row, sensor: TruthSensor, plan, p: pd.DataFrame, a0: np.ndarray, batches, eff, seed,
                     lay, out: Path, wkt):
     """Run the AGC loop and the sensor over one dataset's pulses; write its LAS and trajectory."""
 
@@ -559,14 +592,15 @@ def _dataset_info(row, sensor: TruthSensor, plan, p: pd.DataFrame, agc: np.ndarr
     return info
 
 
-def _write_tables(out: Path, datasets: pd.DataFrame, fields: pd.DataFrame, targets: pd.DataFrame, camp: dict) -> None:
+def _write_tables(out: Path, datasets: pd.DataFrame, fields: pd.DataFrame, targets: pd.DataFrame,
+                  density_scale: float) -> None:
     d = pd.DataFrame({
         "dataset": datasets["dataset"], "year": datasets["year"],
         "las_file": datasets["dataset"] + ".las", "trajectory_file": datasets["dataset"] + "_trajectory.csv",
         "mean_range_m": datasets["mean_range_m"], "pulse_width_fwhm_ns": datasets["pulse_width_fwhm_ns"],
         "footprint_diameter_m": datasets["footprint_diameter_m"], "divergence_mrad": datasets["divergence_mrad"],
         "sampling_ns": datasets["sampling_ns"],
-        "pulse_density_m2": datasets["pulse_density_m2"] * float(camp["density_scale"]),
+        "pulse_density_m2": datasets["pulse_density_m2"] * float(density_scale),
         "max_scan_zenith_deg": datasets["max_scan_zenith_deg"]})
     d.to_csv(out / "datasets.csv", index=False)
     f = fields[FIELD_COLUMNS].copy()

@@ -39,14 +39,13 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
-from numba import njit, prange
 
 from waveforest.campaign.agc_loop import AGCParams
 from waveforest.campaign.dr_cfd import dr_cfd
 from waveforest.campaign.system_pulse import TrueSystemWaveform, true_system_waveform
 from waveforest.constants import BIN_NS, RANGE_PER_NS, RECORD_NS
 from waveforest.sensor.noise import gaussian_noise
-from waveforest.sensor.signal import analog_waveforms
+from waveforest.sensor.signal import analog_waveforms, sample_analog
 from waveforest.sensor.system_waveform import SystemWaveform
 
 MAX_ECHOES = 4
@@ -157,57 +156,6 @@ class Recorded(NamedTuple):
     intensity: np.ndarray
     n_echoes: np.ndarray
     walk_m: np.ndarray
-
-
-@njit(cache=True, nogil=True, parallel=True)
-def _sample_kernel(analog, pos0, step, out):
-    """out[p, k] = analog[p] linearly interpolated at fractional index pos0[p] + k step (0 outside)."""
-    n, m = analog.shape
-    n_s = out.shape[1]
-    for p in prange(n):
-        if not np.isfinite(pos0[p]):
-            continue
-        for k in range(n_s):
-            u = pos0[p] + k * step
-            if u < 0.0 or u > m - 1:
-                continue
-            i = int(u)
-            if i >= m - 1:
-                out[p, k] = analog[p, m - 1]
-            else:
-                f = u - i
-                out[p, k] = (1.0 - f) * analog[p, i] + f * analog[p, i + 1]
-
-
-def sample_analog(analog, pos0, step: float, n_samples: int) -> np.ndarray:
-    """Point samples of fine-grid signals.
-
-    Parameters
-    ----------
-    analog : (n, m) float64
-        Signals on a uniform grid (index units).
-    pos0 : (n,) float64
-        Fractional grid index of sample 0 (NaN: leave the row zero).
-    step : float
-        Sample spacing in grid units (> 0).
-    n_samples : int
-
-    Returns
-    -------
-    (n, n_samples) float64, zero outside the signal.
-    """
-    a = np.ascontiguousarray(analog, dtype=np.float64)
-    if a.ndim != 2:
-        raise ValueError(f"analog: expected shape (n, m), got {a.shape}")
-    p = np.ascontiguousarray(pos0, dtype=np.float64)
-    if p.shape != (a.shape[0],):
-        raise ValueError(f"pos0: expected shape ({a.shape[0]},), got {p.shape}")
-    if not step > 0 or n_samples < 0:
-        raise ValueError("step must be > 0 and n_samples >= 0")
-    out = np.zeros((a.shape[0], int(n_samples)))
-    if a.shape[0] and a.shape[1] and n_samples:
-        _sample_kernel(a, p, float(step), out)
-    return out
 
 
 def unit_gain_peaks(sensor: TruthSensor, sigma, t0_ns, range_m, *, trigger_loss: float = 0.0) -> np.ndarray:

@@ -7,12 +7,13 @@ Beyond Hovi & Korpela (2014), docs/method.md §(j); the ``diagnose`` stage
 * :mod:`.before_after` — two simulations against the same real data, paired bootstrap;
 * :mod:`.catalogue` — the effects as one-parameter model components (search coordinate, grid);
 * :mod:`.optimise` — the 1-D optimiser (parabolic vertex, Brent-like steps);
-* :mod:`.simulations` — the search's cache of simulator calls (common random numbers);
+* :mod:`.replicate_cache` — the search's cache of simulator calls, replicates per seed (common random numbers);
 * :mod:`.search` — settings and the search loop (fit on one half, test on the other, name);
 * :mod:`.strata` — the pulses compared, selection rules, the stratum under the crowns;
-* :mod:`.simulator` — the study's simulation chain as ``simulate(pulses, effects, seed)``;
-* :mod:`.missing_effects` — search, fresh before/after, signatures, the markdown summary;
+* :mod:`.twins` — the study's simulation chain as ``simulate(pulses, effects, seed)``: simulated twins;
+* :mod:`.missing_effects` — the whole diagnosis: search, fresh before/after, signatures, the markdown summary;
 * :mod:`.power` — detection limits: the smallest value of each candidate these data would detect;
-* :mod:`.model` — ``model.yaml``, written and read back;
-* :mod:`.figures` — ``gap.png``.
+* :mod:`.figures` — ``gap.png``;
+* :mod:`.settings` — :class:`.settings.DiagnoseSettings`, everything read from the config
+  (built by :func:`waveforest.settings.diagnose_settings`).
 """

@@ -73,17 +73,8 @@ class Reduction:
     replicates: np.ndarray
 
 
-def paired_reduction(
-    real: pd.DataFrame,
-    sim_base: pd.DataFrame,
-    sim_new: pd.DataFrame,
-    *,
-    n_boot: int = 200,
-    seed=0,
-    alpha: float = DEFAULT_ALPHA,
-    universe: pd.Series | None = None,
-    **build_kw,
-) -> Reduction:
+def paired_reduction(real: pd.DataFrame, sim_base: pd.DataFrame, sim_new: pd.DataFrame, *, n_boot: int = 200,
+                     seed=0, alpha: float = DEFAULT_ALPHA, universe: pd.Series | None = None, **build_kw) -> Reduction:
     """How much ``sim_new`` reduces the gap of ``sim_base``, with a paired cluster bootstrap.
 
     Both gaps average the same cells (valid in both) and every replicate resamples the same
@@ -101,17 +92,8 @@ def paired_reduction(
                      relative=float(rel), replicates=reps)
 
 
-def before_after(
-    real: pd.DataFrame,
-    sim_before: pd.DataFrame,
-    sim_after: pd.DataFrame,
-    *,
-    n_boot: int = 200,
-    seed=0,
-    alpha: float = DEFAULT_ALPHA,
-    wasserstein: bool = True,
-    **build_kw,
-) -> pd.DataFrame:
+def before_after(real: pd.DataFrame, sim_before: pd.DataFrame, sim_after: pd.DataFrame, *, n_boot: int = 200,
+                 seed=0, alpha: float = DEFAULT_ALPHA, wasserstein: bool = True, **build_kw) -> pd.DataFrame:
     """The gap of two simulations (base and extended model) against the same real data.
 
     One paired cluster bootstrap (the same resampled field samples for the real data and

@@ -97,7 +97,7 @@ FEATURE_SD_FLOOR: dict[str, float] = {
 MIN_CELL_PULSES = 10
 """A cell enters the gap when it has at least this many real pulses ..."""
 
-MIN_CELL_SAMPLES = 3
+MIN_CELL_SAMPLES = 2
 """... from at least this many field samples (a cluster bootstrap needs several clusters)."""
 
 _KEYS = ("dataset", "species", "sample_id")
@@ -446,6 +446,11 @@ def total_noise_floor(data: GapData, weights: np.ndarray, valid: np.ndarray | No
 # --------------------------------------------------------------------------------------
 
 
+def _total_row(column: str, kind: type, doc: str) -> property:
+    """A read-only property: ``kind`` of the ``total`` row's ``column`` of a report's ``summary``."""
+    return property(lambda self: kind(self.summary.loc["total", column]), doc=doc)
+
+
 @dataclass
 class GapReport:
     """The gap of one simulation against the real data, with intervals.
@@ -468,25 +473,10 @@ class GapReport:
     summary: pd.DataFrame
     replicates: np.ndarray
 
-    @property
-    def total(self) -> float:
-        """Total moment gap G, squared pooled SDs."""
-        return float(self.summary.loc["total", "gap"])
-
-    @property
-    def noise_floor(self) -> float:
-        """Total noise floor F."""
-        return float(self.summary.loc["total", "noise_floor"])
-
-    @property
-    def excess(self) -> float:
-        """G - F."""
-        return float(self.summary.loc["total", "excess"])
-
-    @property
-    def significant(self) -> bool:
-        """Whether the total excess gap's interval lies above 0."""
-        return bool(self.summary.loc["total", "significant"])
+    total = _total_row("gap", float, "Total moment gap G, squared pooled SDs (float).")
+    noise_floor = _total_row("noise_floor", float, "Total noise floor F (float).")
+    excess = _total_row("excess", float, "G - F (float).")
+    significant = _total_row("significant", bool, "Whether the total excess gap's interval lies above 0 (bool).")
 
 
 def gap_report(
@@ -512,7 +502,7 @@ def gap_report(
         Feature tables (dataset, species, sample_id and the feature columns).
     n_boot : int
         Cluster-bootstrap replicates (field samples resampled within species).
-    seed : int or SeedSequence
+    seed : int
         Seed of the bootstrap.
     alpha : float
         Two-sided level of the intervals.

@@ -1,7 +1,7 @@
 """The diagnosis without file I/O: search, fresh before/after simulations, signatures, summary.
 
-docs/method.md §(j). :func:`find_missing_effects` runs, from one master seed (streams
-``SeedSequence([seed, 8])``: search, "after" simulations, before/after bootstrap):
+docs/method.md §(j). :func:`find_missing_effects` runs, from one master seed (the named
+stream ``missing_effects``: search, "after" simulations, before/after bootstrap):
 
 1. the search (:func:`.search.search`) on ``keys`` (fits on ``fit_keys``);
 2. all pulses simulated again with a fresh seed, independent of the search, under the base
@@ -12,24 +12,35 @@ docs/method.md §(j). :func:`find_missing_effects` runs, from one master seed (s
    simulation cache or from the power analysis' simulations (no new simulation when either
    has the candidate).
 
+:func:`run_diagnosis` is the whole diagnosis of the ``select`` tables: the pulses compared,
+their real features, the detection limits (:mod:`.power`), then the above.
 :func:`summary_markdown` renders the result as ``diagnose.md``. Gaps in squared pooled SDs.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 import pandas as pd
 
 from waveforest.diagnose import catalogue as cat
 from waveforest.diagnose.before_after import before_after
-from waveforest.diagnose.power import verdict_with_limits
+from waveforest.diagnose.power import detection_limits, verdict_with_limits
+from waveforest.diagnose.replicate_cache import effects_key, simulate_all
 from waveforest.diagnose.search import SearchResult, SearchSettings, at_bound, search
-from waveforest.diagnose.simulations import effects_key, simulate_all
-from waveforest.diagnose.strata import NEAR_STEM_MIN_SAMPLES
+from waveforest.diagnose.settings import DiagnoseSettings
+from waveforest.diagnose.strata import (
+    BELOW_CROWN,
+    NEAR_STEM_MIN_SAMPLES,
+    below_crown_features,
+    pulse_keys,
+    real_features,
+)
 from waveforest.effects import CATALOGUE
 from waveforest.errors import WaveforestError
+from waveforest.rng import named_seeds
 
 
 def signatures(result: SearchResult, settings: SearchSettings, power_tables: dict | None = None) -> pd.DataFrame:
@@ -92,7 +103,7 @@ def find_missing_effects(keys: pd.DataFrame, real: pd.DataFrame, simulate, setti
     sigs : DataFrame
         :func:`signatures`.
     """
-    s_search, s_after, s_boot = np.random.SeedSequence([int(seed), 8]).generate_state(3)
+    s_search, s_after, s_boot = named_seeds("missing_effects", int(seed), n=3)
     result = search(keys, real, simulate, settings, seed=int(s_search), progress=progress, fit_keys=fit_keys)
     before = simulate_all(simulate, keys, {}, int(s_after), settings.replicates)
     after = before if not result.named else simulate_all(simulate, keys, result.effects, int(s_after),
@@ -113,6 +124,51 @@ def find_missing_effects(keys: pd.DataFrame, real: pd.DataFrame, simulate, setti
             "reduction_ci_high", "relative_reduction", "significant", "at_bound", "named"]
     cand = cand[lead + [c for c in cand.columns if c not in lead]]
     return result, gap, cand, signatures(result, settings, power_tables)
+
+
+@dataclass
+class Diagnosis:
+    """What :func:`run_diagnosis` found (the tables of :func:`find_missing_effects` and
+    :func:`.power.detection_limits`, and the pulses compared)."""
+
+    keys: pd.DataFrame
+    fit_keys: pd.DataFrame | None
+    result: SearchResult
+    gap: pd.DataFrame
+    candidates: pd.DataFrame
+    signatures: pd.DataFrame
+    limits: pd.DataFrame
+    curve: pd.DataFrame
+
+
+def run_diagnosis(selected: dict, features: pd.DataFrame, metas: dict, simulate, settings: DiagnoseSettings, *,
+                  progress=None) -> Diagnosis:
+    """The diagnosis of the ``select`` tables ``selected`` (dataset -> pa.Table).
+
+    The pulses compared (:func:`.strata.pulse_keys`; fits on at most ``settings.fit_pulses``
+    per dataset x species x stratum), their real rows of ``features`` (the real feature
+    tables; the stratum under the crowns from its own CFD echoes and ``metas``, dataset ->
+    calibration JSON dict), the detection limits (:func:`.power.detection_limits`), then
+    :func:`find_missing_effects` with ``simulate`` (:data:`.replicate_cache.Simulator`),
+    whose signatures reuse the power analysis' simulations. ``progress(label)`` is called
+    after every simulation.
+    """
+
+    strata = settings.strata
+    keys = pulse_keys(selected, strata)
+    fit_keys = None if settings.fit_pulses is None else pulse_keys(selected, strata, int(settings.fit_pulses))
+    if keys.empty:
+        raise WaveforestError("diagnose: no comparison pulse of the modelled species in the select tables")
+    real = real_features(features, keys[keys["stratum"] != BELOW_CROWN], strata)
+    if strata.below_crown:
+        real = pd.concat([real, below_crown_features(keys, selected, metas, strata)], ignore_index=True)
+    power_tables = {}  # the power analysis' simulations, which the signatures reuse
+    limits, curve = detection_limits(keys, simulate, settings.search, settings.power, settings.seed,
+                                     progress=progress, tables=power_tables)
+    result, gap, cand, sigs = find_missing_effects(keys, real, simulate, settings.search, settings.seed,
+                                                   fit_keys=fit_keys, progress=progress, power_tables=power_tables)
+    return Diagnosis(keys=keys, fit_keys=fit_keys, result=result, gap=gap, candidates=cand, signatures=sigs,
+                     limits=limits, curve=curve)
 
 
 def _fmt(x: float, nd: int = 3) -> str:

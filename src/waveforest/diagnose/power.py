@@ -40,10 +40,11 @@ import pandas as pd
 
 from waveforest.diagnose import catalogue as cat
 from waveforest.diagnose.gap import gap_report, sample_universe
+from waveforest.diagnose.replicate_cache import Simulator, effects_key, simulate_all
 from waveforest.diagnose.search import SearchSettings
-from waveforest.diagnose.simulations import Simulator, effects_key, simulate_all
 from waveforest.effects import CATALOGUE
 from waveforest.errors import WaveforestError
+from waveforest.rng import named_seeds
 from waveforest.stats.bootstrap import bootstrap_weights
 
 LIMIT_COLUMNS = ("effect", "unit", "smallest_detectable", "upper_bound", "power", "replicates")
@@ -55,7 +56,7 @@ CURVE_COLUMNS = ("effect", "value", "strength", "replicates", "power", "gap", "n
 
 @dataclass(frozen=True)
 class PowerSettings:
-    """Settings of the power analysis (config section ``diagnose.power``).
+    """Settings of the power analysis (config section ``diagnose.power``; defaults are the schema's).
 
     Attributes
     ----------
@@ -74,12 +75,6 @@ class PowerSettings:
     def __post_init__(self) -> None:
         if self.replicates < 1 or self.values < 1 or not 0.0 < self.power <= 1.0:
             raise WaveforestError("diagnose.power: need replicates >= 1, values >= 1, 0 < power <= 1")
-
-    @classmethod
-    def from_config(cls, cfg: dict) -> PowerSettings:
-        """Settings from a loaded study config (``diagnose.power``)."""
-        p = cfg["diagnose"]["power"]
-        return cls(replicates=int(p["replicates"]), values=int(p["values"]), power=float(p["power"]))
 
     @property
     def needed(self) -> int:
@@ -116,7 +111,7 @@ class _Replicate:
     """One pseudo-real replicate: its seeds, base simulation side and bootstrap weights."""
 
     def __init__(self, keys, simulate, settings: SearchSettings, seed, universe, progress):
-        s_real, s_sim, s_boot = np.random.SeedSequence(seed).generate_state(3)
+        s_real, s_sim, s_boot = named_seeds("power_replicate", seed, n=3)
         self.keys, self.simulate, self.settings, self.progress = keys, simulate, settings, progress
         self.s_real, self.s_boot = int(s_real), s_boot
         self.sim = self._count(simulate_all(simulate, keys, {}, int(s_sim), settings.replicates), "power: base")
@@ -163,7 +158,7 @@ def detection_limits(keys: pd.DataFrame, simulate: Simulator, settings: SearchSe
         Called with a label after each simulation.
     tables : dict, optional
         Filled with the first replicate's pseudo-real feature tables, keyed by
-        :func:`.simulations.effects_key` (off included): one seed for all, so any two are
+        :func:`.replicate_cache.effects_key` (off included): one seed for all, so any two are
         common-random-number pairs (:func:`.missing_effects.signatures` reads them).
 
     Returns
@@ -183,7 +178,7 @@ def detection_limits(keys: pd.DataFrame, simulate: Simulator, settings: SearchSe
         return pd.DataFrame(columns=list(LIMIT_COLUMNS)), pd.DataFrame(columns=list(CURVE_COLUMNS))
     keys = keys.assign(sample_id=keys["sample_id"].astype(str))
     universe = sample_universe(keys)
-    seeds = np.random.SeedSequence([int(seed), 9]).generate_state(power.replicates)
+    seeds = named_seeds("power", int(seed), n=power.replicates)
     reps = [_Replicate(keys, simulate, settings, int(s), universe, progress) for s in seeds]
     reps[0].tables = tables
     off = np.array([r.test({}) for r in reps])  # (R, 3)

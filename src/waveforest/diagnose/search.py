@@ -10,7 +10,7 @@ docs/method.md §(j) (the search). Procedure (one *round*; :func:`search` runs u
    plus the candidate at each value of a grid over its search coordinate
    (:func:`.catalogue.grid`, always containing "off" = the current model), then refine with
    a few Brent-like steps (:func:`.optimise.refinement_step`). Every value uses the **same
-   seed** (common random numbers, :class:`.simulations.SimulationCache`). The fitted value
+   seed** (common random numbers, :class:`.replicate_cache.SimulationCache`). The fitted value
    minimises the gap G(u) (:func:`.optimise.parabolic_vertex`); its interval: the same
    cluster-bootstrap resamples applied to every simulated value give a gap curve per
    replicate, whose parabolic minimum is a replicate of the fitted value.
@@ -30,7 +30,7 @@ docs/method.md §(j) (the search). Procedure (one *round*; :func:`search` runs u
    (:data:`REFIT_PASSES`). Stop when the best candidate is not significant, when
    ``rounds`` effects are named, or when the model's gap is within the noise floor.
 
-Verdict (:data:`.model.VERDICTS`): ``none`` when the base model's gap is not significant
+Verdict (:data:`waveforest.io.results.VERDICTS`): ``none`` when the base model's gap is not significant
 above its noise floor; ``named`` when at least one effect was named; ``unexplained``
 otherwise. Gaps are in squared pooled SDs; search coordinates u in [0, 1]. Errors:
 :class:`waveforest.errors.WaveforestError` for a pulse table without dataset, sample_id or
@@ -60,9 +60,10 @@ from waveforest.diagnose.gap import (
     total_noise_floor,
 )
 from waveforest.diagnose.optimise import parabolic_vertex, refinement_step
-from waveforest.diagnose.simulations import HALVES, SimulationCache, Simulator
+from waveforest.diagnose.replicate_cache import HALVES, SimulationCache, Simulator
 from waveforest.effects import CATALOGUE
 from waveforest.errors import WaveforestError
+from waveforest.rng import named_generator, named_seeds
 from waveforest.stats.bootstrap import DEFAULT_ALPHA, bootstrap_weights, cluster_df, wald_interval
 
 REFIT_PASSES = 3
@@ -74,20 +75,20 @@ _REFIT_TOL_U = 0.01
 
 @dataclass(frozen=True)
 class SearchSettings:
-    """Settings of the search (config section ``diagnose``).
+    """Settings of the search (config section ``diagnose``; defaults are the schema's).
 
     Attributes
     ----------
     rounds : int
         Most effects named.
     n_boot : int
-        Cluster-bootstrap replicates.
+        Cluster-bootstrap replicates (``bootstrap``).
     values : int
         Grid values per candidate (including "off").
     refine : int
         Refinement steps per candidate fit (one simulation each).
     replicates : int
-        Simulated pulses per real pulse and value.
+        Simulated pulses per real pulse and value (``pulses_per_value``).
     alpha : float
         Two-sided level of the intervals.
     min_relative_reduction : float
@@ -99,14 +100,14 @@ class SearchSettings:
     crossfit : bool
         Fit on each half and test on the other (both directions), or only fit A / test B.
     features, floors, min_pulses, min_samples
-        Gap settings (:meth:`.gap.GapData.build`).
+        Gap settings (:meth:`.gap.GapData.build`; ``min_cell_pulses``, ``min_cell_samples``).
     """
 
     rounds: int = 3
     n_boot: int = 200
     values: int = 5
     refine: int = 3
-    replicates: int = 2
+    replicates: int = 1
     alpha: float = DEFAULT_ALPHA
     min_relative_reduction: float = 0.2
     candidates: tuple[str, ...] = tuple(CATALOGUE)
@@ -126,26 +127,6 @@ class SearchSettings:
             )
         if not 0 < self.alpha < 1:
             raise WaveforestError(f"diagnose.alpha must be in (0, 1), got {self.alpha}")
-
-    @classmethod
-    def from_config(cls, cfg: dict) -> SearchSettings:
-        """Settings from a loaded study config (section ``diagnose``)."""
-        d = cfg["diagnose"]
-        return cls(
-            rounds=int(d["rounds"]),
-            n_boot=int(d["bootstrap"]),
-            values=int(d["values"]),
-            refine=int(d["refine"]),
-            replicates=int(d["pulses_per_value"]),
-            alpha=float(d["alpha"]),
-            min_relative_reduction=float(d["min_relative_reduction"]),
-            candidates=tuple(d["candidates"] or CATALOGUE),
-            refit=bool(d["refit"]),
-            crossfit=bool(d["crossfit"]),
-            features=tuple(d["features"]),
-            min_pulses=int(d["min_cell_pulses"]),
-            min_samples=int(d["min_cell_samples"]),
-        )
 
     @property
     def gap_kw(self) -> dict:
@@ -359,7 +340,7 @@ def split_samples(keys: pd.DataFrame, seed) -> tuple[list[str], list[str]]:
     seen = keys.assign(sample_id=keys["sample_id"].astype(str), dataset=keys["dataset"].astype(str))
     seen = seen.groupby("sample_id")["dataset"].agg(lambda d: ",".join(sorted(set(d))))
     stratum = uni.astype(str) + "|" + seen.reindex(uni.index).fillna("").astype(str)
-    rng = np.random.default_rng(seed)
+    rng = named_generator("search_split", seed)
     a, b = [], []
     extra_to_a = True
     for st in sorted(stratum.unique()):
@@ -550,7 +531,7 @@ def _setup(keys: pd.DataFrame, real: pd.DataFrame, simulate: Simulator, settings
             raise WaveforestError(f"diagnose: pulse table lacks column {col!r}")
     keys = keys.assign(sample_id=keys["sample_id"].astype(str))
     real = real.assign(sample_id=real["sample_id"].astype(str))
-    s_split, s_a, s_b, s_wa, s_wb, s_all = np.random.SeedSequence(seed).generate_state(6)
+    s_split, s_a, s_b, s_wa, s_wb, s_all = named_seeds("search", seed, n=6)
     ids = dict(zip(HALVES, split_samples(keys, s_split)))
     if not ids["A"] and not ids["B"]:
         raise WaveforestError("diagnose: no field sample to diagnose")
@@ -698,7 +679,7 @@ def search(
         Real feature table of those pulses (dataset, sample_id, species, features; with
         pulse_id when ``fit_keys`` is given).
     simulate : Simulator
-        ``simulate(pulses, effects, seed) -> feature table`` (:data:`.simulations.Simulator`).
+        ``simulate(pulses, effects, seed) -> feature table`` (:data:`.replicate_cache.Simulator`).
     settings : SearchSettings, optional
     seed : int
         Master seed: split, simulation seeds and bootstrap draws derive from it.

@@ -15,7 +15,7 @@ Real and simulated pulses of a stratum are drawn by one rule and one detector:
 * real side: :func:`own_cfd_echoes` gives every pulse the CFD echoes a twin would get, and
   :func:`with_pulses_under_crowns` re-draws ``below_crown_set`` with ``select``'s rules on
   them; :func:`below_crown_features` computes their features;
-* twin side (:class:`.simulator.StudySimulator`): up to :data:`BELOW_CROWN_ATTEMPTS` traces
+* twin side (:class:`.twins.StudySimulator`): up to :data:`BELOW_CROWN_ATTEMPTS` traces
   of the beam, turned about the stem (:func:`turned_about_stems`, :func:`stem_distance`),
   the first whose echo meets the same rule;
 * both sides: :func:`apply_rules` (``select``'s and ``compare``'s rules, docs/method.md §(i1)).
@@ -28,6 +28,9 @@ columns and for no matching real feature row.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from dataclasses import dataclass
+
 import numpy as np
 import pandas as pd
 import pyarrow as pa
@@ -36,12 +39,12 @@ import pyarrow.compute as pc
 from waveforest.constants import RANGE_PER_NS
 from waveforest.errors import WaveforestError
 from waveforest.io.pulses import list_to_padded, padded_to_list
-from waveforest.model.forward import SensorSetup, twin_echoes
+from waveforest.model.forward import SensorSettings, twin_echoes
+from waveforest.model.selection import SelectRules, select_pulses
 from waveforest.rng import hash_ids, stable_hash
-from waveforest.sensor import FeatureParams, feature_table
-from waveforest.sensor._checks import gain_or_one
+from waveforest.sensor import feature_table
 from waveforest.sensor.agc import GAIN_COLUMN
-from waveforest.stages.select import SelectRules, select_pulses
+from waveforest.sensor.checks import gain_or_one
 
 BELOW_CROWN = "below crown"
 """``stratum`` of the pulses of ``select``'s ``below_crown_set`` (the others have "")."""
@@ -55,7 +58,7 @@ field samples: the intervals resample field samples, and cells of a few give the
 long tail (docs/validation.md, Near the stem)."""
 
 BELOW_CROWN_ATTEMPTS = 16
-"""Most attempts at a twin under the crown per pulse of that stratum (:class:`.simulator.StudySimulator`)."""
+"""Most attempts at a twin under the crown per pulse of that stratum (:class:`.twins.StudySimulator`)."""
 
 WAVEFORM_FEATURES = ("Npeaks", "Apeak", "FWHM", "E")
 """Features restricted by ``simulate.compare_min_h_m`` (all but H)."""
@@ -65,7 +68,39 @@ KEY_COLUMNS = ("dataset", "pulse_id", "sample_id", "species", "is_tree", "compar
 """``select`` columns that identify a pulse to simulate."""
 
 
-def apply_rules(features: pd.DataFrame, cfg: dict) -> pd.DataFrame:
+@dataclass(frozen=True)
+class StrataSettings:
+    """The populations compared and the rules that draw them (config sections ``select``,
+    ``simulate``, ``diagnose``, ``sensor``, ``seed``).
+
+    Attributes
+    ----------
+    rules : SelectRules
+        ``select``'s rules; ``comparison_species`` are the modelled species compared.
+    compare_min_h_m : mapping species -> m
+        ``compare``'s rule (``simulate.compare_min_h_m``).
+    near_stem_m : float or None, m
+        ``diagnose.near_stem_m``.
+    below_crown : bool
+        ``diagnose.below_crown``.
+    max_pulses : int or None
+        ``diagnose.max_pulses``.
+    seed : int
+        The study's master seed (the seeded caps).
+    sensor : SensorSettings
+        The sensor model: the features, and the CFD of a calibration without its own.
+    """
+
+    rules: SelectRules
+    compare_min_h_m: Mapping[str, float]
+    near_stem_m: float | None
+    below_crown: bool
+    max_pulses: int | None
+    seed: int
+    sensor: SensorSettings
+
+
+def apply_rules(features: pd.DataFrame, strata: StrataSettings) -> pd.DataFrame:
     """The selection rules of ``select`` and ``compare`` applied to a feature table.
 
     Rows of trees (``is_tree``) whose first echo lies below ``select.tree_min_echo_h_m`` are
@@ -80,19 +115,18 @@ def apply_rules(features: pd.DataFrame, cfg: dict) -> pd.DataFrame:
     features : DataFrame
         Feature table with species, H, the waveform features and optionally is_tree and
         stratum.
-    cfg : dict
-        Loaded study config.
+    strata : StrataSettings
     """
     df = features[np.isfinite(features["H"].to_numpy(dtype=float))].copy()
     below = (df["stratum"].astype(str) == BELOW_CROWN).to_numpy() if "stratum" in df else np.zeros(len(df), bool)
     if "is_tree" in df.columns:
         tree = df["is_tree"].fillna(False).astype(bool).to_numpy()
-        high = df["H"].to_numpy(float) >= float(cfg["select"]["tree_min_echo_h_m"])
+        high = df["H"].to_numpy(float) >= float(strata.rules.tree_min_echo_h_m)
         keep = np.where(below, ~high, ~tree | high)
         df, below = df[keep].copy(), below[keep]
     species = df["species"].astype(str).to_numpy()
     h = df["H"].to_numpy(float)
-    for sp, lo in cfg["simulate"]["compare_min_h_m"].items():
+    for sp, lo in strata.compare_min_h_m.items():
         low = (species == sp) & ~(h > float(lo)) & ~below
         for f in WAVEFORM_FEATURES:
             if f in df.columns:
@@ -127,7 +161,7 @@ def stem_distance(pulses: pa.Table, z) -> np.ndarray:
                     - col["sample_y"])
 
 
-def own_cfd_echoes(pulses: pa.Table, calibration, cfg: dict) -> pa.Table:
+def own_cfd_echoes(pulses: pa.Table, calibration, sensor: SensorSettings) -> pa.Table:
     """``pulses`` with their DR echoes replaced by the CFD echoes of their own waveforms.
 
     The CFD, its range correction and its arming on the recorded noise (noise SD / AGC gain)
@@ -141,17 +175,17 @@ def own_cfd_echoes(pulses: pa.Table, calibration, cfg: dict) -> pa.Table:
         AGC-normalised pulse rows of one dataset (``agc`` or ``select`` table rows).
     calibration : waveforest.sensor.calibration.Calibration
         The dataset's calibration (CFD, range correction, noise).
-    cfg : dict
-        Loaded study config (``sensor.cfd`` when the calibration has no CFD).
+    sensor : SensorSettings
+        Its CFD when the calibration has none.
     """
 
     samples, lengths = list_to_padded(pulses.column("samples"))
     sampling = pulses.column("sampling_ns").to_numpy(zero_copy_only=False)
     gain = gain_or_one(pulses.column(GAIN_COLUMN).to_numpy(zero_copy_only=False)) if GAIN_COLUMN in \
         pulses.column_names else None
-    setup = SensorSetup.from_config(cfg, calibration.system, calibration.noise_mean, calibration.noise_sd,
-                                    float(sampling[0]) if len(sampling) else 1.0,
-                                    range_correction=calibration.range_correction, cfd=calibration.cfd)
+    setup = sensor.setup(calibration.system, calibration.noise_mean, calibration.noise_sd,
+                         float(sampling[0]) if len(sampling) else 1.0, range_correction=calibration.range_correction,
+                         cfd=calibration.cfd)
     echoes = twin_echoes(samples, lengths, sampling, setup, gain)
     times, counts = np.nan_to_num(echoes.times_ns), echoes.n_echoes.astype(np.int64)
     columns = {"echo_time_ns": padded_to_list(times, counts, pa.float64()),
@@ -169,7 +203,6 @@ def own_cfd_echoes(pulses: pa.Table, calibration, cfg: dict) -> pa.Table:
     return out.filter(pa.array(counts > 0))
 
 
-
 def _whole_samples(df: pd.DataFrame, cap: int, seed: int) -> pd.DataFrame:
     """Rows of whole field samples, in a seeded order of the samples (the same in every dataset),
     per species x stratum, while their pulses number at most ``cap`` (at least one sample).
@@ -185,15 +218,14 @@ def _whole_samples(df: pd.DataFrame, cap: int, seed: int) -> pd.DataFrame:
     return df[keep.astype(bool)].drop(columns="_rank")
 
 
-def pulse_keys(selected: dict, cfg: dict, cap: int | None = None) -> pd.DataFrame:
+def pulse_keys(selected: dict, strata: StrataSettings, cap: int | None = None) -> pd.DataFrame:
     """The pulses the diagnosis simulates (module docstring).
 
     Parameters
     ----------
     selected : dict
         Dataset -> ``select`` pa.Table.
-    cfg : dict
-        Loaded study config.
+    strata : StrataSettings
     cap : int, optional
         At most this many pulses per dataset x species x stratum (a seeded random subset: a
         smaller cap gives a subset of a larger one); None = all. Applied after
@@ -206,8 +238,8 @@ def pulse_keys(selected: dict, cfg: dict, cap: int | None = None) -> pd.DataFram
         :data:`NEAR_STEM` or ""); sorted by dataset and pulse_id.
     """
 
-    species = [str(s) for s in cfg["simulate"]["species"]]
-    near_m = cfg["diagnose"]["near_stem_m"]
+    species = [str(s) for s in strata.rules.comparison_species]
+    near_m = strata.near_stem_m
     optional = ("is_tree", "below_crown_set", "sample_distance_m")  # select tables of other tools may lack them
     parts = []
     for ds, table in sorted(selected.items()):
@@ -218,16 +250,16 @@ def pulse_keys(selected: dict, cfg: dict, cap: int | None = None) -> pd.DataFram
         df = df.reindex(columns=list(KEY_COLUMNS), fill_value=False)
         if "sample_distance_m" not in table.column_names:
             df["sample_distance_m"] = np.nan
-        below = df["below_crown_set"].fillna(False).astype(bool) & bool(cfg["diagnose"]["below_crown"])
+        below = df["below_crown_set"].fillna(False).astype(bool) & bool(strata.below_crown)
         df = df[(df["comparison_set"].fillna(False).astype(bool) | below) & df["species"].astype(str).isin(species)]
         df = df.assign(stratum=np.where(below[df.index], BELOW_CROWN, "")).drop(
             columns=["comparison_set", "below_crown_set"])
-        if cfg["diagnose"]["max_pulses"] is not None:
-            df = _whole_samples(df, int(cfg["diagnose"]["max_pulses"]), int(cfg["seed"]))
+        if strata.max_pulses is not None:
+            df = _whole_samples(df, int(strata.max_pulses), int(strata.seed))
         # which species to split at the stem: decided before the fit cap, so fits and tests share cells
         split = [] if near_m is None else _split_species(df, float(near_m))
         if cap is not None:
-            rank = hash_ids(stable_hash(int(cfg["seed"]), ds, "diagnose"), df["pulse_id"].to_numpy(np.int64))
+            rank = hash_ids(stable_hash(int(strata.seed), ds, "diagnose"), df["pulse_id"].to_numpy(np.int64))
             df = df.assign(_rank=rank).sort_values(["_rank", "pulse_id"])
             df = df.groupby(["species", "stratum"], sort=False).head(int(cap)).drop(columns="_rank")
         if near_m is not None:  # after the caps: a split of cells, not a choice of pulses
@@ -261,7 +293,7 @@ def _split_species(df: pd.DataFrame, near_m: float) -> list[str]:
     return [str(sp) for sp in both.index[both >= NEAR_STEM_MIN_SAMPLES]]
 
 
-def real_features(features: pd.DataFrame, keys: pd.DataFrame, cfg: dict) -> pd.DataFrame:
+def real_features(features: pd.DataFrame, keys: pd.DataFrame, strata: StrataSettings) -> pd.DataFrame:
     """The real feature rows of ``keys``' pulses, with ``compare``'s rules applied."""
 
     f = features.copy()
@@ -273,17 +305,17 @@ def real_features(features: pd.DataFrame, keys: pd.DataFrame, cfg: dict) -> pd.D
     real = keys[key_cols].merge(f, on=["dataset", "pulse_id"], how="inner", validate="one_to_one")
     if real.empty:
         raise WaveforestError("diagnose: no real feature row matches the selected comparison pulses")
-    return apply_rules(real, cfg)
+    return apply_rules(real, strata)
 
 
 def with_pulses_under_crowns(selected: pa.Table, agc: pa.Table, fields: pd.DataFrame, year: int, calibration,
-                             cfg: dict) -> pa.Table:
+                             strata: StrataSettings) -> pa.Table:
     """``selected`` with its ``below_crown_set`` re-drawn by the pulses' own first CFD echo.
 
     The real side of the stratum "below crown" is chosen by the detector that chooses its twins
-    (:class:`.simulator.StudySimulator`): every pulse of the dataset gets the CFD echoes of its own waveform
-    (:func:`.simulator.own_cfd_echoes`), and ``select``'s rules
-    (:func:`waveforest.stages.select.select_pulses`) on those echoes say which lie under a
+    (:class:`.twins.StudySimulator`): every pulse of the dataset gets the CFD echoes of its own waveform
+    (:func:`own_cfd_echoes`), and ``select``'s rules
+    (:func:`waveforest.model.selection.select_pulses`) on those echoes say which lie under a
     compared crown. Those rows carry their CFD echoes and replace the pulses' ``select`` rows,
     also those of a crown the DR echo gave them (a DR that fired on a weak crown return the
     CFD passes over; its twin is sorted by the CFD too).
@@ -299,11 +331,10 @@ def with_pulses_under_crowns(selected: pa.Table, agc: pa.Table, fields: pd.DataF
     year : int
         The dataset's campaign year.
     calibration : waveforest.sensor.calibration.Calibration
-    cfg : dict
-        Loaded study config.
+    strata : StrataSettings
     """
 
-    own = select_pulses(own_cfd_echoes(agc, calibration, cfg), fields, year, SelectRules.from_config(cfg))
+    own = select_pulses(own_cfd_echoes(agc, calibration, strata.sensor), fields, year, strata.rules)
     under = own.filter(own.column("below_crown_set"))
     keep = pc.invert(pc.is_in(selected.column("pulse_id"), value_set=under.column("pulse_id")))
     if "below_crown_set" in selected.column_names:
@@ -313,7 +344,7 @@ def with_pulses_under_crowns(selected: pa.Table, agc: pa.Table, fields: pd.DataF
     return pa.concat_tables([ordinary, under], promote_options="permissive")
 
 
-def below_crown_features(keys: pd.DataFrame, selected: dict, metas: dict, cfg: dict) -> pd.DataFrame:
+def below_crown_features(keys: pd.DataFrame, selected: dict, metas: dict, strata: StrataSettings) -> pd.DataFrame:
     """Real feature rows of the stratum "below crown" of ``keys``, from their own CFD echoes
     (:func:`with_pulses_under_crowns`), with ``compare``'s rules.
 
@@ -325,8 +356,7 @@ def below_crown_features(keys: pd.DataFrame, selected: dict, metas: dict, cfg: d
         Dataset -> table of :func:`with_pulses_under_crowns`.
     metas : dict
         Dataset -> calibration JSON dict.
-    cfg : dict
-        Loaded study config.
+    strata : StrataSettings
     """
 
     below = keys[keys["stratum"] == BELOW_CROWN]
@@ -334,5 +364,5 @@ def below_crown_features(keys: pd.DataFrame, selected: dict, metas: dict, cfg: d
     for ds, rows in below.groupby("dataset", sort=True):
         table = selected[ds]
         sub = table.filter(pc.is_in(table.column("pulse_id"), value_set=pa.array(rows["pulse_id"].to_numpy(np.int64))))
-        parts.append(feature_table(sub, {ds: metas[ds]}, FeatureParams.from_config(cfg)))
-    return real_features(pd.concat(parts, ignore_index=True), below, cfg) if parts else pd.DataFrame()
+        parts.append(feature_table(sub, {ds: metas[ds]}, strata.sensor.features))
+    return real_features(pd.concat(parts, ignore_index=True), below, strata) if parts else pd.DataFrame()

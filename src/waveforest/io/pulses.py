@@ -104,6 +104,18 @@ def check_pulses(table: pa.Table, source: str | Path = "<table>") -> pa.Table:
     return pa.Table.from_arrays(cols, schema=pa.schema(fields))
 
 
+def single_dataset(names: set, path) -> str:
+    """The one dataset name of ``names`` (those found in the pulse table at ``path``).
+
+    Raises WaveforestError unless ``names`` holds exactly one name.
+    """
+    if len(names) != 1:
+        raise WaveforestError(
+            f"{path}: holds datasets {', '.join(sorted(map(str, names))) or '(none)'}; expected exactly one "
+            "(run the step once per dataset file)")
+    return next(iter(names))
+
+
 def read_pulses(path: str | Path, columns: list[str] | None = None) -> pa.Table:
     """Read a pulse table from Parquet and check it against :data:`PULSE_SCHEMA`."""
     path = Path(path)

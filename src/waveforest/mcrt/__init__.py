@@ -5,7 +5,7 @@ Public API::
     from waveforest.mcrt import Beams, prepare, trace
     prepared = prepare(scene)                     # Embree BVH, built once
     beams = Beams.from_divergence(sensor_xyz, dir_xyz, 0.15, range_m)
-    res = trace(prepared, beams, n_rays=30000, max_order=10, seed=1)
+    res = trace(prepared, beams, n_rays=16384, max_order=10, seed=1, sampler="sobol", roulette=0.5)
     res.sigma, res.t0_ns, res.bin_ns, res.order_totals, res.first_hit_counts
 
 Modules: :mod:`.beams` (pulses), :mod:`.prepare` (a scene made ready, :func:`prepare`),
@@ -14,12 +14,14 @@ Modules: :mod:`.beams` (pulses), :mod:`.prepare` (a scene made ready, :func:`pre
 """
 
 from waveforest.mcrt.backends import DirectEmbreeIntersector, EmbreeIntersector, NumpyIntersector
-from waveforest.mcrt.beams import Beams, direction_from_angles
+from waveforest.mcrt.beams import DEFAULT_DIVERGENCE_MRAD, Beams, BeamSpec, direction_from_angles
 from waveforest.mcrt.prepare import PreparedScene, Prototypes, prepare, prepare_instances, prepare_prototypes
 from waveforest.mcrt.tracer import DEFAULT_WINDOW_NS, TraceResult, trace
 
 __all__ = [
     "Beams",
+    "BeamSpec",
+    "DEFAULT_DIVERGENCE_MRAD",
     "direction_from_angles",
     "EmbreeIntersector",
     "DirectEmbreeIntersector",

@@ -174,3 +174,40 @@ class Beams:
         if divergence_mrad is not None:
             return cls.from_divergence(origin, d, divergence_mrad, rng)
         return cls(origin, d, footprint_m)
+
+
+DEFAULT_DIVERGENCE_MRAD = 0.15
+"""ALS60 1/e beam divergence, mrad (docs/method.md §(a)): a :class:`BeamSpec` with neither a
+footprint nor a divergence."""
+
+
+@dataclass(frozen=True)
+class BeamSpec:
+    """One pulse aimed at a target point (:meth:`Beams.toward`).
+
+    Attributes
+    ----------
+    target : (3,) float, m
+        Point on the beam axis at ``range_m`` from the sensor (scene coordinates).
+    range_m : float, m
+    scan_zenith_deg, azimuth_deg : float, degrees
+        As :func:`direction_from_angles`.
+    footprint_m, divergence_mrad : float or None
+        1/e footprint diameter of a collimated beam (m), or 1/e divergence of a diverging one
+        (mrad): at most one; neither = :data:`DEFAULT_DIVERGENCE_MRAD`.
+    """
+
+    target: tuple[float, float, float]
+    range_m: float
+    scan_zenith_deg: float
+    azimuth_deg: float
+    footprint_m: float | None = None
+    divergence_mrad: float | None = None
+
+    def beams(self) -> Beams:
+        """The one-pulse :class:`Beams` (ValueError for a footprint and a divergence both given)."""
+        divergence = self.divergence_mrad
+        if self.footprint_m is None and divergence is None:
+            divergence = DEFAULT_DIVERGENCE_MRAD
+        return Beams.toward(np.asarray(self.target, float), float(self.range_m), float(self.scan_zenith_deg),
+                            float(self.azimuth_deg), footprint_m=self.footprint_m, divergence_mrad=divergence)

@@ -20,7 +20,9 @@ Randomness: a counter-based generator keyed by (seed, pulse index in the call, r
 draw) (:mod:`waveforest.mcrt.kernels`), so the same seed gives the identical result whatever the threads,
 the chunking and the parallel mode. ``sampler="sobol"`` draws the same uniforms from a per-pulse
 Owen-scrambled Sobol' sequence instead (randomized QMC); ``roulette`` ends low-power paths by
-an unbiased Russian roulette (a weight window). Both are off by default (docs/method.md §(d) as written).
+an unbiased Russian roulette (a weight window). The caller chooses ``n_rays``, ``sampler`` and
+``roulette`` (config ``mcrt``); the defaults of ``max_order``, ``bin_ns``, ``viewed_diameter_m`` and
+``window_ns`` are the config schema's (``tests/test_mcrt_defaults.py`` compares them).
 
 Embree: the default intersector calls ``rtcIntersect1`` / ``rtcOccluded1`` from a Numba
 kernel (:mod:`waveforest.mcrt.backends.embree`) on a BVH of HIGH build quality.
@@ -61,6 +63,7 @@ from waveforest.mcrt.kernels import (
 )
 from waveforest.mcrt.prepare import PreparedScene, prepare
 from waveforest.mcrt.threads import MIN_PARALLEL_RAYS, NumbaThreads, default_threads
+from waveforest.rng import named_seed
 from waveforest.scene import Scene
 from waveforest.workers import unordered_map
 
@@ -173,7 +176,7 @@ def master_key(seed) -> np.uint64:
         return np.uint64(seed.integers(0, 2**64, dtype=np.uint64))
     if isinstance(seed, (bool, np.bool_)) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise ValueError(f"seed: expected a non-negative int or a numpy Generator, got {seed!r}")
-    return np.random.SeedSequence(int(seed)).generate_state(1, dtype=np.uint64)[0]
+    return np.uint64(named_seed("mcrt_key", int(seed), bits=64))
 
 
 def start_plane(bounds: np.ndarray, sensor: np.ndarray, axis: np.ndarray) -> np.ndarray:
@@ -212,7 +215,7 @@ def survival_by_order(survival, max_order: int) -> np.ndarray:
     return out
 
 
-def _check(n_rays, max_order, bin_ns, viewed_diameter_m, window_ns, specular, hotspot):
+def _check(n_rays, max_order, bin_ns, viewed_diameter_m, window_ns, specular, hotspot, sampler, roulette):
     if not isinstance(n_rays, (int, np.integer)) or n_rays < 1:
         raise ValueError(f"n_rays: expected a positive int, got {n_rays!r}")
     if not isinstance(max_order, (int, np.integer)) or max_order < 1:
@@ -225,13 +228,41 @@ def _check(n_rays, max_order, bin_ns, viewed_diameter_m, window_ns, specular, ho
         raise ValueError(f"specular: expected a fraction in [0, 1], got {specular!r}")
     if not (np.isfinite(hotspot) and hotspot >= 0):
         raise ValueError(f"hotspot: expected a factor >= 0 (off = {CATALOGUE['hotspot'].off}), got {hotspot!r}")
+    if sampler not in SAMPLERS:
+        raise ValueError(f"sampler: expected one of {', '.join(SAMPLERS)}, got {sampler!r}")
+    if not (np.isfinite(roulette) and 0 <= roulette <= 1):
+        raise ValueError(f"roulette: expected a power fraction in [0, 1], got {roulette!r}")
 
 
-def _trace_chunk(prepared: PreparedScene, beams: Beams, index: np.ndarray, key, n_rays: int,
-                 max_order: int, bin_ns: float, n_bins: int, viewed_diameter_m: float,
-                 specular: float, hotspot: float, by_order: bool, threads: int | None,
-                 sampler: str = "random", survive: np.ndarray | None = None, roulette: float = 0.0):
-    """Trace one chunk of beams (``index`` = their positions in the trace call).
+@dataclass(frozen=True)
+class _ChunkSettings:
+    """What every chunk of one :func:`trace` call shares (its checked arguments)."""
+
+    key: np.uint64
+    """Master key of the counter-based generator (:func:`master_key`)."""
+    n_rays: int
+    max_order: int
+    bin_ns: float
+    n_bins: int
+    viewed_diameter_m: float
+    specular: float
+    hotspot: float
+    by_order: bool
+    sampler: str
+    survive: np.ndarray
+    """(max_order + 1,) continuation probability after each order (:func:`survival_by_order`)."""
+    roulette: float
+
+    @property
+    def layers(self) -> int:
+        """sigma layers kept per pulse: one per order (``by_order``), else one."""
+        return self.max_order if self.by_order else 1
+
+
+def _trace_chunk(prepared: PreparedScene, beams: Beams, index: np.ndarray, st: _ChunkSettings,
+                threads: int | None):
+    """Trace one chunk of beams (``index`` = their positions in the trace call), one wavefront
+    per scattering order.
 
     Returns (sigma (nb, layers, n_bins), dropped (nb,), order_totals (nb, max_order),
     first_hit_counts (nb, 5), t0_ns (nb,)).
@@ -241,37 +272,47 @@ def _trace_chunk(prepared: PreparedScene, beams: Beams, index: np.ndarray, key, 
     axis = beams.direction
     plane = start_plane(prepared.bounds, sensor, axis)
     t0 = 2.0 * plane / C_M_PER_NS - T0_LEAD_NS
-    frame = BeamFrame(np.ascontiguousarray(sensor), np.ascontiguousarray(axis), t0, beam_keys(key, index))
-    acc = np.zeros((nb, max_order if by_order else 1, n_bins))
+    frame = BeamFrame(np.ascontiguousarray(sensor), np.ascontiguousarray(axis), t0, beam_keys(st.key, index))
+    acc = np.zeros((nb, st.layers, st.n_bins))
     dropped = np.zeros(nb)
-    totals = np.zeros((nb, max_order))
+    totals = np.zeros((nb, st.max_order))
 
-    rays = emit_rays(frame, beams.footprint_m, beams.range_m, plane, n_rays, sampler)
+    rays = emit_rays(frame, beams.footprint_m, beams.range_m, plane, st.n_rays, st.sampler)
     buffers = rays  # the live rays are packed into the emission arrays after each order
     work = Scattered.empty(len(rays))
     isect = prepared.intersector
     first = None
-    for order in range(1, max_order + 1):
+    for order in range(1, st.max_order + 1):
         if len(rays) == 0:
             break
         tfar, prim = isect.intersect(rays.origin, rays.direction, threads=threads)
         if order == 1:
-            code = np.where(prim >= 0, prepared.kind_of(np.maximum(prim, 0)), MISS_KIND)
-            first = np.bincount(rays.beam * (MISS_KIND + 1) + code,
-                                minlength=nb * (MISS_KIND + 1)).reshape(nb, MISS_KIND + 1)
-        out = scatter(order, order == max_order, rays, tfar, prim, prepared, frame, n_bins, bin_ns,
-                      viewed_diameter_m, specular, SPECULAR_PHONG_EXPONENT, hotspot, RAY_EPS_M,
-                      out=work, sampler=sampler, survive=survive, floor_power=roulette / n_rays)
+            first = _first_hits(prepared, rays, prim, nb)
+        out = scatter(order, order == st.max_order, rays, tfar, prim, prepared, frame, st.n_bins, st.bin_ns,
+                      st.viewed_diameter_m, st.specular, SPECULAR_PHONG_EXPONENT, st.hotspot, RAY_EPS_M,
+                      out=work, sampler=st.sampler, survive=st.survive, floor_power=st.roulette / st.n_rays)
         counted = np.flatnonzero(out.value > 0.0)
         if order > 1 and counted.size:
-            with NumbaThreads(1 if counted.size < MIN_PARALLEL_RAYS else threads):
-                so, sd = take_rays(out.shadow_origin, out.shadow_direction, counted)
-            blocked = isect.occluded(so, sd, out.shadow_tmax[counted], threads=threads)
-            counted = counted[~blocked]
-        accumulate(counted, rays.beam, out.value, out.bin, order, acc, dropped, totals, by_order)
-        if order < max_order:
+            counted = _visible(isect, out, counted, threads)
+        accumulate(counted, rays.beam, out.value, out.bin, order, acc, dropped, totals, st.by_order)
+        if order < st.max_order:
             rays = compact(out, rays, buffers)
     return acc, dropped, totals, first, t0
+
+
+def _first_hits(prepared: PreparedScene, rays, prim: np.ndarray, nb: int) -> np.ndarray:
+    """(nb, 5) int64: rays of each beam whose first hit is of each kind, and misses (last column)."""
+    code = np.where(prim >= 0, prepared.kind_of(np.maximum(prim, 0)), MISS_KIND)
+    return np.bincount(rays.beam * (MISS_KIND + 1) + code,
+                       minlength=nb * (MISS_KIND + 1)).reshape(nb, MISS_KIND + 1)
+
+
+def _visible(isect, out: Scattered, counted: np.ndarray, threads: int | None) -> np.ndarray:
+    """The contributions of ``counted`` whose visibility ray to the receiver is not occluded."""
+    with NumbaThreads(1 if counted.size < MIN_PARALLEL_RAYS else threads):
+        so, sd = take_rays(out.shadow_origin, out.shadow_direction, counted)
+    blocked = isect.occluded(so, sd, out.shadow_tmax[counted], threads=threads)
+    return counted[~blocked]
 
 
 def _chunk_plan(n: int, n_rays: int, chunk_rays: int, threads: int,
@@ -292,12 +333,11 @@ def _chunk_plan(n: int, n_rays: int, chunk_rays: int, threads: int,
     return [(a, min(n, a + per_chunk)) for a in range(0, n, per_chunk)], by_pulses
 
 
-def trace(scene: Scene | PreparedScene, beams: Beams, n_rays: int = 30000, max_order: int = 10,
-          bin_ns: float = BIN_NS, viewed_diameter_m: float = 5.0, seed=0, *,
+def trace(scene: Scene | PreparedScene, beams: Beams, n_rays: int, max_order: int = 10,
+          bin_ns: float = BIN_NS, viewed_diameter_m: float = 5.0, seed=0, *, sampler: str, roulette: float,
           specular: float = 0.0, hotspot: float = 1.0, window_ns: float = DEFAULT_WINDOW_NS,
           by_order: bool = False, chunk_rays: int = CHUNK_RAYS, threads: int | None = None,
-          parallel: str = "pulses", progress: bool = False, sampler: str = "random",
-          survival=1.0, roulette: float = 0.0) -> TraceResult:
+          parallel: str = "pulses", progress: bool = False, survival=1.0) -> TraceResult:
     """Forward Monte Carlo ray tracing of LiDAR pulses through a scene (docs/method.md §(d), Eq. 2).
 
     Parameters
@@ -319,6 +359,14 @@ def trace(scene: Scene | PreparedScene, beams: Beams, n_rays: int = 30000, max_o
         the horizontal circle at nadir) contribute.
     seed : int or numpy.random.Generator
         Same seed, same beams -> identical result (whatever the threads or chunking).
+    sampler : {"random", "sobol"}
+        Uniforms of the beam positions, branches and directions: pseudo-random, or a
+        per-pulse Owen-scrambled Sobol' sequence (randomized quasi-Monte Carlo, unbiased;
+        :mod:`.kernels`); ``sobol`` works best with ``n_rays`` a power of two.
+    roulette : float
+        Weight-window Russian roulette: a ray whose power would fall below ``roulette`` times
+        its emitted power (1 / n_rays) continues with probability power / that floor, and then
+        carries the floor (e.g. after a ground hit, rho 0.3 < 0.5). 0 = off.
     specular : float
         Effect ``specular``: fraction of the leaf (kind 1) reflectance that is a Phong lobe
         of exponent :data:`waveforest.effects.SPECULAR_PHONG_EXPONENT`; 0 = off.
@@ -338,18 +386,10 @@ def trace(scene: Scene | PreparedScene, beams: Beams, n_rays: int = 30000, max_o
         Numba kernel of one wavefront over the threads. Results are identical.
     progress : bool
         Show a progress bar over chunks (stderr).
-    sampler : {"random", "sobol"}
-        Uniforms of the beam positions, branches and directions: pseudo-random, or a
-        per-pulse Owen-scrambled Sobol' sequence (randomized quasi-Monte Carlo, unbiased;
-        :mod:`.kernels`); ``sobol`` works best with ``n_rays`` a power of two.
     survival : float or sequence of float
         Russian roulette: probability in (0, 1] that a ray scattered at order n continues to
         order n + 1 (power divided by it); a sequence gives orders 1, 2, ... and its last
         value holds for the higher orders. 1 = every ray continues (docs/method.md §(d)).
-    roulette : float
-        Weight-window Russian roulette: a ray whose power would fall below ``roulette`` times
-        its emitted power (1 / n_rays) continues with probability power / that floor, and then
-        carries the floor (e.g. after a ground hit, rho 0.3 < 0.5). 0 = off.
 
     Returns
     -------
@@ -357,32 +397,34 @@ def trace(scene: Scene | PreparedScene, beams: Beams, n_rays: int = 30000, max_o
     """
     if not isinstance(beams, Beams):
         raise TypeError(f"beams: expected waveforest.mcrt.Beams, got {type(beams).__name__}")
-    _check(n_rays, max_order, bin_ns, viewed_diameter_m, window_ns, specular, hotspot)
+    _check(n_rays, max_order, bin_ns, viewed_diameter_m, window_ns, specular, hotspot, sampler, roulette)
+    st = _ChunkSettings(
+        key=master_key(seed), n_rays=int(n_rays), max_order=int(max_order), bin_ns=float(bin_ns),
+        n_bins=int(math.ceil(window_ns / bin_ns - 1e-9)), viewed_diameter_m=float(viewed_diameter_m),
+        specular=float(specular), hotspot=float(hotspot), by_order=by_order, sampler=sampler,
+        survive=survival_by_order(survival, max_order), roulette=float(roulette))
     if isinstance(scene, PreparedScene):
         prepared = scene
     else:  # a HIGH-quality BVH pays for its longer build only over enough rays
         prepared = prepare(scene, quality=bvh_quality(len(beams), n_rays))
-    if sampler not in SAMPLERS:
-        raise ValueError(f"sampler: expected one of {', '.join(SAMPLERS)}, got {sampler!r}")
-    survive = survival_by_order(survival, max_order)
-    if not (np.isfinite(roulette) and 0 <= roulette <= 1):
-        raise ValueError(f"roulette: expected a power fraction in [0, 1], got {roulette!r}")
-    key = master_key(seed)
+    threads = default_threads() if threads is None else max(1, int(threads))
+    chunks, by_pulses = _chunk_plan(len(beams), st.n_rays, int(chunk_rays), threads, parallel)
+    return _trace_chunks(prepared, beams, st, chunks, by_pulses, threads, progress)
+
+
+def _trace_chunks(prepared: PreparedScene, beams: Beams, st: _ChunkSettings, chunks: list[tuple[int, int]],
+                  by_pulses: bool, threads: int, progress: bool) -> TraceResult:
+    """Trace every chunk ``[a, b)`` of ``beams`` (concurrently if ``by_pulses``) and assemble the result."""
     n = len(beams)
-    n_bins = int(math.ceil(window_ns / bin_ns - 1e-9))
-    sigma = np.zeros((n, max_order if by_order else 1, n_bins))
+    sigma = np.zeros((n, st.layers, st.n_bins))
     dropped = np.zeros(n)
-    totals = np.zeros((n, max_order))
+    totals = np.zeros((n, st.max_order))
     first = np.zeros((n, MISS_KIND + 1), np.int64)
     t0 = np.zeros(n)
-    threads = default_threads() if threads is None else max(1, int(threads))
-    chunks, by_pulses = _chunk_plan(n, int(n_rays), int(chunk_rays), threads, parallel)
 
     def run_chunk(ab, embree_threads):
         a, b = ab
-        return _trace_chunk(prepared, beams[a:b], np.arange(a, b), key, int(n_rays), int(max_order),
-                            float(bin_ns), n_bins, float(viewed_diameter_m), float(specular),
-                            float(hotspot), by_order, embree_threads, sampler, survive, float(roulette))
+        return _trace_chunk(prepared, beams[a:b], np.arange(a, b), st, embree_threads)
 
     if by_pulses:  # one serial wavefront per worker thread, chunks as workers free up
         results = unordered_map(lambda ab: run_chunk(ab, 1), chunks, threads)
@@ -399,10 +441,10 @@ def trace(scene: Scene | PreparedScene, beams: Beams, n_rays: int = 30000, max_o
     return TraceResult(
         sigma=sigma.sum(axis=1),
         t0_ns=t0,
-        bin_ns=float(bin_ns),
+        bin_ns=st.bin_ns,
         order_totals=totals,
         first_hit_counts=first,
         sigma_dropped=dropped,
-        n_rays=int(n_rays),
-        sigma_by_order=sigma if by_order else None,
+        n_rays=st.n_rays,
+        sigma_by_order=sigma if st.by_order else None,
     )

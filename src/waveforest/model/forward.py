@@ -130,57 +130,68 @@ class SensorSetup:
     sampling_ns: float
     cfd: object
     features: object
-    record_ns: float = 256.0
-    pre_trigger_m: tuple = (3.3, 4.8)
-    digitizer_max: int = 255
+    record_ns: float
+    pre_trigger_m: tuple
+    digitizer_max: int
     render_effects: dict = field(default_factory=dict)
     range_correction: object = None
 
-    @classmethod
-    def from_config(cls, cfg: dict, system, noise_mean: float, noise_sd: float, sampling_ns: float,
-                    render_effects: dict | None = None, range_correction=None, cfd=None) -> SensorSetup:
-        """The setup of the config's ``sensor`` section with a given S(t), noise and sampling.
+    def with_system(self, system, cfd: CFDParams) -> SensorSetup:
+        """The same setup with another S(t); ``cfd`` (unresolved) takes the delay and dead time of its FWHM."""
 
-        ``cfd``: the calibration's CFD (that of its range correction); None = ``sensor.cfd``.
+        return replace(self, system=system, cfd=cfd.resolved(system.fwhm_ns))
+
+
+@dataclass(frozen=True)
+class SensorSettings:
+    """The sensor model of the config (section ``sensor``), before an S(t), noise and sampling are known.
+
+    Attributes
+    ----------
+    record_ns : float, ns
+    pre_trigger_m : (float, float), m
+    digitizer_max : int, DN
+    cfd : CFDParams
+        Unresolved: delay and dead time None follow the S(t)'s FWHM.
+    features : FeatureParams
+    """
+
+    record_ns: float
+    pre_trigger_m: tuple
+    digitizer_max: int
+    cfd: CFDParams
+    features: FeatureParams
+
+    def setup(self, system, noise_mean: float, noise_sd: float, sampling_ns: float,
+              render_effects: dict | None = None, range_correction=None, cfd: CFDParams | None = None) -> SensorSetup:
+        """The :class:`SensorSetup` with S(t) ``system``, noise (DN) and sampling (ns).
+
+        ``cfd``: the calibration's CFD (that of its range correction); None = :attr:`cfd`.
         """
 
-        s = cfg["sensor"]
-        return cls(
+        return SensorSetup(
             system=system, noise_mean=float(noise_mean), noise_sd=float(noise_sd),
-            sampling_ns=float(sampling_ns),
-            cfd=(cfd or CFDParams.from_config(cfg)).resolved(system.fwhm_ns),
-            features=FeatureParams.from_config(cfg),
-            record_ns=float(s["record_ns"]), pre_trigger_m=tuple(s["pre_trigger_m"]),
-            digitizer_max=int(s["digitizer_max"]), render_effects=dict(render_effects or {}),
+            sampling_ns=float(sampling_ns), cfd=(cfd or self.cfd).resolved(system.fwhm_ns),
+            features=self.features, record_ns=float(self.record_ns), pre_trigger_m=tuple(self.pre_trigger_m),
+            digitizer_max=int(self.digitizer_max), render_effects=dict(render_effects or {}),
             range_correction=range_correction,
         )
-
-    def with_system(self, system, cfg: dict) -> SensorSetup:
-        """The same setup with another S(t) (the CFD delay and dead time follow its FWHM)."""
-
-        return replace(self, system=system, cfd=CFDParams.from_config(cfg).resolved(system.fwhm_ns))
 
 
 @dataclass(frozen=True)
 class MCRTSetup:
-    """Keyword arguments of ``waveforest.mcrt.trace`` (config section ``mcrt`` plus effects)."""
+    """Keyword arguments of ``waveforest.mcrt.trace`` (config section ``mcrt`` plus mcrt effects)."""
 
-    n_rays: int = 16384
-    max_order: int = 10
-    bin_ns: float = 0.05
-    viewed_diameter_m: float = 5.0
+    n_rays: int
+    max_order: int
+    bin_ns: float
+    viewed_diameter_m: float
+    sampler: str
+    roulette: float
     effects: dict = field(default_factory=dict)
-    sampler: str = "sobol"
-    roulette: float = 0.5
-
-    @classmethod
-    def from_config(cls, cfg: dict, n_rays: int | None = None, effects: dict | None = None) -> MCRTSetup:
-        m = cfg["mcrt"]
-        return cls(n_rays=int(n_rays or m["n_rays"]), max_order=int(m["max_order"]),
-                   bin_ns=float(m["bin_ns"]), viewed_diameter_m=float(m["viewed_diameter_m"]),
-                   effects=dict(effects or {}), sampler=str(m["sampler"]), roulette=float(m["roulette"]))
 
     def kwargs(self) -> dict:
+        """The keyword arguments of ``trace`` (effects included)."""
         return dict(n_rays=self.n_rays, max_order=self.max_order, bin_ns=self.bin_ns,
                     viewed_diameter_m=self.viewed_diameter_m, sampler=self.sampler, roulette=self.roulette,
                     **self.effects)

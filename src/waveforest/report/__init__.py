@@ -1,7 +1,9 @@
 """The study report and every figure.
 
 - :mod:`.build` -- the report of a run: every table and figure, the config and software versions;
-- :mod:`.markdown` -- small Markdown table helpers;
+- :mod:`.source` -- its opening: the data source, config changes, datasets and counts;
+- :mod:`.summary` -- its summary: the results beside the paper's;
+- :mod:`.markdown` -- Markdown tables and the report's small Markdown-to-HTML converter;
 - :mod:`.plots` -- all figures of the stages (drawn with :mod:`waveforest.plotting`).
 """
 

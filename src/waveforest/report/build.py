@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import base64
 import html
-import json
 import os
 import platform
 import re
@@ -26,19 +25,27 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-import pyarrow.parquet as pq
-import yaml
 
 from waveforest.atomic import atomic_path
+from waveforest.errors import WaveforestError
 from waveforest.io import paper
-from waveforest.report.markdown import format_value, to_markdown
-from waveforest.report.summary import missing, read_csv, summary_parts
+from waveforest.io.results import read_agc_fit, read_calibration_json, read_classify_result, read_select_columns
+from waveforest.report.markdown import format_value, round_floats, shift_headings, to_html, to_markdown
+from waveforest.report.source import source_parts, virtual_caveat
+from waveforest.report.summary import ReportSettings, missing, read_csv, summary_parts
 
 MAX_TABLE_ROWS = 400
 """Longest table shown in full; longer ones are cut (the CSV holds all rows)."""
 
+SHOWN_ROWS = 12
+"""Rows of a long table shown open in the HTML page; the rest fold away (``<details>``)."""
+
 SKIP_DIRS = ("campaign", "logs", "report", ".snakemake")
 """Folders of the results tree not searched for further tables and figures."""
+
+SELECTION_COLUMNS = ("dataset", "species", "functional_group", "sample_id", "classification_set", "comparison_set",
+                     "below_crown_set")
+"""Columns of the select tables counted in the selection section (those a table has)."""
 
 
 @dataclass
@@ -73,6 +80,32 @@ def _figure_if_present(sec: Section, used: set, path: Path, caption: str) -> Non
         sec.figure(caption, path)
 
 
+def _figures(sec: Section, used: set, paths, caption) -> None:
+    """Add each figure of ``paths`` to ``sec`` (and to ``used``), captioned ``caption(path)``."""
+    for path in paths:
+        used.add(path)
+        sec.figure(caption(path), path)
+
+
+def _study_section(results: Path, used: set, folder: str, table: str, title: str, fill,
+                   settings: ReportSettings) -> Section | None:
+    """Section ``title`` of the study in ``results / folder`` when that folder holds the CSV ``table``
+    (added to ``used``), filled by ``fill(section, used, folder, table as a DataFrame, settings)``;
+    else None."""
+    d = results / folder
+    if not (d / table).exists():
+        return None
+    used.add(d / table)
+    sec = Section(title)
+    fill(sec, used, d, read_csv(d / table), settings)
+    return sec
+
+
+def _per_species(pairs, fmt) -> str:
+    """``birch 1.0 m, ...`` from (species, value) pairs, each value written by ``fmt``."""
+    return ", ".join(f"{sp} {fmt(v)}" for sp, v in pairs)
+
+
 def versions() -> dict:
     """Python, waveforest and every package waveforest requires, with their installed versions.
 
@@ -97,8 +130,8 @@ def _calibration(results: Path, used: set) -> Section | None:
     for path in sorted((results / "calibration").glob("*.json")):
         used.add(path)
         try:
-            meta = json.loads(path.read_text())
-        except json.JSONDecodeError:
+            meta = read_calibration_json(path, required=())
+        except WaveforestError:
             continue
         row = {"dataset": path.stem}
         for k, v in meta.items():
@@ -112,11 +145,11 @@ def _calibration(results: Path, used: set) -> Section | None:
         if agc.exists():
             used.add(agc)
             try:
-                a = json.loads(agc.read_text())
+                a = read_agc_fit(agc)
                 for k in ("a", "b", "cv_before", "cv_after"):
                     if isinstance(a.get(k), (int, float)):
                         row[f"agc_{k}"] = a[k]
-            except json.JSONDecodeError:
+            except WaveforestError:
                 pass
         rows.append(row)
     if not rows:
@@ -124,19 +157,16 @@ def _calibration(results: Path, used: set) -> Section | None:
     sec.table("Calibration per dataset (noise from the last samples of target pulses; AGC fit of Eq. 1; "
               "CFD tuned against the DR ranges, docs/method.md §(f))",
               pd.DataFrame(rows))
-    for png in sorted((results / "calibration").glob("*.png")):
-        used.add(png)
-        sec.figure(f"S(t) and CFD tuning of {png.stem}", png)
+    _figures(sec, used, sorted((results / "calibration").glob("*.png")),
+             lambda png: f"S(t) and CFD tuning of {png.stem}")
     return sec
 
 
-def _selection(results: Path, used: set) -> Section | None:
+def _selection(results: Path, used: set, settings: ReportSettings) -> Section | None:
 
     frames = []
     for p in sorted((results / "select").glob("*.parquet")):
-        cols = [c for c in ("dataset", "species", "functional_group", "sample_id", "classification_set",
-                            "comparison_set", "below_crown_set") if c in pq.read_schema(p).names]
-        t = pq.read_table(p, columns=cols).to_pandas()
+        t = read_select_columns([p], SELECTION_COLUMNS, required=())
         frames.append(t.assign(below_crown_set=t.get("below_crown_set", False)))  # older select tables lack it
     if not frames:
         return None
@@ -148,23 +178,22 @@ def _selection(results: Path, used: set) -> Section | None:
               classification=("classification_set", "sum"), comparison=("comparison_set", "sum"),
               below_crown=("below_crown_set", "sum")).reset_index()
     sec = Section("Selected pulses (docs/method.md §(i1), i4)")
-    sec.text("Pulses whose first DR echo hit a field sample; `classification`: single DR echo of a species "
-             "with enough pulses; `comparison`: modelled species (birch 2.5-5 m); `below_crown`: first echo "
+    heights = _per_species(settings.compare_height_range_m, lambda v: f"{v[0]:g}-{v[1]:g} m")
+    sec.text(f"Pulses whose first DR echo hit a field sample; `classification`: single DR echo of a species "
+             f"with at least {settings.select_min_pulses} pulses (select.min_pulses); `comparison`: modelled "
+             f"species ({', '.join(settings.compare_species)}"
+             + (f"; {heights}, simulate.height_range_m" if heights else "") + "); `below_crown`: first echo "
              "under the crown of a comparison tree, lower than the tree rule's height (diagnose only).")
     sec.table("Selected pulses per dataset and species", t)
     return sec
 
 
-def _compare(results: Path, used: set) -> Section | None:
-    d = results / "compare"
-    if not (d / "table3.csv").exists():
-        return None
-    sec = Section("Real vs simulated features (Table 3, Figs. 6-7; docs/method.md §(i1))")
-    t3 = read_csv(d / "table3.csv")
-    used.add(d / "table3.csv")
+def _compare(sec: Section, used: set, d: Path, t3: pd.DataFrame, settings: ReportSettings) -> None:
     used.add(d / "table3.md")
-    sec.text("Delta % = (sim - real) / real x 100. `paper_*` are the values of Hovi & Korpela (2014) Table 3. "
-             "Birch waveform features use first echoes higher than 1.5 m only.")
+    min_h = settings.compare_min_h_m
+    sec.text("Delta % = (sim - real) / real x 100. `paper_*` are the values of Hovi & Korpela (2014) Table 3."
+             + "".join(f" {sp.capitalize()} waveform features use first echoes higher than {v:g} m only "
+                       "(simulate.compare_min_h_m)." for sp, v in min_h))
     cols = [c for c in ("dataset", "species", "feature", "sim_mean", "sim_sd", "real_mean", "real_sd",
                         "delta_pct", "n_sim", "n_real", "paper_sim_mean", "paper_sim_sd", "paper_real_mean",
                         "paper_delta_pct") if c in t3.columns]
@@ -172,39 +201,24 @@ def _compare(results: Path, used: set) -> Section | None:
     _csv_if_present(sec, used, d / "order_check.csv",
                     "Species order of mean Apeak, E, FWHM: our simulation vs the paper's simulation and our real "
                     "data; largest deviation of our simulated means from the paper's")
-    for png in sorted(d.glob("fig6_*.png")):
-        used.add(png)
-        sec.figure(f"Fig. 6 analogue: echo heights, {png.stem[5:]}", png)
-    for png in sorted(d.glob("fig7_*.png")):
-        used.add(png)
-        sec.figure(f"Fig. 7 analogue: waveforms, {png.stem[5:]}", png)
-    return sec
+    _figures(sec, used, sorted(d.glob("fig6_*.png")), lambda png: f"Fig. 6 analogue: echo heights, {png.stem[5:]}")
+    _figures(sec, used, sorted(d.glob("fig7_*.png")), lambda png: f"Fig. 7 analogue: waveforms, {png.stem[5:]}")
 
 
-def _sensitivity(results: Path, used: set) -> Section | None:
-    d = results / "sensitivity"
-    if not (d / "sensitivity.csv").exists():
-        return None
-    sec = Section("Sensitivity to vegetation parameters (Fig. 8; docs/method.md §(i2))")
-    used.add(d / "sensitivity.csv")
-    sec.text("3-m birch, no ground, nadir, R 1200 m, sensor XY jitter +-0.30 m; mean Apeak +- SE per setting. "
+def _sensitivity(sec: Section, used: set, d: Path, table: pd.DataFrame, settings: ReportSettings) -> None:
+    sec.text(f"{settings.sensitivity_height_m:g}-m birch, no ground, nadir, R {settings.sensitivity_range_m:g} m, "
+             f"sensor XY jitter +-{settings.sensitivity_xy_jitter_m:.2f} m; mean Apeak +- SE per setting. "
              "Paper: spherical LAD gives Apeak ~55 DN; +-10 deg mean leaf angle changes Apeak 20-30 %; leaf rho "
              "0.4 -> 0.5 raises it ~55 -> 70 DN; leaf-area scale 0.5 -> 1.5 ~50 -> 80 DN.")
     _csv_if_present(sec, used, d / "sensitivity_baseline.csv",
                     "Baseline: the birch model as is (spherical LAD, rho 0.47, tau 0.50, leaf-area scale 1)")
-    sec.table("Sensitivity", read_csv(d / "sensitivity.csv"))
+    sec.table("Sensitivity", table)
     _figure_if_present(sec, used, d / "fig8.png", "Fig. 8 analogue")
-    return sec
 
 
-def _sensor_study(results: Path, used: set) -> Section | None:
-    d = results / "sensor_study"
-    if not (d / "sensor_study.csv").exists():
-        return None
-    sec = Section("Sensor parameters and three-species classification (Fig. 9; docs/method.md §(i3))")
-    used.add(d / "sensor_study.csv")
-    t = read_csv(d / "sensor_study.csv")
-    sec.text("Simulated birch, raspberry, fireweed at 1200 m; LDA on Apeak, FWHM, E. `resubstitution` = "
+def _sensor_study(sec: Section, used: set, d: Path, t: pd.DataFrame, settings: ReportSettings) -> None:
+    sec.text(f"Simulated {', '.join(settings.sensor_study_species)} at {settings.sensor_study_range_m:g} m; "
+             "LDA on Apeak, FWHM, E. `resubstitution` = "
              "training set used for validation (the paper's scheme); `cross_validated` = folds never split a "
              "vegetation instance. Paper: accuracy rises with footprint up to 0.30-0.36 m, then saturates "
              "(100 % for 5-pulse means at the largest footprints); pulse width and sampling matter little.")
@@ -217,25 +231,39 @@ def _sensor_study(results: Path, used: set) -> Section | None:
         sec.table("Sensor study", t)
     _csv_if_present(sec, used, d / "sensor_study_features.csv", "Mean first-echo features per setting and species")
     _figure_if_present(sec, used, d / "fig9.png", "Fig. 9 analogue")
-    return sec
 
 
-def _classify(results: Path, used: set, out_dir: Path) -> Section | None:
+_STUDIES = (
+    ("compare", "table3.csv", "Real vs simulated features (Table 3, Figs. 6-7; docs/method.md §(i1))", _compare),
+    ("sensitivity", "sensitivity.csv", "Sensitivity to vegetation parameters (Fig. 8; docs/method.md §(i2))",
+     _sensitivity),
+    ("sensor_study", "sensor_study.csv",
+     "Sensor parameters and three-species classification (Fig. 9; docs/method.md §(i3))", _sensor_study),
+)
+"""(folder, main CSV, title, filler) of the study sections, in report order (:func:`_study_section`)."""
+
+
+def _classify(results: Path, used: set, out_dir: Path, settings: ReportSettings) -> Section | None:
     paths = sorted((results / "classify").glob("*.json"))
     if not paths:
         return None
     res = []
     for p in paths:
         used.add(p)
-        res.append(json.loads(p.read_text()))
+        try:
+            res.append(read_classify_result(p))
+        except WaveforestError:
+            continue
+    if not res:
+        return None
     t4 = table4(res, paper.table4())
     with atomic_path(out_dir / "table4.csv") as tmp:
         t4.to_csv(tmp, index=False, float_format="%.6g")
     with atomic_path(out_dir / "table4.md") as tmp:
         tmp.write_text("# Real-data classification of four functional groups (Table 4 analogue)\n\n" + to_markdown(t4))
     sec = Section("Real-data classification (Table 4; docs/method.md §(i4))")
-    sec.text("LDA of conifer / broadleaf / low green / low barren + abiotic on E and Apeak normalised by the sand-road "
-             "mean. Percent correct and kappa by resubstitution (as the paper) and cross-validated with folds that "
+    sec.text(f"LDA of {' / '.join(settings.classify_groups)} on {' and '.join(settings.classify_features)} "
+             f"normalised by the {settings.classify_normaliser} mean (classify.groups, features, normaliser). Percent correct and kappa by resubstitution (as the paper) and cross-validated with folds that "
              "never split a field sample (`cv_*`); `paper_*`: Hovi & Korpela (2014) Table 4.")
     sec.table("Table 4 analogue (also results/report/table4.csv)", t4)
     extra_rows, three_rows = [], []
@@ -288,15 +316,16 @@ def _diagnose(results: Path, used: set) -> Section | None:
     if not d.exists():
         return None
     sec = Section("Diagnosis: the missing effect")
-    for p in sorted(d.glob("*.yaml")) + sorted(d.glob("*.md")):
+    for p in sorted(d.glob("*.md")):
         used.add(p)
-        sec.text(f"`{p.name}`:\n\n```\n{p.read_text().strip()}\n```")
+        sec.text(shift_headings(p.read_text().strip(), 2))
+    for p in sorted(d.glob("*.yaml")):
+        used.add(p)
+        sec.text(f"`{p.name}` (floats to 4 significant digits):\n\n```yaml\n{round_floats(p.read_text().strip())}\n```")
     for p in sorted(d.glob("*.csv")):
         used.add(p)
         sec.table(p.name, read_csv(p))
-    for p in sorted(d.glob("*.png")):
-        used.add(p)
-        sec.figure(p.name, p)
+    _figures(sec, used, sorted(d.glob("*.png")), lambda p: p.name)
     return sec if sec.items else None
 
 
@@ -340,33 +369,55 @@ def _benchmarks(results: Path) -> Section | None:
     return sec
 
 
-def collect(results: str | Path, cfg: dict | None, out_dir: Path) -> list[Section]:
-    """All sections of the report of a results folder, the summary first."""
+def _leave_out_empty(sec: Section) -> Section:
+    """``sec`` without its empty tables, and one line naming what was left out."""
+    empty = [it[1] for it in sec.items if it[0] == "table" and (it[2] is None or it[2].empty)]
+    if empty:
+        sec.items = [it for it in sec.items if not (it[0] == "table" and (it[2] is None or it[2].empty))]
+        sec.text(f"Left out, no rows: {', '.join(empty)}.")
+    return sec
+
+
+def collect(results: str | Path, settings: ReportSettings, out_dir: Path, config_yaml: str | None = None,
+            config_path: str | None = None, config_changes=()) -> list[Section]:
+    """All sections of the report of a results folder: what it ran on, the summary, the details.
+
+    ``config_yaml``: the config used, as YAML text (None: the defaults); ``config_path``: the file
+    it came from (None: the defaults); ``config_changes``: (key path, default, value) of the keys
+    that differ from the defaults; ``out_dir`` receives table4.csv and table4.md.
+    """
     results = Path(results)
     used: set = set()
+    source = Section("What this report ran on")
+    source.items.extend(source_parts(results, settings, config_path, config_changes))
     summary = Section("Summary: the results beside the paper's")
-    summary.items.extend(summary_parts(results, cfg))
-    sections = [summary]
-    for make in (_compare, _sensitivity, _sensor_study):
+    caveat = virtual_caveat(results, settings)
+    if caveat:
+        summary.text(caveat)
+    summary.items.extend(summary_parts(results, settings))
+    sections = [source, summary]
+    for folder, table, title, fill in _STUDIES:
+        s = _study_section(results, used, folder, table, title, fill, settings)
+        if s:
+            sections.append(s)
+    s = _classify(results, used, out_dir, settings)
+    if s:
+        sections.append(s)
+    for make in (_diagnose, _calibration):
         s = make(results, used)
         if s:
             sections.append(s)
-    s = _classify(results, used, out_dir)
-    if s:
-        sections.append(s)
-    for make in (_diagnose, _calibration, _selection, _others):
-        s = make(results, used)
+    for s in (_selection(results, used, settings), _others(results, used)):
         if s:
             sections.append(s)
     s = _benchmarks(results)
     if s:
         sections.append(s)
     setup = Section("Configuration and software")
-    setup.text("Config used:\n\n```yaml\n" + (yaml.safe_dump(cfg, sort_keys=True).strip() if cfg else "(defaults)")
-               + "\n```")
+    setup.text("Config used:\n\n```yaml\n" + (round_floats(config_yaml) if config_yaml else "(defaults)") + "\n```")
     setup.table("Software versions", pd.DataFrame(sorted(versions().items()), columns=["package", "version"]))
     sections.append(setup)
-    return sections
+    return [_leave_out_empty(s) for s in sections]
 
 
 # -- rendering ------------------------------------------------------------------------------
@@ -379,6 +430,8 @@ th,td{border:1px solid #ccc;padding:2px 6px;text-align:right}th{background:#eef3
 td:first-child,th:first-child{text-align:left}caption{text-align:left;font-weight:600;padding:4px 0}
 figure{margin:1em 0}figcaption{font-size:13px;color:#555}img{max-width:100%}
 pre{background:#f6f8fa;padding:0.8em;overflow:auto;font-size:12px}nav li{font-size:14px}
+.tbl{overflow-x:auto;max-width:100%}code{background:#f6f8fa;padding:0 2px;font-size:90%}
+details{margin:-1em 0 1.5em 0}summary{cursor:pointer;color:#1f4e79;font-size:13px}
 """
 
 
@@ -388,25 +441,25 @@ def _cut(df: pd.DataFrame) -> tuple[pd.DataFrame, str]:
     return df, ""
 
 
-def _html_table(caption: str, df: pd.DataFrame) -> str:
-    df, note = _cut(df)
-    head = "".join(f"<th>{html.escape(str(c))}</th>" for c in df.columns)
-    body = "".join("<tr>" + "".join(f"<td>{html.escape(format_value(v))}</td>" for v in row) + "</tr>"
+def _rows_html(df: pd.DataFrame) -> str:
+    return "".join("<tr>" + "".join(f"<td>{html.escape(format_value(v))}</td>" for v in row) + "</tr>"
                    for row in df.itertuples(index=False))
-    return (f"<table><caption>{html.escape(caption + note)}</caption><thead><tr>{head}</tr></thead>"
-            f"<tbody>{body}</tbody></table>")
 
 
-def _html_text(s: str) -> str:
-    parts, out = s.split("```"), []
-    for i, p in enumerate(parts):
-        if i % 2:  # code block; first line may be a language tag
-            lines = p.split("\n", 1)
-            code = lines[1] if len(lines) > 1 and lines[0].strip().isalpha() else p
-            out.append(f"<pre>{html.escape(code.strip())}</pre>")
-        elif p.strip():
-            out.append("<p>" + html.escape(p.strip()).replace("\n\n", "</p><p>") + "</p>")
-    return "".join(out)
+def _html_table(caption: str, df: pd.DataFrame) -> str:
+    """A table in a box that scrolls sideways; past :data:`SHOWN_ROWS` rows, the rest fold away."""
+    n_rows = len(df)
+    df, note = _cut(df)
+    head = "<thead><tr>" + "".join(f"<th>{html.escape(str(c))}</th>" for c in df.columns) + "</tr></thead>"
+    shown = df if len(df) <= SHOWN_ROWS + 3 else df.head(SHOWN_ROWS)
+    if len(shown) < len(df):
+        note = f" ({n_rows} rows" + (f"; the first {MAX_TABLE_ROWS} here, all in the CSV)" if note else ")")
+    out = (f'<div class="tbl"><table><caption>{html.escape(caption + note)}</caption>{head}'
+           f"<tbody>{_rows_html(shown)}</tbody></table></div>")
+    if len(shown) < len(df):
+        out += (f"<details><summary>Show the other {len(df) - SHOWN_ROWS} rows</summary><div class=\"tbl\"><table>"
+                f"{head}<tbody>{_rows_html(df.iloc[SHOWN_ROWS:])}</tbody></table></div></details>")
+    return out
 
 
 def render_html(sections: list[Section], title: str) -> str:
@@ -418,7 +471,7 @@ def render_html(sections: list[Section], title: str) -> str:
         parts.append(f'<h2 id="s{i}">{html.escape(s.title)}</h2>')
         for item in s.items:
             if item[0] == "text":
-                parts.append(_html_text(item[1]))
+                parts.append(to_html(item[1]))
             elif item[0] == "table":
                 parts.append(_html_table(item[1], item[2]))
             else:

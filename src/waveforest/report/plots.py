@@ -33,14 +33,15 @@ PARAMETER_LABELS = {
 
 
 def _save(fig, path: str | Path) -> Path:
-    """:func:`save_png` at the analysis figures' resolution (110 dpi, tight box)."""
+    """:func:`save_png` at the analysis figures' resolution (110 dpi, tight box); every figure is
+    drawn with constrained layout, so no label overlaps the next panel."""
     return save_png(fig, path, dpi=110, bbox_inches="tight")
 
 
 def _legend(ax) -> None:
-    """A small legend, if anything is labelled."""
+    """A small legend under the panel (never over the data), if anything is labelled."""
     if ax.get_legend_handles_labels()[0]:
-        ax.legend(fontsize=7)
+        ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.2), frameon=False)
 
 
 def _label(ax, title: str, xlabel: str, ylabel: str) -> None:
@@ -57,7 +58,8 @@ def plot_system_waveform(system, path, title: str = "System waveform S(t)", tuni
     maps its score (largest |bias| over echo-width classes) over (f, delay)."""
     plt = pyplot()
     panels = 2 if tuning is not None and tuning.tuned else 1
-    fig, axes = plt.subplots(1, panels, figsize=(6.4 * panels, 4.0), dpi=120, squeeze=False)
+    fig, axes = plt.subplots(1, panels, figsize=(6.4 * panels, 4.0), dpi=120, squeeze=False,
+                             layout="constrained")
     ax = axes[0, 0]
     t, s = system.t_ns, system.s
     if system.s_sd is not None:
@@ -81,14 +83,13 @@ def plot_system_waveform(system, path, title: str = "System waveform S(t)", tuni
         ax.set_ylabel("CFD delay, ns")
         ax.set_title("CFD tuning against the DR ranges (docs/method.md §(f))")
         ax.legend(fontsize=8, loc="lower left", framealpha=0.8)
-    fig.tight_layout()
     return save_png(fig, path)
 
 
 def plot_cv_curve(fit, path) -> Path:
     """Nested CV of target echo amplitudes (``agc.statistic``) against b (Eq. 1), the fitted b marked."""
     plt = pyplot()
-    fig, ax = plt.subplots(figsize=(6.0, 3.8), dpi=120)
+    fig, ax = plt.subplots(figsize=(6.0, 3.8), dpi=120, layout="constrained")
     b, cv = np.asarray(fit.b_grid), np.asarray(fit.cv_grid)
     ax.plot(b, 100 * cv, color="tab:blue")
     ax.axvline(fit.b, color="tab:red", lw=1, ls="--", label=f"b = {fit.b:.5f}, CV = {100 * fit.cv_after:.2f} %")
@@ -97,7 +98,6 @@ def plot_cv_curve(fit, path) -> Path:
     ax.set_ylabel(f"nested CV of echo {fit.statistic}, %")
     ax.set_title(f"AGC fit of {fit.dataset} (a = {fit.a:.2f}, {fit.n_fit_pulses} target pulses)")
     ax.legend(frameon=False, fontsize=8)
-    fig.tight_layout()
     return save_png(fig, path)
 
 
@@ -111,7 +111,8 @@ def fig6_heights(real: dict, sim: dict, dataset: str, path: str | Path) -> Path:
     """
     plt = pyplot()
     species = [s for s in real if s in sim] or list(real) or list(sim) or ["(none)"]
-    fig, axes = plt.subplots(1, len(species), figsize=(4.2 * len(species), 3.4), squeeze=False)
+    fig, axes = plt.subplots(1, len(species), figsize=(4.2 * len(species), 3.4), squeeze=False,
+                             layout="constrained")
     for ax, sp in zip(axes[0], species):
         r = np.asarray(real.get(sp, []), dtype=float)
         s = np.asarray(sim.get(sp, []), dtype=float)
@@ -123,7 +124,7 @@ def fig6_heights(real: dict, sim: dict, dataset: str, path: str | Path) -> Path:
                 ax.hist(data, bins=bins, density=True, histtype="step", lw=1.6, color=colour,
                         label=f"{label} (n={data.size}, mean {data.mean():.2f} m)")
         _label(ax, sp, "first-echo height H (m)", "density (1/m)")
-    fig.suptitle(f"{dataset}: echo heights, real vs simulated", y=1.03)
+    fig.suptitle(f"{dataset}: echo heights, real vs simulated")
     return _save(fig, path)
 
 
@@ -137,7 +138,8 @@ def fig7_waveforms(aligned: dict, grid_ns: np.ndarray, dataset: str, path: str |
     """
     plt = pyplot()
     species = list(aligned) or ["(none)"]
-    fig, axes = plt.subplots(1, len(species), figsize=(4.2 * len(species), 3.4), squeeze=False)
+    fig, axes = plt.subplots(1, len(species), figsize=(4.2 * len(species), 3.4), squeeze=False,
+                             layout="constrained")
     for ax, sp in zip(axes[0], species):
         for data, colour, label in zip(aligned.get(sp, ()), (REAL_COLOUR, SIM_COLOUR), ("real", "simulated")):
             data = np.asarray(data, dtype=float)
@@ -149,7 +151,7 @@ def fig7_waveforms(aligned: dict, grid_ns: np.ndarray, dataset: str, path: str |
             ax.plot(grid_ns, mean, color=colour, lw=1.5, label=f"{label} (n={data.shape[0]})")
             ax.fill_between(grid_ns, mean - sd, mean + sd, color=colour, alpha=0.2, lw=0)
         _label(ax, sp, "time from first echo (ns)", "waveform (DN)")
-    fig.suptitle(f"{dataset}: waveforms aligned on the first echo (mean +- SD)", y=1.03)
+    fig.suptitle(f"{dataset}: waveforms aligned on the first echo (mean +- SD)")
     return _save(fig, path)
 
 
@@ -165,7 +167,8 @@ def fig8_sensitivity(table: pd.DataFrame, path: str | Path, source: str = "") ->
     params = list(dict.fromkeys(table["parameter"])) or ["(none)"]
     ncol = min(2, len(params))
     nrow = int(np.ceil(len(params) / ncol))
-    fig, axes = plt.subplots(nrow, ncol, figsize=(4.6 * ncol, 3.4 * nrow), squeeze=False)
+    fig, axes = plt.subplots(nrow, ncol, figsize=(4.6 * ncol, 3.4 * nrow), squeeze=False,
+                             layout="constrained")
     for ax, p in zip(axes.flat, params):
         t = table[table["parameter"] == p].sort_values("value")
         ax.errorbar(t["value"], t["mean_apeak"], yerr=t["se_apeak"], fmt="o-", color=SIM_COLOUR,
@@ -178,7 +181,6 @@ def fig8_sensitivity(table: pd.DataFrame, path: str | Path, source: str = "") ->
     for ax in list(axes.flat)[len(params):]:
         ax.set_visible(False)
     fig.suptitle("Sensitivity of simulated 3-m birch Apeak" + (f" ({source})" if source else ""))
-    fig.tight_layout()
     return _save(fig, path)
 
 
@@ -190,7 +192,8 @@ def fig9_sensor(table: pd.DataFrame, path: str | Path) -> Path:
     """
     plt = pyplot()
     params = list(dict.fromkeys(table["parameter"])) or ["(none)"]
-    fig, axes = plt.subplots(1, len(params), figsize=(4.4 * len(params), 3.5), squeeze=False)
+    fig, axes = plt.subplots(1, len(params), figsize=(4.4 * len(params), 3.5), squeeze=False,
+                             layout="constrained")
     styles = {("resubstitution", 0): "o-", ("cross_validated", 0): "o--",
               ("resubstitution", 1): "s-", ("cross_validated", 1): "s--"}
     for ax, p in zip(axes[0], params):
@@ -208,5 +211,4 @@ def fig9_sensor(table: pd.DataFrame, path: str | Path) -> Path:
         ax.set_ylim(0, 102)
         _legend(ax)
     fig.suptitle("Simulated birch / raspberry / fireweed: LDA on Apeak, FWHM, E")
-    fig.tight_layout()
     return _save(fig, path)

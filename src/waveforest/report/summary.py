@@ -18,14 +18,15 @@ never an empty cell (:data:`waveforest.report.markdown.NO_VALUE`).
 
 from __future__ import annotations
 
-import json
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
-import yaml
 
+from waveforest.errors import WaveforestError
 from waveforest.io import paper
+from waveforest.io.results import read_classify_result, read_model
 from waveforest.report.markdown import NO_VALUE
 
 T3_FEATURES = ("H", "Npeaks", "Apeak", "FWHM", "E")
@@ -36,6 +37,35 @@ RADIOMETRIC = ("Apeak", "FWHM", "E")
 
 LEVELS = (("one_pulse", "1-pulse"), ("mean_of_sample", "mean-of-sample"))
 """Table 4 levels: key in the classify JSON, and label."""
+
+
+@dataclass(frozen=True)
+class ReportSettings:
+    """What the report takes from the config; every setting a sentence of the report states.
+
+    ``data``: the campaign folder (None: the virtual campaign under ``results/campaign``);
+    ``campaign_effects``: (name, value) of ``campaign.effects``;
+    ``sensor_study_range_m``: the sensor study's altitude, m (footprint = divergence x range);
+    the ``compare_*`` pairs are (species, metres) or (species, (low, high) metres).
+    """
+
+    datasets: tuple
+    sensor_study_range_m: float
+    seed: int
+    data: str | None
+    campaign_effects: tuple
+    compare_datasets: tuple
+    compare_species: tuple
+    compare_height_range_m: tuple
+    compare_min_h_m: tuple
+    select_min_pulses: int
+    sensitivity_height_m: float
+    sensitivity_range_m: float
+    sensitivity_xy_jitter_m: float
+    sensor_study_species: tuple
+    classify_features: tuple
+    classify_groups: tuple
+    classify_normaliser: str
 
 
 def missing(reason: str) -> str:
@@ -124,11 +154,8 @@ def table3_summary(ours: pd.DataFrame | None, run_datasets=(), paper_t3: pd.Data
             absent = missing(f"no {sp} in comparison")
         row = {"dataset": ds, "species": sp}
         mine = ours_idx.loc[(ds, sp)] if ours_idx is not None and (ds, sp) in ours_idx.index.droplevel(2) else None
-        if mine is None:
-            row["N real / sim"] = absent
-        else:
-            n = mine.loc["H"] if "H" in mine.index else mine.iloc[0]
-            row["N real / sim"] = f"{int(_num(n['n_real']))} / {int(_num(n['n_sim']))}"
+        row["N real / sim"] = (absent if mine is None
+                               else f"{_count_text(mine['n_real'])} / {_count_text(mine['n_sim'])}")
         row["N paper"] = str(int(pcount[(ds, sp)])) if (ds, sp) in pcount.index else missing("not in the paper")
         for f in T3_FEATURES:
             if mine is None:
@@ -142,6 +169,27 @@ def table3_summary(ours: pd.DataFrame | None, run_datasets=(), paper_t3: pd.Data
             row[f"{f} Δ% paper"] = format(pv, "+.0f") if np.isfinite(pv) else missing("not in the paper")
         rows.append(row)
     return pd.DataFrame(rows)
+
+
+def _count_text(n: pd.Series) -> str:
+    """A pulse count over features: one number, or ``low-high`` where features differ (as Table 3)."""
+    n = pd.to_numeric(n, errors="coerce").dropna().astype(int)
+    if n.empty:
+        return NO_VALUE
+    return str(n.iloc[0]) if n.min() == n.max() else f"{n.min()}-{n.max()}"
+
+
+def drop_absent(table: pd.DataFrame, what: str) -> tuple[pd.DataFrame, str | None]:
+    """``table`` (of :func:`table3_summary` or :func:`table4_summary`) without the rows of datasets
+    not in this run (ours ``— (dataset not in this run)``, only the paper's values), and one
+    sentence naming the datasets left out of ``what``."""
+    gone = table.astype(str).eq(missing("dataset not in this run")).any(axis=1)
+    if not gone.any():
+        return table, None
+    names = sorted(set(table.loc[gone, "dataset"].astype(str)))
+    return (table[~gone].reset_index(drop=True),
+            f"Left out of {what}: the paper's dataset{'s' if len(names) > 1 else ''} {', '.join(names)}, "
+            "not in this run.")
 
 
 def _range_text(v: pd.Series, fmt: str, unit: str) -> str:
@@ -261,10 +309,12 @@ def table4_summary(results: list[dict], run_datasets=(), paper_t4: pd.DataFrame 
     return pd.DataFrame(rows)
 
 
-def table4_sentence(results: list[dict], paper_t4: pd.DataFrame | None = None) -> str:
-    """Ranges of our 1-pulse accuracy (resubstitution and CV) against the paper's, same datasets."""
-    head = ("Table 4 (four functional groups on E and Apeak; percent correct (κ kappa); `resub` = "
-            "resubstitution, the paper's scheme; `CV` = folds that never split a field sample): ")
+def table4_sentence(results: list[dict], paper_t4: pd.DataFrame | None = None, features=("E", "Apeak"),
+                    n_groups: int = 4) -> str:
+    """Ranges of our 1-pulse accuracy (resubstitution and CV) against the paper's, same datasets;
+    ``features`` and ``n_groups``: the classification's (``classify.features``, ``classify.groups``)."""
+    head = (f"Table 4 ({n_groups} functional groups on {' and '.join(features)}; percent correct (κ kappa); "
+            "`resub` = resubstitution, the paper's scheme; `CV` = folds that never split a field sample): ")
     paper_t4 = paper.table4() if paper_t4 is None else paper_t4
     acc = {"resubstitution": [], "cross_validated": []}
     for r in results:
@@ -375,14 +425,12 @@ def diagnosis_text(d: Path) -> str:
     if not path.exists():
         return "Diagnosis: " + missing("diagnose/model.yaml not found: the diagnosis did not run")
     try:
-        m = yaml.safe_load(path.read_text())
-    except yaml.YAMLError:
-        m = None
-    if not isinstance(m, dict) or not isinstance(m.get("verdict"), str):
+        m = read_model(path)
+    except WaveforestError:  # not a model.yaml of the layout: no verdict to report
         return "Diagnosis: " + missing("model.yaml holds no verdict")
     s = f"Diagnosis — verdict: {m['verdict']}"
     s += f" ({m['reason']})." if m.get("reason") else "."
-    effects = [e for e in m.get("effects") or [] if isinstance(e, dict) and "name" in e]
+    effects = m["effects"]
     if effects:
         s += " Named: " + "; ".join(
             f"{e['name']} = {_num(e.get('value')):.3g} {_ci([e.get('ci_low'), e.get('ci_high')])}, "
@@ -435,11 +483,12 @@ def detection_limits(d: Path) -> pd.DataFrame | None:
             "smallest detectable": (f"{sd:.3g} {unit}".strip() if np.isfinite(sd) else
                                     missing(f"nothing up to {ub:.3g} {unit} is detectable".replace("  ", " ")
                                             if np.isfinite(ub) else "nothing within the bounds is detectable")),
-            "upper bound": f"{ub:.3g} {unit}".strip() if np.isfinite(ub) else missing("no bound given"),
+            "bound of the range tried": f"{ub:.3g} {unit}".strip() if np.isfinite(ub) else missing("no bound given"),
             "power": f"{power:.2f}" if np.isfinite(power) else missing("no power given"),
             "replicates": f"{int(reps)}" if np.isfinite(reps) else missing("no count given"),
         })
-    return pd.DataFrame(rows, columns=["effect", "smallest detectable", "upper bound", "power", "replicates"])
+    return pd.DataFrame(rows, columns=["effect", "smallest detectable", "bound of the range tried", "power",
+                                       "replicates"])
 
 
 def detection_sentence(dl: pd.DataFrame) -> str:
@@ -450,41 +499,48 @@ def detection_sentence(dl: pd.DataFrame) -> str:
                + " would have been detected" if len(seen) else "no effect is detectable within its bounds"))
     if 0 < len(seen) < len(dl):
         text += f"; {len(dl) - len(seen)} of {len(dl)} effects are not detectable within their bounds"
+    text += (". The range tried runs from the effect off to its bound (downwards for effects that grow as "
+             "the value falls)")
+    if set(dl["replicates"]) == {"1"}:
+        text += (". Each limit rests on one pseudo-real replicate: it says where the effect was detected once, "
+                 "not where it is detected with the stated power (more replicates: diagnose.power.replicates)")
     return text + "."
 
 
 # -- the section ------------------------------------------------------------------------------
 
-def _classify_results(results: Path) -> list[dict]:
+def classify_results(results: Path) -> list[dict]:
+    """The readable ``classify/*.json`` documents of a results folder, in file-name order."""
     out = []
     for p in sorted((results / "classify").glob("*.json")):
         try:
-            r = json.loads(p.read_text())
-        except json.JSONDecodeError:
+            out.append(read_classify_result(p))
+        except WaveforestError:
             continue
-        if isinstance(r, dict):
-            r.setdefault("dataset", p.stem)
-            out.append(r)
     return out
 
 
-def summary_parts(results: str | Path, cfg: dict | None) -> list[tuple]:
+def summary_parts(results: str | Path, settings: ReportSettings) -> list[tuple]:
     """The summary's items in order: ("text", str) and ("table", caption, DataFrame of text)."""
     results = Path(results)
-    cfg = cfg or {}
-    cls = _classify_results(results)
-    run_datasets = [str(x) for x in (cfg.get("datasets") or [])] + [str(r["dataset"]) for r in cls]
+    cls = classify_results(results)
+    run_datasets = list(settings.datasets) + [str(r["dataset"]) for r in cls]
     t3 = read_csv(results / "compare" / "table3.csv")
     order = read_csv(results / "compare" / "order_check.csv")
     items: list[tuple] = [("text", table3_sentences(t3, order))]
+    t3_brief, left_out = drop_absent(fill_blanks(table3_summary(t3, run_datasets)), "Table 3 in brief")
     items.append(("table", "Table 3 in brief: Δ % = (sim − real) / real × 100 per feature, ours and the paper's; "
-                  "N = pulses (ours: real / simulated)", fill_blanks(table3_summary(t3, run_datasets))))
-    items.append(("text", table4_sentence(cls)))
-    items.append(("table", "Table 4 in brief: ours beside the paper's",
-                  fill_blanks(table4_summary(cls, run_datasets))))
+                  "N = pulses (ours: real / simulated; a range where features differ, as in Table 3)", t3_brief))
+    if left_out:
+        items.append(("text", left_out))
+    items.append(("text", table4_sentence(cls, features=settings.classify_features,
+                                          n_groups=len(settings.classify_groups))))
+    t4_brief, left_out = drop_absent(fill_blanks(table4_summary(cls, run_datasets)), "Table 4 in brief")
+    items.append(("table", "Table 4 in brief: ours beside the paper's", t4_brief))
+    if left_out:
+        items.append(("text", left_out))
     ss = read_csv(results / "sensor_study" / "sensor_study.csv")
-    range_m = float(((cfg.get("sensor_study") or {}).get("range_m")) or 1200.0)
-    items.append(("text", fig9_sentences(ss, range_m)))
+    items.append(("text", fig9_sentences(ss, settings.sensor_study_range_m)))
     d = results / "diagnose"
     items.append(("text", diagnosis_text(d)))
     dl = detection_limits(d) if d.exists() else None

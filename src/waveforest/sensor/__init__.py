@@ -15,7 +15,7 @@ file I/O beyond the small loaders named here (the stages are in :mod:`waveforest
 - :mod:`.targets` -- :func:`target_membership`, :func:`pulse_targets` (pulses on reference targets);
 - :mod:`.reference` -- the reference sensor of the studies (§(i2), §(i3));
 - :mod:`.waveforms` -- waveforms aligned on the first echo (Fig. 7);
-- :mod:`.params`, :mod:`._checks` -- parameter objects, input checks.
+- :mod:`.params`, :mod:`.checks` -- parameter objects, input checks.
 """
 
 from waveforest.sensor.agc import (
@@ -33,7 +33,6 @@ from waveforest.sensor.calibration import (
     cfd_of,
     load_calibration,
     range_correction_of,
-    read_calibration_json,
 )
 from waveforest.sensor.cfd import (
     Echoes,
@@ -58,7 +57,7 @@ __all__ = [
     "FeatureParams", "FEATURE_NAMES", "first_echo_features", "feature_table",
     "agc_gain", "normalise_intensity", "normalise_waveforms", "normalise_pulses", "peak_amplitudes",
     "nested_cv", "fit_b",
-    "Calibration", "calibrate_system_waveform", "load_calibration", "read_calibration_json", "cfd_of",
+    "Calibration", "calibrate_system_waveform", "load_calibration", "cfd_of",
     "range_correction_of",
     "NoiseStats", "noise_stats", "ar1",
     "target_membership", "pulse_targets",

@@ -54,11 +54,8 @@ import numpy as np
 import pyarrow as pa
 from scipy.optimize import minimize_scalar
 
-import waveforest.sensor._checks as _checks
+import waveforest.sensor.checks as checks
 from waveforest.sensor.params import GAIN_MIN
-
-AGC_METADATA_KEY = b"waveforest.agc"
-"""Parquet schema-metadata key of a normalised pulse table: JSON with dataset, a, b, n0."""
 
 GAIN_COLUMN = "agc_gain"
 """Column appended to a normalised pulse table: the gain g of Eq. 1 applied to each pulse."""
@@ -77,7 +74,7 @@ def agc_gain(agc, a: float, b: float) -> np.ndarray:
 
 def normalise_intensity(intensity, agc, a: float, b: float) -> np.ndarray:
     """DR intensities normalised by Eq. 1 (unchanged where the AGC is NaN)."""
-    return np.asarray(intensity, dtype=np.float64) / _checks.gain_or_one(agc_gain(agc, a, b))
+    return np.asarray(intensity, dtype=np.float64) / checks.gain_or_one(agc_gain(agc, a, b))
 
 
 def normalise_waveforms(samples, agc, a: float, b: float, n0: float) -> np.ndarray:
@@ -100,7 +97,7 @@ def divide_gain(samples, gain, n0: float) -> np.ndarray:
     x = np.asarray(samples, dtype=np.float64)
     if x.ndim != 2:
         raise ValueError(f"samples must be 2-D, got shape {x.shape}")
-    g = _checks.gain_or_one(gain)
+    g = checks.gain_or_one(gain)
     if g.shape != (x.shape[0],):
         raise ValueError(f"gain must have shape ({x.shape[0]},), got {g.shape}")
     return ((x - n0) / g[:, None] + n0).astype(np.float32)
@@ -108,7 +105,7 @@ def divide_gain(samples, gain, n0: float) -> np.ndarray:
 
 def peak_amplitudes(samples, lengths, n0: float) -> np.ndarray:
     """Largest sample of each waveform minus n0, DN (NaN for empty rows)."""
-    x, lens = _checks.waveforms(samples, lengths)
+    x, lens = checks.waveforms(samples, lengths)
     if x.shape[1] == 0:
         return np.full(x.shape[0], np.nan)
     valid = np.arange(x.shape[1])[None, :] < lens[:, None]
@@ -129,7 +126,7 @@ def window_sums(samples, lengths, half_window) -> tuple[np.ndarray, np.ndarray]:
     sums : (N,) float64, DN (NaN for empty rows); counts : (N,) int64, samples summed (the
     window clipped to the record). An echo energy above n0 is ``sums - counts * n0``.
     """
-    x, lens = _checks.waveforms(samples, lengths)
+    x, lens = checks.waveforms(samples, lengths)
     n, m = x.shape
     half = np.broadcast_to(np.asarray(half_window, dtype=np.int64), (n,))
     if m == 0 or n == 0:
@@ -322,7 +319,7 @@ def normalise_pulses(pulses: pa.Table, a: float, b: float, n0: float) -> pa.Tabl
     """
     agc = pulses.column("agc").to_numpy(zero_copy_only=False).astype(np.float64)
     if np.isfinite(a) and np.isfinite(b):
-        g = _checks.gain_or_one(agc_gain(agc, a, b))
+        g = checks.gain_or_one(agc_gain(agc, a, b))
     else:
         g = np.ones(pulses.num_rows)
     out = pulses
@@ -334,13 +331,5 @@ def normalise_pulses(pulses: pa.Table, a: float, b: float, n0: float) -> pa.Tabl
     return out.append_column(GAIN_COLUMN, pa.array(g, type=pa.float64()))
 
 
-# -- the `agc` stage ------------------------------------------------------------------------
-_PASS1_COLUMNS = ["dataset", "gps_time", "agc", "echo_x", "echo_y", "samples", "sampling_ns"]
-
-
-
-
-
-
-
-
+SCAN_COLUMNS = ["dataset", "gps_time", "agc", "echo_x", "echo_y", "samples", "sampling_ns"]
+"""Pulse-table columns the first pass of the ``agc`` stage reads (AGC values, noise, targets)."""

@@ -23,7 +23,7 @@ AGC gain, as the saturation acts after the gain) and ``trigger_loss`` f
 (the earliest fraction f of a target's near-delta sigma is lost, which scales its whole echo
 by 1 - f). Without them a model with the effect would apply it twice: once through S(t), once
 in the signal model. ``diagnose`` recalibrates in the same way for each value it tries
-(:class:`CalibrationPulses`).
+(:class:`waveforest.model.calibration_pulses.CalibrationPulses`).
 
 The same stage sets the CFD against the DR ranges (docs/method.md §(f)) on the target pulses
 (calibration and AGC targets) and ``calibrate.cfd_pulses`` pulses drawn at random from the
@@ -35,21 +35,19 @@ correction. The JSON keeps the CFD with its correction (:func:`cfd_of`): every s
 detects echoes with this calibration uses that pair.
 
 A written calibration is read back as one typed :class:`Calibration` (S(t), noise, CFD, range
-correction and the whole JSON) by :func:`load_calibration`; :func:`read_calibration_json`
+correction and the whole JSON) by :func:`load_calibration`; :func:`waveforest.io.results.read_calibration_json`
 gives the checked JSON alone.
 """
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
-import waveforest.sensor._checks as _checks
-from waveforest.errors import WaveforestError
+import waveforest.sensor.checks as checks
+from waveforest.io.results import read_calibration_json
 from waveforest.sensor.cfd import RangeCorrection
 from waveforest.sensor.params import CFD_CHECK_M, FINE_NS, RANGE_GATE_M, CFDParams
 from waveforest.sensor.system_waveform import SystemWaveform, load_system_waveform
@@ -77,10 +75,10 @@ def resample_aligned(samples, lengths, sampling_ns, echo_time_ns, t_grid) -> np.
     -------
     (n, K) float64
     """
-    x, lens = _checks.waveforms(samples, lengths)
+    x, lens = checks.waveforms(samples, lengths)
     n = x.shape[0]
-    dt = _checks.per_pulse(sampling_ns, n, "sampling_ns", positive=True)
-    te = _checks.per_pulse(echo_time_ns, n, "echo_time_ns")
+    dt = checks.per_pulse(sampling_ns, n, "sampling_ns", positive=True)
+    te = checks.per_pulse(echo_time_ns, n, "echo_time_ns")
     pos = (te[:, None] + np.asarray(t_grid)[None, :]) / dt[:, None]
     k = np.floor(pos).astype(np.int64)
     last = (lens - 1)[:, None]
@@ -140,15 +138,15 @@ def calibrate_system_waveform(samples, lengths, sampling_ns, echo_time_ns, range
     SystemWaveform with s = mean over pulses and s_sd = SD over pulses (NaN with < 2 pulses);
     meta n_pulses.
     """
-    x, lens = _checks.waveforms(samples, lengths)
+    x, lens = checks.waveforms(samples, lengths)
     n = x.shape[0]
     if n == 0:
         raise ValueError("calibrate_system_waveform: no pulses")
-    dt = _checks.per_pulse(sampling_ns, n, "sampling_ns", positive=True)
-    te = _checks.per_pulse(echo_time_ns, n, "echo_time_ns")
-    r = _checks.per_pulse(range_m, n, "range_m", positive=True)
-    sg = _checks.per_pulse(sigma, n, "sigma", positive=True)
-    level = _checks.per_pulse(nonlinearity, n, "nonlinearity", nonnegative=True)
+    dt = checks.per_pulse(sampling_ns, n, "sampling_ns", positive=True)
+    te = checks.per_pulse(echo_time_ns, n, "echo_time_ns")
+    r = checks.per_pulse(range_m, n, "range_m", positive=True)
+    sg = checks.per_pulse(sigma, n, "sigma", positive=True)
+    level = checks.per_pulse(nonlinearity, n, "nonlinearity", nonnegative=True)
     t = calibration_grid(window_ns)
     s1 = np.zeros(t.size)
     s2 = np.zeros(t.size)
@@ -192,11 +190,6 @@ def calibration_effects(effects: dict | None) -> dict:
     """The switched-on effects of ``effects`` that the calibration inverts (nonlinearity, trigger_loss)."""
     effects = effects or {}
     return {k: float(effects[k]) for k in CALIBRATION_EFFECTS if effects.get(k)}
-
-
-def model_sensor_effects(cfg: dict) -> dict:
-    """:func:`calibration_effects` of the simulation model (``simulate.effects``)."""
-    return calibration_effects(cfg["simulate"]["effects"])
 
 
 def cfd_of(meta: dict) -> CFDParams | None:
@@ -244,27 +237,6 @@ class Calibration:
     def range_correction_or_identity(self) -> RangeCorrection:
         """:attr:`range_correction`, the identity when None."""
         return self.range_correction if self.range_correction is not None else RangeCorrection.identity()
-
-
-def read_calibration_json(path) -> dict:
-    """The calibration JSON written by the ``calibrate`` stage, checked for its required keys.
-
-    Raises
-    ------
-    WaveforestError
-        The file is missing, not valid JSON, or lacks ``dataset``, ``noise_mean`` or ``noise_sd``.
-    """
-    path = Path(path)
-    if not path.exists():
-        raise WaveforestError(f"{path}: no such calibration file")
-    try:
-        d = json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise WaveforestError(f"{path}: not valid JSON ({exc})") from None
-    missing = [k for k in ("dataset", "noise_mean", "noise_sd") if d.get(k) is None]
-    if missing:
-        raise WaveforestError(f"{path}: calibration lacks {', '.join(missing)}")
-    return d
 
 
 def load_calibration(json_path, system_path=None) -> Calibration:

@@ -51,7 +51,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit, prange
 
-import waveforest.sensor._checks as _checks
+import waveforest.sensor.checks as checks
 from waveforest.constants import RANGE_PER_NS
 from waveforest.sensor.params import CFD_PERSIST_FRACTION, FINE_EPS, FINE_NS, RANGE_TREND_Z, CFDParams
 
@@ -123,7 +123,7 @@ def _max_interp(row, n, mean, inv_dt, dt, t_lo, t_hi):
 
 
 @njit(cache=True)
-def _cfd_one(row, n, dt, mean, thr, frac, D, dead, max_echoes, out_t, out_a):
+def cfd_row(row, n, dt, mean, thr, frac, D, dead, max_echoes, out_t, out_a):
     """CFD echoes of one waveform; writes times (ns from the first sample) and amplitudes.
 
     Parameters
@@ -195,10 +195,10 @@ def _cfd_one(row, n, dt, mean, thr, frac, D, dead, max_echoes, out_t, out_a):
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def _cfd_kernel(samples, lengths, dt, mean, thr, frac, D, dead, max_echoes, out_t, out_a, out_n):
+def cfd_kernel(samples, lengths, dt, mean, thr, frac, D, dead, max_echoes, out_t, out_a, out_n):
     """CFD over a table of waveforms (prange over pulses); outputs pre-filled by the caller."""
     for i in prange(samples.shape[0]):
-        out_n[i] = _cfd_one(samples[i], lengths[i], dt[i], mean[i], thr[i], frac, D, dead,
+        out_n[i] = cfd_row(samples[i], lengths[i], dt[i], mean[i], thr[i], frac, D, dead,
                             max_echoes, out_t[i], out_a[i])
 
 
@@ -236,20 +236,20 @@ def detect_echoes(samples, lengths, sampling_ns, noise_mean, noise_sd, cfd: CFDP
     Echoes (times_ns, amplitudes, n_echoes); times count from the first sample.
     """
     cfd = (cfd or CFDParams()).resolved(fwhm_ns)
-    x, lens = _checks.waveforms(samples, lengths)
+    x, lens = checks.waveforms(samples, lengths)
     n = x.shape[0]
     if int(max_echoes) < 1:
         raise ValueError(f"max_echoes must be >= 1, got {max_echoes}")
     max_echoes = int(max_echoes)
-    dt = _checks.per_pulse(sampling_ns, n, "sampling_ns", positive=True)
-    mean = _checks.per_pulse(noise_mean, n, "noise_mean")
-    sd = _checks.per_pulse(noise_sd, n, "noise_sd", nonnegative=True)
+    dt = checks.per_pulse(sampling_ns, n, "sampling_ns", positive=True)
+    mean = checks.per_pulse(noise_mean, n, "noise_mean")
+    sd = checks.per_pulse(noise_sd, n, "noise_sd", nonnegative=True)
     thr = cfd.arming_sd * sd
     times = np.full((n, max_echoes), np.nan)
     amps = np.full((n, max_echoes), np.nan)
     counts = np.zeros(n, dtype=np.int64)
     if n:
-        _cfd_kernel(x, lens, dt, mean, thr, float(cfd.fraction), cfd.fine_delay(), cfd.fine_dead(),
+        cfd_kernel(x, lens, dt, mean, thr, float(cfd.fraction), cfd.fine_delay(), cfd.fine_dead(),
                     max_echoes, times, amps, counts)
     if range_correction is not None:
         times = range_correction.apply(times, amps)

@@ -35,7 +35,7 @@ import pandas as pd
 import pyarrow as pa
 from numba import njit, prange
 
-import waveforest.sensor._checks as _checks
+import waveforest.sensor.checks as checks
 from waveforest.constants import RANGE_PER_NS
 from waveforest.errors import WaveforestWarning
 from waveforest.io.pulses import PULSE_SCHEMA, list_to_padded
@@ -163,12 +163,12 @@ def first_echo_features(samples, lengths, sampling_ns, echo_time_ns, noise_mean,
     seg_end_ns, t_peak_ns (vertex of the peak parabola; ns from the first sample). NaN (Npeaks 0) without a segment.
     """
     p = FeatureParams(segment_sd, peak_rise_sd, ECHO_SEARCH_NS if echo_search_ns is None else echo_search_ns)
-    x, lens = _checks.waveforms(samples, lengths)
+    x, lens = checks.waveforms(samples, lengths)
     n = x.shape[0]
-    dt = _checks.per_pulse(sampling_ns, n, "sampling_ns", positive=True)
-    te = _checks.per_pulse(echo_time_ns, n, "echo_time_ns", allow_nan=True)
-    mean = _checks.per_pulse(noise_mean, n, "noise_mean")
-    sd = _checks.per_pulse(noise_sd, n, "noise_sd", nonnegative=True)
+    dt = checks.per_pulse(sampling_ns, n, "sampling_ns", positive=True)
+    te = checks.per_pulse(echo_time_ns, n, "echo_time_ns", allow_nan=True)
+    mean = checks.per_pulse(noise_mean, n, "noise_mean")
+    sd = checks.per_pulse(noise_sd, n, "noise_sd", nonnegative=True)
     out = np.empty((n, 7))
     if n:
         _features_kernel(x, lens, dt, mean, sd, te, float(p.segment_sd), float(p.peak_rise_sd),

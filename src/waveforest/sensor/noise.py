@@ -20,7 +20,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from numba import njit, prange
 
-import waveforest.sensor._checks as _checks
+import waveforest.sensor.checks as checks
 from waveforest.sensor.params import INTEGER_TOL, QUANTISATION_VAR
 
 
@@ -69,8 +69,8 @@ def gaussian_noise(rng: np.random.Generator, shape: tuple[int, int], mean, sd, a
     ``mean`` and ``sd`` are scalars or (n,) arrays. One draw of ``rng.standard_normal(shape)``.
     """
     n = shape[0]
-    mean = _checks.per_pulse(mean, n, "noise_mean")
-    sd = _checks.per_pulse(sd, n, "noise_sd", nonnegative=True)
+    mean = checks.per_pulse(mean, n, "noise_mean")
+    sd = checks.per_pulse(sd, n, "noise_sd", nonnegative=True)
     z = rng.standard_normal(shape)
     e = ar1(z, autocorr) if autocorr != 0.0 else z
     return mean[:, None] + sd[:, None] * e
@@ -104,7 +104,7 @@ def tail_samples(samples, lengths, tail: int) -> tuple[np.ndarray, np.ndarray]:
 
     Rows shorter than ``tail`` give all their samples.
     """
-    x, lens = _checks.waveforms(samples, lengths)
+    x, lens = checks.waveforms(samples, lengths)
     if tail < 1:
         raise ValueError(f"tail must be >= 1, got {tail}")
     n = x.shape[0]
@@ -136,7 +136,7 @@ def noise_stats(samples, lengths=None, tail: int = 50, *, gain=None, n0: float |
     if gain is not None:
         if n0 is None:
             raise ValueError("noise_stats: n0 is required with gain")
-        g = _checks.per_pulse(gain, vals.shape[0], "gain", positive=True)
+        g = checks.per_pulse(gain, vals.shape[0], "gain", positive=True)
         vals = (vals - n0) * g[:, None] + n0
     v = vals[ok]
     if v.size < 2:

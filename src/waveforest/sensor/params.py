@@ -139,13 +139,6 @@ class CFDParams:
         return cls(fraction=float(d["fraction"]), delay_ns=d.get("delay_ns"), arming_sd=float(d["arming_sd"]),
                    dead_time_ns=d.get("dead_time_ns"))
 
-    @classmethod
-    def from_config(cls, cfg: dict) -> CFDParams:
-        """From ``sensor.cfd`` of a validated config (:func:`waveforest.config.validate`)."""
-        sec = cfg["sensor"]["cfd"]
-        return cls(fraction=float(sec["fraction"]), delay_ns=sec["delay_ns"], arming_sd=float(sec["arming_sd"]),
-                   dead_time_ns=sec["dead_time_ns"])
-
 
 @dataclass(frozen=True)
 class FeatureParams:
@@ -170,10 +163,3 @@ class FeatureParams:
         for name in ("segment_sd", "peak_rise_sd", "echo_search_ns"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"feature parameter {name} must be >= 0, got {getattr(self, name)}")
-
-    @classmethod
-    def from_config(cls, cfg: dict) -> FeatureParams:
-        """From ``sensor.features`` of a validated config (:func:`waveforest.config.validate`)."""
-        sec = cfg["sensor"]["features"]
-        return cls(segment_sd=float(sec["segment_sd"]), peak_rise_sd=float(sec["peak_rise_sd"]),
-                   echo_search_ns=float(sec["echo_search_ns"]))

@@ -19,6 +19,29 @@ from waveforest.sensor.system_waveform import gaussian_system_waveform, load_sys
 
 
 @dataclass(frozen=True)
+class ReferenceSystem:
+    """The configured reference sensor (config ``sensitivity.reference_system``).
+
+    Attributes
+    ----------
+    fwhm_ns : float, ns
+        FWHM of the analytic Gaussian S(t).
+    plane_hdrf : float
+        HDRF of the nadir Lambertian plane that fixes the Gaussian's scale.
+    plane_dn : float, DN
+        Peak of that plane's echo above the noise mean.
+    noise_mean, noise_sd : float, DN
+        Noise of the Gaussian S(t), and of a calibrated S(t) without its calibration JSON.
+    """
+
+    fwhm_ns: float
+    plane_hdrf: float
+    plane_dn: float
+    noise_mean: float
+    noise_sd: float
+
+
+@dataclass(frozen=True)
 class ReferenceSensor:
     """S(t) and noise of the studies, and where they came from."""
 
@@ -28,13 +51,13 @@ class ReferenceSensor:
     source: str
 
 
-def reference_sensor(cfg: dict, system_path=None, calibration_path=None, range_m: float = 1200.0) -> ReferenceSensor:
+def reference_sensor(ref: ReferenceSystem, system_path=None, calibration_path=None,
+                     range_m: float = 1200.0) -> ReferenceSensor:
     """S(t) and noise from a calibration, or the configured Gaussian (see module docstring).
 
     Parameters
     ----------
-    cfg : dict
-        Loaded config (``sensitivity.reference_system``).
+    ref : ReferenceSystem
     system_path : path or None
         Calibrated S(t) (Parquet). None or empty -> the Gaussian; a missing file is an error.
     calibration_path : path or None
@@ -43,7 +66,6 @@ def reference_sensor(cfg: dict, system_path=None, calibration_path=None, range_m
         Range at which ``plane_dn`` holds, m (Gaussian only).
     """
 
-    ref = cfg["sensitivity"]["reference_system"]
     if system_path is not None and str(system_path).strip():
         system_path = Path(system_path)
         if not system_path.exists():
@@ -54,9 +76,9 @@ def reference_sensor(cfg: dict, system_path=None, calibration_path=None, range_m
             c = load_calibration(cal)
             return ReferenceSensor(system, c.noise_mean, c.noise_sd,
                                    f"calibrated S(t) {system_path.name}, noise {cal.name}")
-        return ReferenceSensor(system, float(ref["noise_mean"]), float(ref["noise_sd"]),
+        return ReferenceSensor(system, float(ref.noise_mean), float(ref.noise_sd),
                                f"calibrated S(t) {system_path.name}, configured noise")
-    peak = float(ref["plane_dn"]) * math.pi * float(range_m) ** 2 / float(ref["plane_hdrf"])
-    system = gaussian_system_waveform(float(ref["fwhm_ns"]), peak)
-    return ReferenceSensor(system, float(ref["noise_mean"]), float(ref["noise_sd"]),
-                           f"Gaussian S(t), FWHM {float(ref['fwhm_ns']):g} ns")
+    peak = float(ref.plane_dn) * math.pi * float(range_m) ** 2 / float(ref.plane_hdrf)
+    system = gaussian_system_waveform(float(ref.fwhm_ns), peak)
+    return ReferenceSensor(system, float(ref.noise_mean), float(ref.noise_sd),
+                           f"Gaussian S(t), FWHM {float(ref.fwhm_ns):g} ns")

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-import waveforest.sensor._checks as _checks
+import waveforest.sensor.checks as checks
 from waveforest.constants import RANGE_PER_NS
 from waveforest.sensor.noise import NoiseStats, tail_samples
 from waveforest.sensor.params import CFD_CHECK_M, INTEGER_TOL, QUANTISATION_VAR, RANGE_GATE_M
@@ -63,10 +63,10 @@ def tail_noise(samples, lengths, sampling_ns, last_echo_ns, *, tail: int = 50, g
     ValueError
         Fewer than 2 samples left.
     """
-    x, lens = _checks.waveforms(samples, lengths)
+    x, lens = checks.waveforms(samples, lengths)
     n = x.shape[0]
-    dt = _checks.per_pulse(sampling_ns, n, "sampling_ns", positive=True)
-    last = _checks.per_pulse(last_echo_ns, n, "last_echo_ns", allow_nan=True)
+    dt = checks.per_pulse(sampling_ns, n, "sampling_ns", positive=True)
+    last = checks.per_pulse(last_echo_ns, n, "last_echo_ns", allow_nan=True)
     vals, ok = tail_samples(x, lens, tail)
     k = lens[:, None] - tail + np.arange(tail)[None, :]
     ok &= ~(k * dt[:, None] < (last + guard_ns)[:, None])  # NaN last echo: nothing to guard
@@ -141,7 +141,7 @@ def system_fwhm(widths_ns, *, min_echoes: int = 20) -> SystemWidth:
 def flat_top(samples, lengths) -> np.ndarray:
     """(n,) bool: the waveform's highest sample is the highest of all waveforms given and
     repeats in the next or previous sample (a digitiser or detector clipped the echo)."""
-    x, lens = _checks.waveforms(samples, lengths)
+    x, lens = checks.waveforms(samples, lengths)
     n = x.shape[0]
     if n == 0 or x.shape[1] == 0:
         return np.zeros(n, bool)
@@ -159,11 +159,11 @@ def dr_visible(samples, lengths, sampling_ns, dr_time_ns, level, half_window_ns)
     """(n,) bool: some sample within ``half_window_ns`` of the DR time exceeds ``level`` (DN,
     absolute: noise mean + arming level), i.e. the waveform shows the DR echo above its noise.
     False without a DR time."""
-    x, lens = _checks.waveforms(samples, lengths)
+    x, lens = checks.waveforms(samples, lengths)
     n = x.shape[0]
-    dt = _checks.per_pulse(sampling_ns, n, "sampling_ns", positive=True)
-    t = _checks.per_pulse(dr_time_ns, n, "dr_time_ns", allow_nan=True)
-    lv = _checks.per_pulse(level, n, "level")
+    dt = checks.per_pulse(sampling_ns, n, "sampling_ns", positive=True)
+    t = checks.per_pulse(dr_time_ns, n, "dr_time_ns", allow_nan=True)
+    lv = checks.per_pulse(level, n, "level")
     if n == 0 or x.shape[1] == 0:
         return np.zeros(n, bool)
     reach = int(math.ceil(float(np.max(half_window_ns / dt)))) + 1
@@ -232,14 +232,20 @@ BIAS_LIMIT_M = 0.02
 """"No bias": |median residual| under this, m."""
 
 
+def _cm(metres) -> str:
+    """A length in cm to 0.1 cm, without a negative zero ("nan" for None)."""
+    text = f"{100 * (np.nan if metres is None else metres):.1f}"
+    return "0.0" if text == "-0.0" else text
+
+
 def closing_note(agreement: dict, sampling_ns: float, arming_sd: float) -> str:
     """One paragraph: whether the paper's criterion holds, and if not what limits the rest, measured."""
     share, med, n = agreement["within_0_10_m"], agreement["median_residual_m"], agreement["n_pulses"]
     if not n or share is None:
         return "no pulse has a DR echo: the CFD cannot be checked against the sensor's ranges"
-    bias = "no bias" if med is not None and abs(med) < BIAS_LIMIT_M else f"a bias of {100 * (med or np.nan):.1f} cm"
+    bias = "no bias" if med is not None and abs(med) < BIAS_LIMIT_M else f"a bias of {_cm(med)} cm"
     head = (f"{100 * share:.1f} % of the {n:,} pulses with a DR echo have their first CFD echo within 0.10 m of it, "
-            f"median residual {100 * (med or np.nan):.1f} cm ({bias})")
+            f"median residual {_cm(med)} cm ({bias})")
     if share >= PAPER_SHARE and bias == "no bias":
         return head + ": the paper's criterion (> 95 %, no bias) holds."
     lim = agreement["limits"]
@@ -250,7 +256,7 @@ def closing_note(agreement: dict, sampling_ns: float, arming_sd: float) -> str:
         f"{100 * lim['no_cfd_echo']['share']:.1f} % have no CFD echo at all",
         f"{100 * lim['other_echo']['share']:.1f} % a CFD echo on another return although the DR echo shows (|dR| >= 1 m)",
         f"{100 * lim['same_echo_off']['share']:.1f} % the same echo but 0.10-1 m off (residual robust SD "
-        f"{100 * (agreement['residual_sd_robust_m'] or np.nan):.1f} cm at {sampling_ns:g}-ns sampling)",
+        f"{_cm(agreement['residual_sd_robust_m'])} cm at {sampling_ns:g}-ns sampling)",
     ]
     vis = agreement.get("within_0_10_m_dr_above_noise")
     tail = (f"; among pulses whose DR echo shows above the noise the share is {100 * vis:.1f} %" if vis is not None else "")

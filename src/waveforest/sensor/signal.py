@@ -44,9 +44,9 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit, prange
 
-import waveforest.sensor._checks as _checks
+import waveforest.sensor.checks as checks
 from waveforest.constants import RANGE_PER_NS, RECORD_NS
-from waveforest.sensor.cfd import _cfd_kernel
+from waveforest.sensor.cfd import cfd_kernel
 from waveforest.sensor.noise import gaussian_noise
 from waveforest.sensor.params import FINE_NS, CFDParams
 from waveforest.sensor.system_waveform import SystemWaveform
@@ -125,6 +125,21 @@ def _analog_kernel(sigma, w, S, level, out):
         _saturate(out[i], level[i])
 
 
+@njit(cache=True)
+def _lerp_into(v, p, u, out, k):
+    """out[p, k] = row p of ``v`` (n, m) linearly interpolated at fractional index u; unchanged
+    outside [0, m - 1]."""
+    m = v.shape[1]
+    if u < 0.0 or u > m - 1:
+        return
+    i = int(u)
+    if i >= m - 1:
+        out[p, k] = v[p, m - 1]
+    else:
+        f = u - i
+        out[p, k] = (1.0 - f) * v[p, i] + f * v[p, i + 1]
+
+
 @njit(parallel=True, cache=True, nogil=True)
 def _sample_kernel(v, tv0, trig_rel, pre_ns, phase_ns, dt, out, trig, first):
     """Record window and point sampling of fine-grid signals (prange over pulses).
@@ -149,15 +164,50 @@ def _sample_kernel(v, tv0, trig_rel, pre_ns, phase_ns, dt, out, trig, first):
         ts = phase_ns[i] + math.ceil((start - phase_ns[i]) / dt) * dt
         first[i] = ts
         for k in range(n_s):
-            u = (ts + k * dt - tv0[i]) / FINE_NS
-            if u < 0.0 or u > nv - 1:
-                continue
-            m = int(u)
-            if m >= nv - 1:
-                out[i, k] = v[i, nv - 1]
-            else:
-                f = u - m
-                out[i, k] = (1.0 - f) * v[i, m] + f * v[i, m + 1]
+            _lerp_into(v, i, (ts + k * dt - tv0[i]) / FINE_NS, out, k)
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _grid_sample_kernel(analog, pos0, step, out):
+    """out[p, k] = analog[p] linearly interpolated at fractional index pos0[p] + k step (0 outside)."""
+    n = analog.shape[0]
+    n_s = out.shape[1]
+    for p in prange(n):
+        if not np.isfinite(pos0[p]):
+            continue
+        for k in range(n_s):
+            _lerp_into(analog, p, pos0[p] + k * step, out, k)
+
+
+def sample_analog(analog, pos0, step: float, n_samples: int) -> np.ndarray:
+    """Point samples of fine-grid signals.
+
+    Parameters
+    ----------
+    analog : (n, m) float64
+        Signals on a uniform grid (index units).
+    pos0 : (n,) float64
+        Fractional grid index of sample 0 (NaN: leave the row zero).
+    step : float
+        Sample spacing in grid units (> 0).
+    n_samples : int
+
+    Returns
+    -------
+    (n, n_samples) float64, zero outside the signal.
+    """
+    a = np.ascontiguousarray(analog, dtype=np.float64)
+    if a.ndim != 2:
+        raise ValueError(f"analog: expected shape (n, m), got {a.shape}")
+    p = np.ascontiguousarray(pos0, dtype=np.float64)
+    if p.shape != (a.shape[0],):
+        raise ValueError(f"pos0: expected shape ({a.shape[0]},), got {p.shape}")
+    if not step > 0 or n_samples < 0:
+        raise ValueError("step must be > 0 and n_samples >= 0")
+    out = np.zeros((a.shape[0], int(n_samples)))
+    if a.shape[0] and a.shape[1] and n_samples:
+        _grid_sample_kernel(a, p, float(step), out)
+    return out
 
 
 def _check_sigma(sigma, t0_ns, range_m, gain):
@@ -169,16 +219,16 @@ def _check_sigma(sigma, t0_ns, range_m, gain):
     if (sig < 0).any():
         raise ValueError("sigma must be >= 0 (per-bin sums of non-negative contributions)")
     n = sig.shape[0]
-    t0 = _checks.per_pulse(t0_ns, n, "t0_ns")
-    r = _checks.per_pulse(range_m, n, "range_m", positive=True)
-    g = np.ones(n) if gain is None else _checks.per_pulse(gain, n, "gain", positive=True)
+    t0 = checks.per_pulse(t0_ns, n, "t0_ns")
+    r = checks.per_pulse(range_m, n, "range_m", positive=True)
+    g = np.ones(n) if gain is None else checks.per_pulse(gain, n, "gain", positive=True)
     return np.ascontiguousarray(sig), t0, r, g
 
 
 def saturation_levels(level: float, gain) -> np.ndarray:
     """Saturation levels L / g of pulses with AGC gains g in AGC-normalised DN (g not finite
     or <= 0, e.g. no AGC: 1)."""
-    return float(level) / _checks.gain_or_one(gain)
+    return float(level) / checks.gain_or_one(gain)
 
 
 def _check_effects(noise_autocorr, nonlinearity, trigger_loss, n: int) -> np.ndarray:
@@ -187,7 +237,7 @@ def _check_effects(noise_autocorr, nonlinearity, trigger_loss, n: int) -> np.nda
         raise ValueError(f"noise_autocorr must lie in (-1, 1), got {noise_autocorr}")
     if not (0.0 <= trigger_loss < 1.0):
         raise ValueError(f"trigger_loss must lie in [0, 1), got {trigger_loss}")
-    return _checks.per_pulse(nonlinearity, n, "nonlinearity (saturation level, DN)", nonnegative=True)
+    return checks.per_pulse(nonlinearity, n, "nonlinearity (saturation level, DN)", nonnegative=True)
 
 
 def analog_waveforms(sigma, t0_ns, range_m, system: SystemWaveform, *, gain=None, nonlinearity=0.0,
@@ -267,8 +317,8 @@ def render(sigma, t0_ns, range_m, system: SystemWaveform, noise_mean, noise_sd, 
         raise ValueError(f"pre_trigger_m must be (lo, hi) with 0 <= lo <= hi, got {pre_trigger_m}")
     if not digitizer_max > 0:
         raise ValueError(f"digitizer_max must be > 0, got {digitizer_max}")
-    mean = _checks.per_pulse(noise_mean, n, "noise_mean")
-    sd = _checks.per_pulse(noise_sd, n, "noise_sd", nonnegative=True)
+    mean = checks.per_pulse(noise_mean, n, "noise_mean")
+    sd = checks.per_pulse(noise_sd, n, "noise_sd", nonnegative=True)
     cfd = (cfd or CFDParams()).resolved(system.fwhm_ns)
     n_s = int(round(record_ns / sampling_ns))
 
@@ -291,7 +341,7 @@ def render(sigma, t0_ns, range_m, system: SystemWaveform, noise_mean, noise_sd, 
         _analog_kernel(sig[sl], (g / r**2)[sl], system.s, level[sl], v)
         t_rel = np.full((m, 1), np.nan)
         a_rel = np.full((m, 1), np.nan)
-        _cfd_kernel(v, np.full(m, nv, dtype=np.int64), np.full(m, FINE_NS), np.zeros(m), thr[sl],
+        cfd_kernel(v, np.full(m, nv, dtype=np.int64), np.full(m, FINE_NS), np.zeros(m), thr[sl],
                     float(cfd.fraction), cfd.fine_delay(), cfd.fine_dead(), 1, t_rel, a_rel, np.zeros(m, dtype=np.int64))
         _sample_kernel(v, tv0[sl], t_rel[:, 0], pre_ns[sl], phase_ns[sl], float(sampling_ns), signal[sl], trig[sl],
                        first[sl])

@@ -14,18 +14,15 @@ CFD crossing is at 0 (for the default CFD: the Gaussian peak).
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import pyarrow as pa
-import pyarrow.parquet as pq
 
-from waveforest.atomic import atomic_path
 from waveforest.errors import WaveforestError
-from waveforest.sensor.cfd import _cfd_one
+from waveforest.io.results import read_system_waveform_table, write_system_waveform_table
+from waveforest.sensor.cfd import cfd_row
 from waveforest.sensor.params import CFD_SELF_ARM_FRACTION, FINE_NS, GAUSSIAN_EXTENT_SD, GRID_TOL_NS, CFDParams
 
 _FWHM_PER_SD = 2.0 * math.sqrt(2.0 * math.log(2.0))
@@ -157,7 +154,7 @@ class SystemWaveform:
         t = np.full(1, np.nan)
         a = np.full(1, np.nan)
         row = self.s.astype(np.float64)
-        n = _cfd_one(row, row.size, FINE_NS, 0.0, CFD_SELF_ARM_FRACTION * self.peak,
+        n = cfd_row(row, row.size, FINE_NS, 0.0, CFD_SELF_ARM_FRACTION * self.peak,
                      float(cfd.fraction), cfd.fine_delay(), cfd.fine_dead(), 1, t, a)
         if n == 0:
             raise ValueError("cfd_time_ns: the CFD finds no echo in S(t)")
@@ -170,13 +167,8 @@ class SystemWaveform:
     # -- persistence --------------------------------------------------------------------
     def save(self, path: str | Path) -> Path:
         """Write Parquet with columns t_ns, s, s_sd (NaN where unknown), atomically."""
-        path = Path(path)
         sd = self.s_sd if self.s_sd is not None else np.full_like(self.s, np.nan)
-        table = pa.table({"t_ns": self.t_ns, "s": self.s, "s_sd": sd})
-        table = table.replace_schema_metadata({b"waveforest.system_waveform": json.dumps(self.meta, default=float).encode()})
-        with atomic_path(path) as tmp:
-            pq.write_table(table, tmp, compression="zstd")
-        return path
+        return write_system_waveform_table(self.t_ns, self.s, sd, self.meta, path)
 
     def to_dict(self) -> dict:
         """JSON-ready arrays (t_ns, s) and FWHM/energy."""
@@ -185,27 +177,7 @@ class SystemWaveform:
 
 def load_system_waveform(path: str | Path) -> SystemWaveform:
     """Read a system waveform written by :meth:`SystemWaveform.save`."""
-    path = Path(path)
-    if not path.exists():
-        raise WaveforestError(f"{path}: no such system-waveform file")
-    try:
-        table = pq.read_table(path)
-    except (pa.ArrowInvalid, OSError) as exc:
-        raise WaveforestError(f"{path}: not a readable Parquet file ({exc})") from None
-    missing = [c for c in ("t_ns", "s") if c not in table.column_names]
-    if missing:
-        raise WaveforestError(f"{path}: system waveform lacks column(s) {', '.join(missing)}")
-    t = table.column("t_ns").to_numpy().astype(np.float64)
-    s = table.column("s").to_numpy().astype(np.float64)
-    sd = None
-    if "s_sd" in table.column_names:
-        sd = table.column("s_sd").to_numpy(zero_copy_only=False).astype(np.float64)
-        if np.isnan(sd).all():
-            sd = None
-    meta = {}
-    md = table.schema.metadata or {}
-    if b"waveforest.system_waveform" in md:
-        meta = json.loads(md[b"waveforest.system_waveform"])
+    t, s, sd, meta = read_system_waveform_table(path)
     try:
         return SystemWaveform(t, s, sd, meta)
     except ValueError as exc:

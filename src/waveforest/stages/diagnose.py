@@ -6,7 +6,8 @@ table, the real feature table (``features``), the calibration (S(t) Parquet and 
 AGC-normalised pulse table (``agc``: its calibration-target pulses, to recalibrate S(t)
 under the candidates ``nonlinearity`` and ``trigger_loss``; with ``diagnose.below_crown``
 also the pulses under the crowns, :func:`.diagnose.strata.with_pulses_under_crowns`), and
-the campaign's datasets.csv, targets.csv and fields.csv. Steps:
+the campaign's datasets.csv, targets.csv and fields.csv. Steps 1-3 are
+:func:`.diagnose.missing_effects.run_diagnosis`, with :func:`waveforest.settings.diagnose_settings`:
 
 1. **Pulses** (:func:`.diagnose.strata.pulse_keys`, :func:`.diagnose.strata.real_features`):
    the comparison pulses of the modelled species of ``diagnose.datasets`` and, with
@@ -14,7 +15,7 @@ the campaign's datasets.csv, targets.csv and fields.csv. Steps:
    ``diagnose.fit_pulses`` of them per dataset x species x stratum and tested on all.
 2. **Detection limits** (:func:`.diagnose.power.detection_limits`, ``diagnose.power``): the
    smallest value of each candidate that these pulses would detect, with the study's
-   simulation chain (:class:`.diagnose.simulator.StudySimulator`) on top of
+   simulation chain (:class:`.diagnose.twins.StudySimulator`) on top of
    ``simulate.effects`` (the base model).
 3. **Diagnosis** (:func:`.diagnose.missing_effects.find_missing_effects`) with the same
    simulator: search, before/after, signatures (from the search's or step 2's simulations).
@@ -28,42 +29,43 @@ Errors: :class:`waveforest.errors.WaveforestError` for missing or duplicate inpu
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import click
 import pandas as pd
 
-from waveforest.atomic import atomic_path
+from waveforest.atomic import OutputFolder, atomic_path
 from waveforest.cliutil import (
     EXISTING_FILE,
     OUT_DIR,
     MultiValueCommand,
     MultiValueOption,
+    force_option,
     stage_options,
 )
 from waveforest.diagnose.figures import gap_figure
-from waveforest.diagnose.missing_effects import find_missing_effects, summary_markdown
-from waveforest.diagnose.model import model_dict, write_model
-from waveforest.diagnose.power import PowerSettings, detection_limits, verdict_with_limits
+from waveforest.diagnose.missing_effects import run_diagnosis, summary_markdown
+from waveforest.diagnose.power import verdict_with_limits
 from waveforest.diagnose.search import SearchResult, SearchSettings
-from waveforest.diagnose.simulator import StudySimulator
-from waveforest.diagnose.strata import (
-    BELOW_CROWN,
-    below_crown_features,
-    pulse_keys,
-    real_features,
-    with_pulses_under_crowns,
-)
+from waveforest.diagnose.strata import StrataSettings, with_pulses_under_crowns
+from waveforest.diagnose.twins import StudySimulator
 from waveforest.errors import WaveforestError
 from waveforest.io.pulses import read_pulses
+from waveforest.io.results import (
+    model_dict,
+    read_agc_metadata,
+    read_calibration_json,
+    read_feature_tables,
+    read_select_table,
+    write_model,
+)
 from waveforest.io.tables import dataset_row, read_datasets, read_fields, read_targets
-from waveforest.sensor.calibration import CALIBRATION_EFFECTS, load_calibration, read_calibration_json
-from waveforest.stages.agc import read_agc_metadata
-from waveforest.stages.calibrate import read_calibration_pulses
-from waveforest.stages.classify import read_feature_tables
-from waveforest.stages.select import dataset_of
-from waveforest.stages.simulate import with_sample_columns
+from waveforest.model.calibration_pulses import read_calibration_pulses
+from waveforest.model.selection import dataset_of
+from waveforest.model.simulate import with_sample_columns
+from waveforest.sensor.calibration import CALIBRATION_EFFECTS, load_calibration
+from waveforest.settings import diagnose_settings, target_pulse_settings
 
 OUTPUT_NAMES = {
     "model": "model.yaml",
@@ -92,14 +94,6 @@ class DiagnoseOutputs:
     n_simulations: int
     seconds: float
     limits: pd.DataFrame
-
-
-def diagnosed_datasets(cfg: dict) -> list[str]:
-    """``diagnose.datasets``, default the comparison datasets that are processed."""
-    chosen = cfg["diagnose"]["datasets"]
-    if chosen is None:
-        chosen = [d for d in cfg["simulate"]["datasets"] if d in cfg["datasets"]]
-    return [str(d) for d in chosen]
 
 
 def write_outputs(out_dir, result: SearchResult, gap: pd.DataFrame, cand: pd.DataFrame, sigs: pd.DataFrame, *,
@@ -152,10 +146,13 @@ def _calibration_pulses(agc_paths, targets_path, datasets_path, selected: dict, 
         raise WaveforestError("diagnose: AGC-normalised pulse tables given without targets.csv")
     targets, datasets = read_targets(targets_path), read_datasets(datasets_path)
     paths = _agc_by_dataset(agc_paths)
-    return {ds: read_calibration_pulses(paths[ds], targets, datasets, cfg) for ds in selected if ds in paths}
+    pulse_settings = target_pulse_settings(cfg)
+    return {ds: read_calibration_pulses(paths[ds], targets, datasets, pulse_settings) for ds in selected
+            if ds in paths}
 
 
-def _read_pulses_under_crowns(selected: dict, agc_paths, fields, datasets_path, calibrations: dict, cfg: dict) -> dict:
+def _read_pulses_under_crowns(selected: dict, agc_paths, fields, datasets_path, calibrations: dict,
+                              strata: StrataSettings) -> dict:
     """Read each diagnosed dataset's AGC table and year, and apply
     :func:`.diagnose.strata.with_pulses_under_crowns` (``diagnose.below_crown``)."""
 
@@ -169,7 +166,7 @@ def _read_pulses_under_crowns(selected: dict, agc_paths, fields, datasets_path, 
     datasets = read_datasets(datasets_path)
     return {ds: with_pulses_under_crowns(table, read_pulses(paths[ds]), fields,
                                          int(dataset_row(datasets, ds, datasets_path)["year"]), calibrations[ds][0],
-                                         cfg) for ds, table in selected.items()}
+                                         strata) for ds, table in selected.items()}
 
 
 def _agc_by_dataset(agc_paths) -> dict:
@@ -193,7 +190,7 @@ def _read_selected(selected_paths, fields, fields_path, wanted: list[str]) -> di
     """Dataset -> ``select`` table of the diagnosed datasets (with sample columns from fields.csv)."""
 
     def read_select(p):
-        t = read_pulses(p)
+        t = read_select_table(p)
         if fields is not None:
             t = with_sample_columns(t, fields, str(fields_path))
         return dataset_of(t, str(p)), t
@@ -228,7 +225,7 @@ def _read_calibrations(calibration_paths, system_paths, selected: dict, load: bo
 
 def run(selected_paths, real_paths, calibration_paths, out_dir, cfg: dict, *, datasets_path,
         system_paths=None, fields_path=None, agc_paths=None, targets_path=None, simulator=None,
-        progress: bool = True) -> DiagnoseOutputs:
+        progress: bool = True, force: bool = False) -> DiagnoseOutputs:
     """The ``diagnose`` stage (module docstring).
 
     Parameters
@@ -240,9 +237,11 @@ def run(selected_paths, real_paths, calibration_paths, out_dir, cfg: dict, *, da
     calibration_paths : paths
         Calibration JSONs (``results/calibration/{dataset}.json``).
     out_dir : path
-        Output folder (``results/diagnose``).
+        Output folder (``results/diagnose``), written whole or not at all
+        (:class:`waveforest.atomic.OutputFolder`; ``force``: replace it even if it holds files
+        diagnose did not write).
     cfg : dict
-        Loaded study config (sections diagnose, simulate, mcrt, vegetation, sensor, seed).
+        Loaded study config (:func:`waveforest.settings.diagnose_settings` types what is read).
     datasets_path : path
         The campaign's datasets.csv.
     system_paths : paths, optional
@@ -253,7 +252,7 @@ def run(selected_paths, real_paths, calibration_paths, out_dir, cfg: dict, *, da
     agc_paths, targets_path : paths, path, optional
         AGC-normalised pulse tables (``results/agc/{dataset}.parquet``) and targets.csv: the
         calibration-target pulses, so that the candidates ``nonlinearity`` and ``trigger_loss``
-        are tried with S(t) recalibrated under each value (:mod:`.simulator`); without them,
+        are tried with S(t) recalibrated under each value (:mod:`.twins`); without them,
         on top of the calibrated S(t).
     simulator : callable, optional
         ``simulate(pulses, effects, seed)`` instead of the study chain (tests).
@@ -262,56 +261,44 @@ def run(selected_paths, real_paths, calibration_paths, out_dir, cfg: dict, *, da
     """
 
     t_start = time.perf_counter()
-    out_dir = Path(out_dir)
-    settings = SearchSettings.from_config(cfg)
-    base = dict(cfg["simulate"]["effects"] or {})
-    if base:
-        settings = replace(settings, candidates=tuple(c for c in settings.candidates if c not in base))
-    wanted = diagnosed_datasets(cfg)
+    settings = diagnose_settings(cfg)
+    folder = OutputFolder(out_dir, "diagnose", force=force)
     fields = read_fields(fields_path) if fields_path is not None else None
-    selected = _read_selected(selected_paths, fields, fields_path, wanted)
-    under_crowns = bool(cfg["diagnose"]["below_crown"])
+    selected = _read_selected(selected_paths, fields, fields_path, list(settings.datasets))
+    under_crowns = settings.strata.below_crown
     calibrations = _read_calibrations(calibration_paths, system_paths, selected, simulator is None or under_crowns)
     if under_crowns:
-        selected = _read_pulses_under_crowns(selected, agc_paths, fields, datasets_path, calibrations, cfg)
-    keys = pulse_keys(selected, cfg)
-    fit_cap = cfg["diagnose"]["fit_pulses"]
-    fit_keys = None if fit_cap is None else pulse_keys(selected, cfg, int(fit_cap))
-    if keys.empty:
-        raise WaveforestError("diagnose: no comparison pulse of the modelled species in the select tables")
-    real = real_features(read_feature_tables(real_paths), keys[keys["stratum"] != BELOW_CROWN], cfg)
-    if under_crowns:
-        below = below_crown_features(keys, selected, {ds: meta for ds, (_, meta) in calibrations.items()}, cfg)
-        real = pd.concat([real, below], ignore_index=True)
+        selected = _read_pulses_under_crowns(selected, agc_paths, fields, datasets_path, calibrations,
+                                             settings.strata)
     if simulator is None:
-        use_rc = bool(cfg["sensor"]["cfd"]["range_correction"])
-        simulator = StudySimulator(selected, read_datasets(datasets_path), calibrations, cfg, base_effects=base,
-                                   range_correction=use_rc,
+        simulator = StudySimulator(selected, read_datasets(datasets_path), calibrations, settings,
                                    calibration_pulses=_calibration_pulses(agc_paths, targets_path, datasets_path,
-                                                                          selected, settings, cfg))
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(desc="diagnose: simulations", unit="sim")
-    tick = (lambda label: bar.update(1)) if bar is not None else None
-    power_tables = {}  # the power analysis' simulations, which the signatures reuse
-    limits, curve = detection_limits(keys, simulator, settings, PowerSettings.from_config(cfg), int(cfg["seed"]),
-                                     progress=tick, tables=power_tables)
-    result, gap, cand, sigs = find_missing_effects(keys, real, simulator, settings, int(cfg["seed"]), fit_keys=fit_keys,
-                                                   progress=tick, power_tables=power_tables)
+                                                                          selected, settings.search, cfg))
+    bar = _progress_bar() if progress else None
+    found = run_diagnosis(selected, read_feature_tables(real_paths),
+                          {ds: meta for ds, (_, meta) in calibrations.items()}, simulator, settings,
+                          progress=(lambda label: bar.update(1)) if bar is not None else None)
     if bar is not None:
         bar.close()
-    seconds = time.perf_counter() - t_start
-    paths = write_outputs(out_dir, result, gap, cand, sigs, limits=limits, curve=curve, settings=settings,
-                          base_effects=base, datasets=sorted(selected), keys=keys, seconds=seconds,
-                          n_fit_pulses=None if fit_keys is None else len(fit_keys))
-    tot = gap[gap["level"] == "total"].iloc[0]
-    return DiagnoseOutputs(paths=paths, verdict=result.verdict, effects=result.effects,
+    with folder as out:
+        paths = write_outputs(out, found.result, found.gap, found.candidates, found.signatures, limits=found.limits,
+                              curve=found.curve, settings=settings.search, base_effects=dict(settings.base_effects),
+                              datasets=sorted(selected), keys=found.keys, seconds=time.perf_counter() - t_start,
+                              n_fit_pulses=None if found.fit_keys is None else len(found.fit_keys))
+    paths = {k: folder.final(p) for k, p in paths.items()}
+    tot = found.gap[found.gap["level"] == "total"].iloc[0]
+    return DiagnoseOutputs(paths=paths, verdict=found.result.verdict, effects=found.result.effects,
                            gap_before=float(tot["gap_before"]), gap_after=float(tot["gap_after"]),
-                           n_pulses=int(len(keys)), n_samples=int(keys["sample_id"].nunique()),
-                           n_simulations=int(result.n_simulations), seconds=time.perf_counter() - t_start,
-                           limits=limits)
+                           n_pulses=int(len(found.keys)), n_samples=int(found.keys["sample_id"].nunique()),
+                           n_simulations=int(found.result.n_simulations), seconds=time.perf_counter() - t_start,
+                           limits=found.limits)
+
+
+def _progress_bar():
+    """A tqdm bar over the simulations (stderr)."""
+    from tqdm import tqdm
+
+    return tqdm(desc="diagnose: simulations", unit="sim")
 
 
 @click.command("diagnose", cls=MultiValueCommand)
@@ -336,8 +323,9 @@ def run(selected_paths, real_paths, calibration_paths, out_dir, cfg: dict, *, da
 @click.option("--out", "out", type=OUT_DIR, required=True,
               help="Output folder: model.yaml, candidates.csv, gap_before_after.csv, gap.png, "
                    "signatures.csv, detection_limits.csv, detection_curve.csv, diagnose.md.")
+@force_option
 @stage_options
-def diagnose(selected, features_real, calibration, system, agc, datasets, targets, fields, out, cfg):
+def diagnose(selected, features_real, calibration, system, agc, datasets, targets, fields, out, force, cfg):
     """Find where simulation and measurement disagree, name the missing effect, show the gap shrink.
 
     Beyond the paper: each effect of the catalogue (src/waveforest/effects.py) is fitted on
@@ -346,7 +334,7 @@ def diagnose(selected, features_real, calibration, system, agc, datasets, target
 
     res = run(list(selected), list(features_real), list(calibration), out, cfg,
               datasets_path=datasets, system_paths=list(system or ()), fields_path=fields,
-              agc_paths=list(agc or ()), targets_path=targets)
+              agc_paths=list(agc or ()), targets_path=targets, force=force)
     named = ", ".join(f"{k} = {v:.3g}" for k, v in res.effects.items()) or "nothing named"
     click.echo(f"diagnose: verdict {res.verdict} ({named}); gap {res.gap_before:.3g} -> {res.gap_after:.3g}; "
                f"{res.n_pulses} pulses, {res.n_samples} samples, {res.n_simulations} simulations, "

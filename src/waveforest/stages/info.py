@@ -10,13 +10,14 @@ from __future__ import annotations
 import click
 
 from waveforest.cliutil import (
+    EXISTING_FILE,
     stage_options,
 )
 from waveforest.io.las.info import format_summary, summarise
 
 
 @click.command()
-@click.argument("las_file", type=click.Path(dir_okay=False))
+@click.argument("las_file", type=EXISTING_FILE)
 @click.option("--agc-attribute", default=None,
               help="Point or extra-bytes dimension holding the AGC (default: config agc.attribute, i.e. user_data).")
 @stage_options

@@ -1,196 +1,30 @@
 """The ``ingest`` stage: a LAS waveform file -> a pulse table in Parquet.
 
-Streams :class:`waveforest.io.las.read.WaveformPulseReader` batches into
-:func:`waveforest.io.pulses.write_pulse_batches` (atomic: a failure leaves no output and no temporary
-file). Sensor positions come from a trajectory CSV (``--trajectory``), from a nominal
-range (``--nominal-range``: the sensor that far before the first echo along the beam), or
-are left unknown (NaN).
+Reads the options and the config's ``ingest`` streaming sizes and ``agc.attribute``, and calls
+:func:`waveforest.io.las.pulses.las_to_pulses`, which streams the file into the table (atomic).
+Sensor positions come from a trajectory CSV (``--trajectory``), from a nominal range
+(``--nominal-range``), or are left unknown (NaN).
 """
 
 from __future__ import annotations
 
-import os
-import sys
-from dataclasses import dataclass
-from pathlib import Path
-
 import click
-from tqdm import tqdm
 
-from waveforest.atomic import output_folder
 from waveforest.cliutil import (
+    EXISTING_FILE,
     stage_options,
     warnings_to_stderr,
 )
-from waveforest.errors import WaveforestError
-from waveforest.io.las.read import (
-    DEFAULT_BATCH_PULSES,
-    DEFAULT_BUCKET_POINTS,
-    DEFAULT_CHUNK_POINTS,
-    LasWaveformFile,
-    WaveformPulseReader,
-)
-from waveforest.io.pulses import write_pulse_batches
-from waveforest.io.trajectory import nominal_range_locator, read_trajectory, trajectory_locator
-
-
-@dataclass(frozen=True)
-class IngestResult:
-    """What :func:`run` wrote.
-
-    Attributes
-    ----------
-    out : Path
-        The Parquet pulse table.
-    n_pulses : int
-        Pulse rows written.
-    n_points : int
-        LAS points read.
-    n_without_waveform : int
-        Pulses skipped because none of their returns has a waveform packet.
-    n_bad_gps : int
-        Points dropped for a non-finite GPS time.
-    n_bad_geometry : int
-        Points kept without their waveform packet (unusable beam geometry).
-    n_split_pulses : int
-        Pulses whose returns sit in more than one packet.
-    agc_attribute : str or None
-        The point dimension the AGC was read from (None: no AGC, column is NaN).
-    sensor : str
-        ``trajectory``, ``nominal`` or ``unknown``.
-    las : LasWaveformFile
-        The checked input file.
-    """
-
-    out: Path
-    n_pulses: int
-    n_points: int
-    n_without_waveform: int
-    n_split_pulses: int
-    n_bad_gps: int
-    n_bad_geometry: int
-    agc_attribute: str | None
-    sensor: str
-    las: LasWaveformFile
-
-    def summary(self) -> str:
-        """One line for the CLI."""
-        agc = f"AGC from {self.agc_attribute}" if self.agc_attribute else "no AGC"
-        extra = "".join(
-            f", {n:,} {what}"
-            for n, what in (
-                (self.n_bad_gps, "points with a non-finite GPS time dropped"),
-                (self.n_bad_geometry, "points with an unusable beam geometry kept without their packet"),
-                (self.n_without_waveform, "pulses without waveform skipped"),
-            )
-            if n
-        )
-        return (
-            f"wrote {self.out}: {self.n_pulses:,} pulses from {self.n_points:,} points of {self.las.path.name} "
-            f"(LAS {self.las.version}, format {self.las.point_format}, {self.las.waveform.storage} waveforms; "
-            f"{agc}; sensor {self.sensor}{extra})"
-        )
-
-
-def _sensor_locator(trajectory, nominal_range_m) -> tuple[object, str]:
-    """The reader's ``locate`` callable and the ``sensor`` label: from a trajectory CSV
-    (``"trajectory"``), a nominal range, m (``"nominal"``), or neither (None, ``"unknown"``).
-    Both given raise :class:`WaveforestError`."""
-    if trajectory is not None and nominal_range_m is not None:
-        raise WaveforestError("give either a trajectory or a nominal range, not both")
-    if trajectory is not None:
-        return trajectory_locator(read_trajectory(trajectory)), "trajectory"
-    if nominal_range_m is not None:
-        return nominal_range_locator(float(nominal_range_m)), "nominal"
-    return None, "unknown"
-
-
-def run(
-    las_path: str | os.PathLike,
-    out: str | os.PathLike,
-    *,
-    dataset: str | None = None,
-    trajectory: str | os.PathLike | None = None,
-    nominal_range_m: float | None = None,
-    agc_attribute: str | None = "user_data",
-    chunk_points: int = DEFAULT_CHUNK_POINTS,
-    bucket_points: int = DEFAULT_BUCKET_POINTS,
-    batch_pulses: int = DEFAULT_BATCH_PULSES,
-    progress: bool = False,
-) -> IngestResult:
-    """Ingest one LAS waveform file into a Parquet pulse table.
-
-    Parameters
-    ----------
-    las_path : path
-        LAS 1.3/1.4 file with waveform packets (formats 4, 5, 9, 10).
-    out : path
-        Output Parquet file (written atomically).
-    dataset : str, optional
-        Dataset name of every row (default: the LAS file stem).
-    trajectory : path, optional
-        Trajectory CSV (``gps_time, x, y, z``); fills ``sensor_*`` and ``range_m``.
-    nominal_range_m : float, optional
-        Without a trajectory: put the sensor this many metres before the first echo.
-    agc_attribute : str or None
-        Point (or extra-bytes) dimension holding the AGC.
-    chunk_points, bucket_points, batch_pulses : int
-        Streaming sizes (see :class:`waveforest.io.las.read.WaveformPulseReader`).
-    progress : bool
-        Show a progress bar on stderr.
-    """
-    las_path, out = Path(las_path), Path(out)
-    locate, sensor = _sensor_locator(trajectory, nominal_range_m)
-    if out.resolve() == las_path.resolve():
-        raise WaveforestError(f"{out}: the output would overwrite the input")
-
-    output_folder(out)  # refuse a device, FIFO or directory before reading anything
-    reader = WaveformPulseReader(
-        las_path,
-        dataset=dataset,
-        agc_attribute=agc_attribute,
-        locate=locate,
-        chunk_points=chunk_points,
-        bucket_points=bucket_points,
-        batch_pulses=batch_pulses,
-        tmp_dir=out.parent,
-    )
-    with tqdm(
-        total=reader.n_passes * reader.las.n_points,
-        unit="pt",
-        unit_scale=True,
-        disable=not progress,
-        file=sys.stderr,
-        desc=f"ingest {las_path.name}",
-    ) as bar:
-        reader.on_points = bar.update
-        batches = iter(reader)
-        try:
-            n = write_pulse_batches(batches, out)
-        finally:
-            batches.close()  # on failure too: removes spilled buckets and unmaps now, not at GC
-    st = reader.stats
-    return IngestResult(
-        out=out,
-        n_pulses=n,
-        n_points=st.n_points,
-        n_without_waveform=st.n_without_waveform,
-        n_split_pulses=st.n_split_pulses,
-        n_bad_gps=st.n_bad_gps,
-        n_bad_geometry=st.n_bad_geometry,
-        agc_attribute=st.agc_dimension,
-        sensor=sensor,
-        las=reader.las,
-    )
+from waveforest.io.las.pulses import las_to_pulses
 
 
 @click.command()
-@click.argument("las_file", type=click.Path(dir_okay=False))
+@click.argument("las_file", type=EXISTING_FILE)
 @click.option("--out", "out", required=True, type=click.Path(dir_okay=False), help="Output pulse table (Parquet).")
 @click.option("--dataset", default=None, help="Dataset name written in every row (default: the LAS file stem).")
-@click.option("--trajectory", type=click.Path(dir_okay=False), default=None,
+@click.option("--trajectory", type=EXISTING_FILE, default=None,
               help="Sensor trajectory CSV (gps_time,x,y,z; linear interpolation) for sensor_xyz and range_m.")
-@click.option("--nominal-range", "nominal_range", type=float, default=None,
+@click.option("--nominal-range", "nominal_range", type=click.FloatRange(min=0, min_open=True), default=None,
               help="Without a trajectory: put the sensor this many metres before the first echo along the beam.")
 @click.option("--agc-attribute", default=None,
               help="Point or extra-bytes dimension holding the AGC (default: config agc.attribute, i.e. user_data).")
@@ -204,7 +38,7 @@ def ingest(las_file, out, dataset, trajectory, nominal_range, agc_attribute, chu
 
     icfg = cfg["ingest"]
     with warnings_to_stderr():
-        result = run(
+        result = las_to_pulses(
             las_file,
             out,
             dataset=dataset,

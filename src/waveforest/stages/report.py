@@ -1,16 +1,20 @@
 """The ``report`` stage: every table and figure of a run in one HTML page and its Markdown twin,
-led by a summary of the results beside the paper's (:mod:`waveforest.report.summary`)."""
+led by what the run ran on (:mod:`waveforest.report.source`) and a summary of the results beside
+the paper's (:mod:`waveforest.report.summary`)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import click
+import yaml
 
-from waveforest.atomic import atomic_path
+from waveforest import config
+from waveforest.atomic import atomic_path, output_files
 from waveforest.cliutil import stage_options
 from waveforest.report.build import collect, render_html, render_markdown
+from waveforest.settings import report_settings
 
 
 @dataclass(frozen=True)
@@ -24,16 +28,26 @@ class ReportOutputs:
     n_figures: int
 
 
-def run(results, out_html, cfg: dict | None, out_md=None, title: str = "waveforest study report") -> ReportOutputs:
-    """The ``report`` stage: write the HTML page, its Markdown twin and table4.csv/md beside them."""
+def run(results, out_html, cfg: dict | None, out_md=None, title: str = "waveforest study report",
+        config_path=None) -> ReportOutputs:
+    """The ``report`` stage: write the HTML page, its Markdown twin and table4.csv/md beside them.
+
+    ``config_path``: the config file ``cfg`` was read from, named in the report (None: defaults).
+    """
     out_html = Path(out_html)
     out_md = Path(out_md) if out_md else out_html.with_suffix(".md")
     out_html.parent.mkdir(parents=True, exist_ok=True)
-    sections = collect(results, cfg, out_html.parent)
-    with atomic_path(out_html) as tmp:
-        tmp.write_text(render_html(sections, title))
-    with atomic_path(out_md) as tmp:
-        tmp.write_text(render_markdown(sections, title, out_md.parent))
+    config_yaml = yaml.safe_dump(cfg, sort_keys=True).strip() if cfg else None
+    settings = report_settings(cfg if cfg else config.load(None))
+    if not cfg:  # no config: the schema's defaults, and no datasets named for the run
+        settings = replace(settings, datasets=())
+    with output_files():  # the page, its twin and table4.csv/md together, or none of them
+        sections = collect(results, settings, out_html.parent, config_yaml,
+                           None if config_path is None else str(config_path), config.changes(cfg) if cfg else ())
+        with atomic_path(out_html) as tmp:
+            tmp.write_text(render_html(sections, title))
+        with atomic_path(out_md) as tmp:
+            tmp.write_text(render_markdown(sections, title, out_md.parent))
     items = [i for s in sections for i in s.items]
     return ReportOutputs(out_html, out_md, len(sections), sum(i[0] == "table" for i in items),
                          sum(i[0] == "figure" for i in items))
@@ -47,13 +61,16 @@ def run(results, out_html, cfg: dict | None, out_md=None, title: str = "wavefore
               help="Output HTML (results/report/report.html).")
 @click.option("--markdown", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Output Markdown (default: beside --out, suffix .md).")
+@click.option("--study-config", default=None,
+              help="The config file(s) the study ran with, as the report names them (default: --config).")
 @stage_options
-def report(inputs, results, out, markdown, cfg):
+def report(inputs, results, out, markdown, study_config, cfg):
     """One HTML page and a Markdown twin with every table and figure of a run.
 
-    The report opens with a summary: Table 3 and Table 4 beside the paper's values, the Fig. 9
-    trend and the diagnosis verdict with its detection limits; a missing value says why in
-    place. Details follow, calibration after the results.
+    The report opens with what the run ran on (data source, config and its differences from the
+    defaults, datasets, pulse counts beside the paper's), then a summary: Table 3 and Table 4
+    beside the paper's values, the Fig. 9 trend and the diagnosis verdict with its detection
+    limits; a missing value says why in place. Details follow, calibration after the results.
 
     INPUTS are result files the report must find (the workflow passes the tables of the stages
     it reports on; a missing one is an error). The report shows everything under --results.
@@ -62,5 +79,6 @@ def report(inputs, results, out, markdown, cfg):
     the report, and lists the config used and the software versions.
     """
 
-    r = run(results, out, cfg, markdown)
+    r = run(results, out, cfg, markdown,
+            config_path=study_config or click.get_current_context().params.get("config_path"))
     click.echo(f"report: {r.n_sections} sections, {r.n_tables} tables, {r.n_figures} figures -> {r.html}, {r.markdown}")

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import time
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import click
@@ -22,14 +23,13 @@ from waveforest.constants import RANGE_PER_NS
 from waveforest.effects import CATALOGUE, parse_effects
 from waveforest.errors import WaveforestError
 from waveforest.io.pulses import write_table
-from waveforest.mcrt.beams import Beams
-from waveforest.mcrt.tracer import DEFAULT_WINDOW_NS, TraceResult
+from waveforest.mcrt.beams import BeamSpec
+from waveforest.mcrt.tracer import TraceResult
 from waveforest.mcrt.tracer import trace as trace_pulses
+from waveforest.model.forward import MCRTSetup
 from waveforest.plotting import pyplot, save_png
 from waveforest.scene import Scene, read_ply
-
-DEFAULT_DIVERGENCE_MRAD = 0.15
-"""ALS60 1/e beam divergence (docs/method.md §(a)), used when neither footprint nor divergence is given."""
+from waveforest.settings import mcrt_setup
 
 TABLE_SUFFIXES = (".parquet", ".csv")
 
@@ -37,18 +37,33 @@ PLOT_FRACTION = 0.999
 """The plot of sigma(t) spans the bins holding this fraction of the binned sigma."""
 
 
-def load_scene(scene_path: str | Path | None, species: str | None = None, height: float | None = None,
-               seed: int = 0, vegetation_options: dict | None = None) -> Scene:
-    """The scene to trace: a PLY file, or a vegetation instance of ``species`` and ``height``."""
-    if (scene_path is None) == (species is None):
-        raise WaveforestError("trace: give either a scene PLY file or --species (with --height), not both")
-    if scene_path is not None:
-        return read_ply(scene_path)
-    if height is None or not height > 0:
-        raise WaveforestError("trace: --species needs --height (m, > 0)")
-    from waveforest.vegetation import build_scene  # not imported to trace a PLY file
+@dataclass(frozen=True)
+class SceneSpec:
+    """The scene to trace: a PLY file (``path``), or a vegetation instance of ``species`` and
+    ``height_m`` built with ``ground_rho`` and ``lai_jitter`` (config section ``vegetation``)."""
 
-    return build_scene(species, float(height), int(seed), **(vegetation_options or {}))
+    path: str | Path | None
+    species: str | None
+    height_m: float | None
+    ground_rho: float
+    lai_jitter: float
+
+    def describe(self) -> str:
+        """The scene as the output's metadata names it."""
+        return str(self.path) if self.path is not None else f"{self.species} h={self.height_m}"
+
+    def load(self, seed: int) -> Scene:
+        """Read the PLY file, or build the instance with ``seed``."""
+        if (self.path is None) == (self.species is None):
+            raise WaveforestError("trace: give either a scene PLY file or --species (with --height), not both")
+        if self.path is not None:
+            return read_ply(self.path)
+        if self.height_m is None or not self.height_m > 0:
+            raise WaveforestError("trace: --species needs --height (m, > 0)")
+        from waveforest.vegetation import build_scene  # not imported to trace a PLY file
+
+        return build_scene(self.species, float(self.height_m), int(seed), ground_rho=self.ground_rho,
+                           lai_jitter=self.lai_jitter)
 
 
 def mcrt_effects(effects) -> dict[str, float]:
@@ -106,31 +121,23 @@ def plot_sigma(result: TraceResult, path: str | Path, i: int = 0, title: str = "
     return save_png(fig, path, dpi=120)
 
 
-def run(scene_path: str | Path | None, out: str | Path, *, species: str | None = None,
-        height: float | None = None, range_m: float = 1200.0, scan_zenith_deg: float = 0.0,
-        azimuth_deg: float = 0.0, footprint_m: float | None = None, divergence_mrad: float | None = None,
-        target=(0.0, 0.0, 0.0), n_rays: int = 16384, max_order: int = 10, bin_ns: float = 0.05,
-        viewed_diameter_m: float = 5.0, window_ns: float = DEFAULT_WINDOW_NS, seed: int = 0,
-        sampler: str = "sobol", roulette: float = 0.5, effects=None, plot: str | Path | None = None,
-        vegetation_options: dict | None = None) -> TraceResult:
+def run(scene: SceneSpec, beam: BeamSpec, mcrt: MCRTSetup, out: str | Path, *, seed: int, window_ns: float,
+        plot: str | Path | None = None) -> TraceResult:
     """Trace one pulse through one scene and write its sigma(t) (and a plot).
 
     Parameters
     ----------
-    scene_path : path or None
-        PLY scene (faces with rho, tau, kind); None with ``species`` and ``height``.
+    scene : SceneSpec
+    beam : BeamSpec
+        The pulse (neither footprint nor divergence: the ALS60's divergence).
+    mcrt : MCRTSetup
+        Tracer settings and MCRT effects (``specular``, ``hotspot``).
     out : path
         ``.parquet`` or ``.csv`` output.
-    range_m, scan_zenith_deg, azimuth_deg : float
-        Sensor distance from ``target`` (m), beam zenith and compass azimuth (degrees).
-    footprint_m, divergence_mrad : float, optional
-        Collimated 1/e footprint, or divergence of a diverging beam (default 0.15 mrad).
-    target : (3,) float
-        Point on the beam axis at ``range_m`` (scene coordinates, m).
-    n_rays, max_order, bin_ns, viewed_diameter_m, window_ns, seed, sampler, roulette
-        As :func:`waveforest.mcrt.trace`.
-    effects : list of "NAME=VALUE" or mapping, optional
-        ``specular`` and/or ``hotspot``.
+    seed : int
+        Seed of the vegetation instance and of the tracer.
+    window_ns : float
+        Length of the sigma(t) window, ns of two-way time.
     plot : path, optional
         PNG of sigma(t) by order.
 
@@ -141,29 +148,24 @@ def run(scene_path: str | Path | None, out: str | Path, *, species: str | None =
     out = Path(out)
     if out.suffix.lower() not in TABLE_SUFFIXES:
         raise WaveforestError(f"{out}: expected a .parquet or .csv output file")
-    if footprint_m is not None and divergence_mrad is not None:
+    if beam.footprint_m is not None and beam.divergence_mrad is not None:
         raise WaveforestError("trace: give --footprint or --divergence, not both")
-    if footprint_m is None and divergence_mrad is None:
-        divergence_mrad = DEFAULT_DIVERGENCE_MRAD
-    fx = mcrt_effects(effects)
-    scene = load_scene(scene_path, species, height, seed, vegetation_options)
+    mcrt_effects(mcrt.effects)
+    loaded = scene.load(seed)
     try:
-        beams = Beams.toward(np.asarray(target, float), float(range_m), float(scan_zenith_deg),
-                             float(azimuth_deg), footprint_m=footprint_m, divergence_mrad=divergence_mrad)
-        result = trace_pulses(scene, beams, n_rays=n_rays, max_order=max_order, bin_ns=bin_ns,
-                       viewed_diameter_m=viewed_diameter_m, seed=seed, window_ns=window_ns,
-                       sampler=sampler, roulette=roulette, by_order=True, specular=fx.get("specular", CATALOGUE["specular"].off),
-                       hotspot=fx.get("hotspot", CATALOGUE["hotspot"].off))
+        beams = beam.beams()
+        result = trace_pulses(loaded, beams, seed=seed, window_ns=window_ns, by_order=True, **mcrt.kwargs())
     except ValueError as exc:
         if isinstance(exc, WaveforestError):
             raise
         raise WaveforestError(f"trace: {exc}") from None
     meta = {
-        "scene": str(scene_path) if scene_path is not None else f"{species} h={height}",
+        "scene": scene.describe(),
         "sensor_xyz": beams.origin[0].tolist(), "dir_xyz": beams.direction[0].tolist(),
-        "footprint_m": float(beams.footprint_m[0]), "range_m": float(range_m),
-        "t0_ns": float(result.t0_ns[0]), "bin_ns": result.bin_ns, "n_rays": n_rays,
-        "max_order": max_order, "seed": seed, "sampler": sampler, "roulette": roulette, "effects": fx,
+        "footprint_m": float(beams.footprint_m[0]), "range_m": float(beam.range_m),
+        "t0_ns": float(result.t0_ns[0]), "bin_ns": result.bin_ns, "n_rays": mcrt.n_rays,
+        "max_order": mcrt.max_order, "seed": seed, "sampler": mcrt.sampler, "roulette": mcrt.roulette,
+        "effects": dict(mcrt.effects),
         "order_totals": result.order_totals[0].tolist(), "sigma_dropped": float(result.sigma_dropped[0]),
         "first_hit_counts": result.first_hit_counts[0].tolist(),
     }
@@ -174,24 +176,24 @@ def run(scene_path: str | Path | None, out: str | Path, *, species: str | None =
 
 
 @click.command("trace")
-@click.argument("scene", required=False, type=click.Path(dir_okay=False))
+@click.argument("scene", required=False, type=click.Path(exists=True, dir_okay=False))
 @click.option("--out", "out", required=True, type=click.Path(dir_okay=False),
               help="Output sigma(t) table, .parquet or .csv (time_ns, range_m, sigma, sigma per order).")
 @click.option("--species", default=None, help="Trace a vegetation instance of this species slug instead of SCENE.")
-@click.option("--height", type=float, default=None, help="Height of the vegetation instance, m (with --species).")
-@click.option("--range", "range_m", type=float, default=1200.0, show_default=True,
+@click.option("--height", type=click.FloatRange(min=0, min_open=True), default=None, help="Height of the vegetation instance, m (with --species).")
+@click.option("--range", "range_m", type=click.FloatRange(min=0, min_open=True), default=1200.0, show_default=True,
               help="Sensor distance from the target point, m.")
 @click.option("--scan-zenith", type=float, default=0.0, show_default=True, help="Beam zenith angle, degrees.")
 @click.option("--azimuth", type=float, default=0.0, show_default=True,
               help="Compass azimuth of the beam's travel, degrees clockwise from north (+y).")
-@click.option("--footprint", type=float, default=None,
+@click.option("--footprint", type=click.FloatRange(min=0), default=None,
               help="1/e footprint diameter of a collimated beam, m (default: --divergence 0.15).")
-@click.option("--divergence", type=float, default=None, help="1/e beam divergence, mrad (diverging beam).")
+@click.option("--divergence", type=click.FloatRange(min=0), default=None, help="1/e beam divergence, mrad (diverging beam).")
 @click.option("--target-x", type=float, default=0.0, show_default=True, help="Target point x, m (scene coordinates).")
 @click.option("--target-y", type=float, default=0.0, show_default=True, help="Target point y, m.")
 @click.option("--target-z", type=float, default=0.0, show_default=True, help="Target point z, m.")
-@click.option("--rays", type=int, default=None, help="Rays per pulse (default: config mcrt.n_rays).")
-@click.option("--orders", type=int, default=None, help="Highest scattering order (default: config mcrt.max_order).")
+@click.option("--rays", type=click.IntRange(min=1), default=None, help="Rays per pulse (default: config mcrt.n_rays).")
+@click.option("--orders", type=click.IntRange(min=1), default=None, help="Highest scattering order (default: config mcrt.max_order).")
 @click.option("--effect", "effects", multiple=True, metavar="NAME=VALUE",
               help="MCRT effect: specular=FRACTION or hotspot=FACTOR (repeatable).")
 @click.option("--plot", type=click.Path(dir_okay=False), default=None, help="PNG of sigma(t) by scattering order.")
@@ -206,19 +208,18 @@ def trace(scene, out, species, height, range_m, scan_zenith, azimuth, footprint,
       waveforest trace canopy.ply --out sigma.parquet --range 1200 --scan-zenith 10 --plot sigma.png
     """
 
-    m = cfg["mcrt"]
     veg = cfg["vegetation"]
+    mcrt = mcrt_setup(cfg, effects=mcrt_effects(list(effects)))
+    if rays is not None:
+        mcrt = replace(mcrt, n_rays=rays)
+    if orders is not None:
+        mcrt = replace(mcrt, max_order=orders)
+    spec = SceneSpec(path=scene, species=species, height_m=height, ground_rho=veg["ground_rho"],
+                     lai_jitter=veg["lai_jitter"])
+    beam = BeamSpec(target=(target_x, target_y, target_z), range_m=range_m, scan_zenith_deg=scan_zenith,
+                    azimuth_deg=azimuth, footprint_m=footprint, divergence_mrad=divergence)
     t = time.perf_counter()
-    res = run(
-        scene, out, species=species, height=height, range_m=range_m, scan_zenith_deg=scan_zenith,
-        azimuth_deg=azimuth, footprint_m=footprint, divergence_mrad=divergence,
-        target=(target_x, target_y, target_z),
-        n_rays=rays if rays is not None else m["n_rays"],
-        max_order=orders if orders is not None else m["max_order"],
-        bin_ns=m["bin_ns"], viewed_diameter_m=m["viewed_diameter_m"], window_ns=m["window_ns"],
-        seed=cfg["seed"], sampler=m["sampler"], roulette=m["roulette"], effects=list(effects), plot=plot,
-        vegetation_options={k: veg[k] for k in ("ground_rho", "lai_jitter")},
-    )
+    res = run(spec, beam, mcrt, out, seed=cfg["seed"], window_ns=cfg["mcrt"]["window_ns"], plot=plot)
     dt = time.perf_counter() - t
     o = res.order_totals[0]
     click.echo(

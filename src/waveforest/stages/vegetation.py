@@ -29,9 +29,8 @@ class VegetationSummary:
     top_m: float
 
 
-def run(species: str, height: float, seed: int, out: str | Path, *, png: str | Path | None = None,
-        ground_rho: float = 0.30, lai_jitter: float = 0.10, effects: dict | None = None,
-        **params) -> VegetationSummary:
+def run(species: str, height: float, seed: int, out: str | Path, *, ground_rho: float, lai_jitter: float,
+        png: str | Path | None = None, effects: dict | None = None, **params) -> VegetationSummary:
     """Build one instance, write it as PLY (faces carry rho, tau, kind) and optionally a PNG.
 
     Parameters
@@ -67,7 +66,6 @@ def run(species: str, height: float, seed: int, out: str | Path, *, png: str | P
     ply = write_ply(scene, out)
     png_path = None
     if png is not None:
-
         png_path = render_png(scene, png, title=f"{species}, h = {height:g} m, seed {seed}")
     counts = np.bincount(scene.kind, minlength=4)
     return VegetationSummary(ply=Path(ply), png=png_path, n_triangles=len(scene),
@@ -77,7 +75,7 @@ def run(species: str, height: float, seed: int, out: str | Path, *, png: str | P
 
 @click.command("vegetation")
 @click.option("--species", required=True, help="Species slug (e.g. birch, raspberry, fireweed, scots_pine).")
-@click.option("--height", type=float, required=True, help="Field (maximum) height of the sample, m.")
+@click.option("--height", type=click.FloatRange(min=0, min_open=True), required=True, help="Field (maximum) height of the sample, m.")
 @click.option("--out", "out", type=click.Path(dir_okay=False), required=True, help="PLY scene to write.")
 @click.option("--png", type=click.Path(dir_okay=False), default=None,
               help="PNG picture to write (default: beside --out, same stem).")

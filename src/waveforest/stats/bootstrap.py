@@ -25,6 +25,8 @@ import numpy as np
 import pandas as pd
 from scipy.stats import t as student_t
 
+from waveforest.rng import named_generator
+
 DEFAULT_ALPHA = 0.05
 """Two-sided level of every interval (95 % intervals)."""
 
@@ -43,8 +45,8 @@ def bootstrap_weights(universe: pd.Series, n_boot: int, seed) -> np.ndarray:
         ``sample_id -> species`` (:func:`sample_universe`), J samples.
     n_boot : int
         Replicates B.
-    seed : int or SeedSequence
-        Seed of the draws.
+    seed : int
+        Seed of the draws (the named stream ``bootstrap``).
 
     Returns
     -------
@@ -53,7 +55,7 @@ def bootstrap_weights(universe: pd.Series, n_boot: int, seed) -> np.ndarray:
     """
     if n_boot < 1:
         raise ValueError(f"n_boot must be >= 1, got {n_boot}")
-    rng = np.random.default_rng(seed)
+    rng = named_generator("bootstrap", seed)
     species = universe.to_numpy()
     w = np.zeros((n_boot, len(species)))
     for sp in np.unique(species):

@@ -5,9 +5,10 @@ coordinates: a 6 x 6 m plot (x, y in [-3, 3]), ground plane at z = 0 (two triang
 rho ``ground_rho``, tau 0), the plant or the sample centred at the origin; leaves kind 1,
 woody parts kind 2, moss/lichen carpets kind 3, bare surfaces kind 0.
 
-Random streams: the seed feeds a ``numpy.random.SeedSequence`` spawning independent streams
-for the plant, the understory and the instance's LAI jitter, so switching the understory on
-does not change the plant, and the same arguments give an identical scene.
+Random streams: the seed's named stream ``scene_build`` (:func:`waveforest.rng.named_generators`)
+gives independent streams for the plant, the understory and the instance's LAI jitter, so
+switching the understory on does not change the plant, and the same arguments give an
+identical scene.
 
 Effects (``waveforest.effects``, each off by default):
 
@@ -38,6 +39,7 @@ variation", amount UNSPECIFIED; 10 % by default).
 
 from __future__ import annotations
 
+import inspect
 import math
 from dataclasses import dataclass
 
@@ -46,6 +48,7 @@ import numpy as np
 from waveforest.constants import KIND_GROUND, KIND_LEAF, KIND_WOOD
 from waveforest.effects import CATALOGUE, UNDERSTORY_HEIGHT_M
 from waveforest.errors import WaveforestError
+from waveforest.rng import named_generators
 from waveforest.scene import Scene
 from waveforest.vegetation.generic import build_layer, build_residue, build_surface, build_tufts
 from waveforest.vegetation.ground import ground_plane
@@ -55,6 +58,11 @@ from waveforest.vegetation.params import PLOT_AREA_M2, SpeciesParams, species_pa
 from waveforest.vegetation.plant import Plant
 from waveforest.vegetation.tree import allometric_leaf_area, build_tree
 
+
+class VegetationError(WaveforestError):
+    """An invalid vegetation spec (species, height or parameter)."""
+
+
 UNDERSTORY_SPECIES = "fresh_grass_low"
 """Model and optics of the understory layer (effect ``understory``)."""
 
@@ -63,10 +71,6 @@ UNDERSTORY_POOL_LAI = CATALOGUE["understory"].bounds[1]
 layer that grows with the effect's value, over its whole search range)."""
 
 _RHO_TAU_SLACK = 1e-9
-
-
-class VegetationError(WaveforestError):
-    """An invalid vegetation spec (species, height or parameter)."""
 
 
 @dataclass(frozen=True)
@@ -198,91 +202,7 @@ def build(species: str, height: float, seed: int, *, ground_rho: float = 0.30,
           lad_shift: float = 0.0, leaf_albedo: float = 1.0, leaf_area_scale: float = 1.0,
           mean_leaf_angle: float | None = None, leaf_rho: float | None = None,
           leaf_tau: float | None = None, ground: bool = True) -> Built:
-    """Build one vegetation instance; see :func:`build_scene` for the parameters.
-
-    Returns
-    -------
-    Built
-        The scene and the targets it was built to (for checks and reports).
-    """
-    if not isinstance(species, str):
-        raise VegetationError(f"species: expected a slug string, got {species!r}")
-    p = species_params(species)
-    h = _check("height", height)
-    if not (p.h_min_ok <= h <= p.h_max_ok):
-        raise VegetationError(
-            f"height {height!r} m for {species}: expected {p.h_min_ok:g} to {p.h_max_ok:g} m"
-        )
-    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-        raise VegetationError(f"seed: expected a non-negative integer, got {seed!r}")
-    ground_rho = _check("ground_rho", ground_rho, 0.0, 1.0)
-    lai_jitter = _check("lai_jitter", lai_jitter, 0.0, 0.5)
-    understory = _check("understory", understory, 0.0)
-    clumping = _check("clumping", clumping, 0.0)
-    lad_shift = _check("lad_shift", lad_shift, -90.0, 90.0)
-    leaf_albedo = _check("leaf_albedo", leaf_albedo, 0.0, lo_open=True)
-    leaf_area_scale = _check("leaf_area_scale", leaf_area_scale, 0.0, lo_open=True)
-    if mean_leaf_angle is not None:
-        mean_leaf_angle = _check("mean_leaf_angle", mean_leaf_angle, 0.0, 90.0)
-
-    s_plant, s_under, s_jitter = np.random.SeedSequence(int(seed)).spawn(3)
-    rng = np.random.default_rng(s_plant)
-    jitter = 1.0 + lai_jitter * (2.0 * np.random.default_rng(s_jitter).random() - 1.0)
-
-    lad = lad_by_name(p.lad) if p.lad else None
-    if lad is not None:
-        if mean_leaf_angle is not None:
-            lad = lad.with_mean(mean_leaf_angle)
-        lad = lad.shifted(lad_shift)
-    if p.model == "surface":
-        rho = tau = float("nan")
-    else:
-        rho, tau = _leaf_optics(p, leaf_rho, leaf_tau, leaf_albedo)
-
-    plant, target = _species_plant(p, h, rng, lad, jitter, leaf_area_scale, clumping)
-    parts = []  # (triangles, rho, tau, kind)
-    if plant.leaves.size:
-        parts.append((plant.leaves, rho, tau, KIND_LEAF))
-    if plant.wood.size:
-        parts.append((plant.wood, p.wood_rho, p.wood_tau, KIND_WOOD))
-    surface_kind = p.surface_kind
-    if plant.surface.size and (ground or surface_kind != KIND_GROUND):
-        parts.append((plant.surface, p.surface_rho, 0.0, surface_kind))
-
-    under_area = 0.0
-    if understory > 0 and p.model == "tree":
-        under, under_area = _understory(understory, np.random.default_rng(s_under))
-        parts.append(under)
-
-    if ground and surface_kind != KIND_GROUND:
-        g = ground_plane(ground_rho)
-        parts.append((g.triangles, ground_rho, 0.0, KIND_GROUND))
-    if not parts:
-        raise VegetationError(f"{species} is a bare surface: ground=False leaves an empty scene")
-    scene = _scene_of(parts)
-    return Built(
-        scene=scene,
-        species=species,
-        height=h,
-        seed=int(seed),
-        target_leaf_area_m2=float(target),
-        leaf_area_m2=float(plant.leaf_area_m2),
-        jitter_factor=float(jitter),
-        lad=lad,
-        leaf_rho=rho,
-        leaf_tau=tau,
-        n_plants=plant.n_plants,
-        element_size_m=plant.element_size_m,
-        understory_leaf_area_m2=under_area,
-    )
-
-
-def build_scene(species: str, height: float, seed: int, *, ground_rho: float = 0.30,
-                lai_jitter: float = 0.10, understory: float = 0.0, clumping: float = 0.0,
-                lad_shift: float = 0.0, leaf_albedo: float = 1.0, leaf_area_scale: float = 1.0,
-                mean_leaf_angle: float | None = None, leaf_rho: float | None = None,
-                leaf_tau: float | None = None, ground: bool = True) -> Scene:
-    """A new vegetation instance of ``species`` with field height ``height``.
+    """Build one vegetation instance of ``species`` with field height ``height``.
 
     Parameters
     ----------
@@ -310,11 +230,84 @@ def build_scene(species: str, height: float, seed: int, *, ground_rho: float = 0
 
     Returns
     -------
-    Scene
-        Triangles with per-triangle rho, tau and kind (0 ground, 1 leaf, 2 wood, 3 other).
+    Built
+        The scene and the targets it was built to (for checks and reports).
     """
-    return build(species, height, seed, ground_rho=ground_rho, lai_jitter=lai_jitter,
-                 understory=understory, clumping=clumping, lad_shift=lad_shift,
-                 leaf_albedo=leaf_albedo, leaf_area_scale=leaf_area_scale,
-                 mean_leaf_angle=mean_leaf_angle, leaf_rho=leaf_rho, leaf_tau=leaf_tau,
-                 ground=ground).scene
+    if not isinstance(species, str):
+        raise VegetationError(f"species: expected a slug string, got {species!r}")
+    p = species_params(species)
+    h = _check("height", height)
+    if not (p.h_min_ok <= h <= p.h_max_ok):
+        raise VegetationError(
+            f"height {height!r} m for {species}: expected {p.h_min_ok:g} to {p.h_max_ok:g} m"
+        )
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise VegetationError(f"seed: expected a non-negative integer, got {seed!r}")
+    ground_rho = _check("ground_rho", ground_rho, 0.0, 1.0)
+    lai_jitter = _check("lai_jitter", lai_jitter, 0.0, 0.5)
+    understory = _check("understory", understory, 0.0)
+    clumping = _check("clumping", clumping, 0.0)
+    lad_shift = _check("lad_shift", lad_shift, -90.0, 90.0)
+    leaf_albedo = _check("leaf_albedo", leaf_albedo, 0.0, lo_open=True)
+    leaf_area_scale = _check("leaf_area_scale", leaf_area_scale, 0.0, lo_open=True)
+    if mean_leaf_angle is not None:
+        mean_leaf_angle = _check("mean_leaf_angle", mean_leaf_angle, 0.0, 90.0)
+
+    rng, under_rng, jitter_rng = named_generators("scene_build", int(seed), 3)
+    jitter = 1.0 + lai_jitter * (2.0 * jitter_rng.random() - 1.0)
+
+    lad = lad_by_name(p.lad) if p.lad else None
+    if lad is not None:
+        if mean_leaf_angle is not None:
+            lad = lad.with_mean(mean_leaf_angle)
+        lad = lad.shifted(lad_shift)
+    if p.model == "surface":
+        rho = tau = float("nan")
+    else:
+        rho, tau = _leaf_optics(p, leaf_rho, leaf_tau, leaf_albedo)
+
+    plant, target = _species_plant(p, h, rng, lad, jitter, leaf_area_scale, clumping)
+    parts = []  # (triangles, rho, tau, kind)
+    if plant.leaves.size:
+        parts.append((plant.leaves, rho, tau, KIND_LEAF))
+    if plant.wood.size:
+        parts.append((plant.wood, p.wood_rho, p.wood_tau, KIND_WOOD))
+    surface_kind = p.surface_kind
+    if plant.surface.size and (ground or surface_kind != KIND_GROUND):
+        parts.append((plant.surface, p.surface_rho, 0.0, surface_kind))
+
+    under_area = 0.0
+    if understory > 0 and p.model == "tree":
+        under, under_area = _understory(understory, under_rng)
+        parts.append(under)
+
+    if ground and surface_kind != KIND_GROUND:
+        g = ground_plane(ground_rho)
+        parts.append((g.triangles, ground_rho, 0.0, KIND_GROUND))
+    if not parts:
+        raise VegetationError(f"{species} is a bare surface: ground=False leaves an empty scene")
+    scene = _scene_of(parts)
+    return Built(
+        scene=scene,
+        species=species,
+        height=h,
+        seed=int(seed),
+        target_leaf_area_m2=float(target),
+        leaf_area_m2=float(plant.leaf_area_m2),
+        jitter_factor=float(jitter),
+        lad=lad,
+        leaf_rho=rho,
+        leaf_tau=tau,
+        n_plants=plant.n_plants,
+        element_size_m=plant.element_size_m,
+        understory_leaf_area_m2=under_area,
+    )
+
+
+def build_scene(species: str, height: float, seed: int, **options) -> Scene:
+    """The :class:`Scene` of :func:`build` (the same parameters and defaults): triangles with
+    per-triangle rho, tau and kind (0 ground, 1 leaf, 2 wood, 3 other)."""
+    return build(species, height, seed, **options).scene
+
+
+build_scene.__signature__ = inspect.signature(build).replace(return_annotation="Scene")

@@ -30,7 +30,7 @@ def leaf_area_index(scene: Scene, plot_area: float = PLOT_AREA_M2) -> float:
 
 
 @njit(cache=True, nogil=True)
-def _coverage_kernel(tri_xy, x0, y0, cell, nx, ny):  # pragma: no cover - compiled; tested against reference
+def coverage_kernel(tri_xy, x0, y0, cell, nx, ny):  # pragma: no cover - compiled; tested against reference
     """Grid points (centres x0 + (i + 1/2) cell, y0 + (j + 1/2) cell) inside any triangle."""
     out = np.zeros((ny, nx), dtype=np.bool_)
     for t in range(tri_xy.shape[0]):
@@ -86,7 +86,7 @@ def nadir_coverage(scene: Scene, kinds=(KIND_LEAF, KIND_WOOD, KIND_OTHER), cell_
         raise ValueError("nadir_coverage: extent smaller than one cell")
     sel = np.isin(scene.kind, np.asarray(kinds, dtype=np.uint8))
     tri_xy = np.ascontiguousarray(scene.triangles[sel][:, :, :2], dtype=np.float64)
-    return _coverage_kernel(tri_xy, -float(extent_m), -float(extent_m), float(cell_m), n, n)
+    return coverage_kernel(tri_xy, -float(extent_m), -float(extent_m), float(cell_m), n, n)
 
 
 def nadir_gap_fraction(scene: Scene, kinds=(KIND_LEAF, KIND_WOOD, KIND_OTHER),

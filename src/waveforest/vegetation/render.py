@@ -38,7 +38,7 @@ def _colours(scene: Scene, view: np.ndarray) -> np.ndarray:
 
 
 @njit(cache=True, nogil=True)
-def _rasterise(uv, depth, colour, lo, step, width, height):
+def rasterise(uv, depth, colour, lo, step, width, height):
     """Nearest-triangle image of projected triangles.
 
     ``uv`` (n, 3, 2) image-plane coordinates, m; ``depth`` (n,) distance from the viewer of
@@ -85,7 +85,7 @@ def _view_image(ax, uv: np.ndarray, depth: np.ndarray, colour: np.ndarray) -> No
     w, h = max(1, int(round(box.width))), max(1, int(round(box.height)))
     step = max((x1 - x0) / w, (y1 - y0) / h) / SUPERSAMPLE
     ws, hs = w * SUPERSAMPLE, h * SUPERSAMPLE
-    img = _rasterise(np.ascontiguousarray(uv, np.float64), np.ascontiguousarray(depth, np.float64),
+    img = rasterise(np.ascontiguousarray(uv, np.float64), np.ascontiguousarray(depth, np.float64),
                      np.ascontiguousarray(colour, np.float64), np.array([x0, y0]), step, ws, hs)
     img = img.reshape(h, SUPERSAMPLE, w, SUPERSAMPLE, 4).mean(axis=(1, 3))
     cover = img[..., 3:]

@@ -2,10 +2,11 @@
 
 Reading (``waveforest ingest``)::
 
-    from waveforest.io.las import read_waveform_las, WaveformPulseReader
+    from waveforest.io.las import read_waveform_las, WaveformPulseReader, las_to_pulses
     table = read_waveform_las("line.las")                 # small files: one pulse table
     for batch in WaveformPulseReader("big.las"):          # any size: pulse-table batches
         ...
+    las_to_pulses("big.las", "big.parquet")               # any size: streamed into Parquet
 
 Writing (the virtual campaign, tests)::
 
@@ -25,6 +26,8 @@ Modules:
 - :mod:`~waveforest.io.las.gather`: waveform packets decoded from the waveform data.
 - :mod:`~waveforest.io.las.read`: points and packets -> pulse tables (conventions: pulse
   grouping, geometry, AGC, memory).
+- :mod:`~waveforest.io.las.pulses`: a LAS file streamed into a Parquet pulse table, the
+  sensor locator (trajectory, nominal range).
 - :mod:`~waveforest.io.las.write`: pulse tables -> LAS files.
 - :mod:`~waveforest.io.las.info`: a lasinfo-style summary.
 """
@@ -32,11 +35,13 @@ Modules:
 from waveforest.io.las.file import LasWaveformFile, WaveformData, find_wdp, open_waveform_las
 from waveforest.io.las.format import LasWaveformError, LasWaveformWarning, WavePacketDescriptor
 from waveforest.io.las.info import LasSummary, format_summary, summarise
+from waveforest.io.las.pulses import IngestResult, las_to_pulses, sensor_locator
 from waveforest.io.las.read import ReadStats, WaveformPulseReader, read_waveform_las
 from waveforest.io.las.write import GEOMETRY_TOL_M, WaveformLasWriter, write_waveform_las
 
 __all__ = [
     "GEOMETRY_TOL_M",
+    "IngestResult",
     "LasSummary",
     "LasWaveformError",
     "LasWaveformFile",
@@ -48,8 +53,10 @@ __all__ = [
     "WaveformPulseReader",
     "find_wdp",
     "format_summary",
+    "las_to_pulses",
     "open_waveform_las",
     "read_waveform_las",
+    "sensor_locator",
     "summarise",
     "write_waveform_las",
 ]

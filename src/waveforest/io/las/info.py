@@ -1,30 +1,95 @@
 """A lasinfo-style summary of a LAS waveform file (``waveforest info``).
 
 Header facts come from :func:`waveforest.io.las.file.open_waveform_las`; counts (pulses, packets,
-returns by number, samples per packet, bounds, AGC) from one streaming pass over the
-points in GPS-time buckets, so the summary works on files larger than memory.
+returns by number and per pulse, samples per packet, bounds, scan angles, AGC) from one streaming
+pass over the points in GPS-time buckets; classification, the z outlier count and a grid of point
+counts and highest points from a second streaming pass over the point records (no waveform bytes).
+Memory stays bounded whatever the file size (the z percentiles come from a seeded sample of at
+most :data:`Z_SAMPLE_POINTS` points).
+
+z outliers: a point is one if its z lies below P1 - d or above P99 + d, with P1, P99 the 1st and
+99th percentiles of the points' z and d = max(P99 - P1, :data:`Z_OUTLIER_MIN_M`): farther from the
+central 98 % of the points than that band is wide (a canopy over its ground is not flagged).
 """
 
 from __future__ import annotations
 
 import os
+import re
 import warnings
 from collections import Counter
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from waveforest.io.las.file import LasWaveformFile, fail, open_point_reader
 from waveforest.io.las.format import GE_WAVEFORM_EXTERNAL, GE_WAVEFORM_INTERNAL, GE_WKT
 from waveforest.io.las.read import (
     DEFAULT_BUCKET_POINTS,
     DEFAULT_CHUNK_POINTS,
-    LasWaveformFile,
     WaveformPulseReader,
     sort_points,
 )
+from waveforest.rng import named_generator
 
 HEADER_BOUNDS_TOL_M = 0.01
 """Header bounds within this of the points' bounds count as matching (writers round them), m."""
+
+Z_OUTLIER_MIN_M = 10.0
+"""Least distance beyond the 1st/99th z percentiles at which a point counts as a z outlier, m."""
+Z_SAMPLE_POINTS = 1_000_000
+"""Most points whose z places the percentiles (a seeded sample beyond that; exact below)."""
+POINTS_PER_CELL = 4.0
+"""Mean points per grid cell aimed at over the bounding box (sets the least cell size)."""
+GRID_CELLS = 200
+"""Most grid cells along the longer side of the extent."""
+
+ASPRS_CLASSES = {
+    0: "never classified", 1: "unclassified", 2: "ground", 3: "low vegetation", 4: "medium vegetation",
+    5: "high vegetation", 6: "building", 7: "low point (noise)", 8: "model key point", 9: "water", 10: "rail",
+    11: "road surface", 12: "overlap", 13: "wire guard", 14: "wire conductor", 15: "transmission tower",
+    16: "wire connector", 17: "bridge deck", 18: "high noise",
+}
+"""ASPRS standard point classes (LAS 1.4 R15 table 17; 8 and 12 as in LAS 1.2/1.3)."""
+
+
+def grid_cell_size(width_m: float, height_m: float, n: int, max_cells: int = GRID_CELLS) -> float:
+    """Cell side, m, of a grid over a ``width_m`` x ``height_m`` box holding ``n`` points: at most
+    ``max_cells`` along the longer side, and large enough for :data:`POINTS_PER_CELL` points a cell
+    at the box's mean density (so a sparse file does not map as speckle)."""
+    longer = max(float(width_m), float(height_m))
+    if longer <= 0:
+        return 1.0
+    size = longer / max(int(max_cells), 1)
+    area = float(width_m) * float(height_m)
+    if n > 0 and area > 0:
+        size = max(size, float(np.sqrt(POINTS_PER_CELL * area / n)))
+    return size
+
+
+@dataclass(frozen=True)
+class PointGrid:
+    """Points per cell and the highest point per cell (z outliers left out) on a square grid.
+
+    ``count`` (ny, nx) int64, ``top_z`` (ny, nx) m (NaN where no point); row 0 at ``y0``.
+    """
+
+    x0: float
+    y0: float
+    cell_m: float
+    count: np.ndarray
+    top_z: np.ndarray
+
+    @property
+    def extent(self) -> tuple[float, float, float, float]:
+        """(x0, x1, y0, y1) of the grid, m."""
+        ny, nx = self.count.shape
+        return self.x0, self.x0 + nx * self.cell_m, self.y0, self.y0 + ny * self.cell_m
+
+    @property
+    def covered_m2(self) -> float:
+        """Area of the cells that hold at least one point, m²."""
+        return float(np.count_nonzero(self.count)) * self.cell_m**2
 
 
 @dataclass
@@ -46,6 +111,26 @@ class LasSummary:
     agc_dimension: str | None = None
     agc_range: tuple[float, float] = (np.inf, -np.inf)
     notes: list[str] = field(default_factory=list)
+    points_per_pulse: Counter = field(default_factory=Counter)
+    """Pulses (GPS times) by their number of points."""
+    scan_range: tuple[float, float] = (np.inf, -np.inf)
+    """Scan angles, degrees."""
+    crs: str = "not stated"
+    """The coordinate system from the WKT or GeoTIFF VLRs."""
+    classes: Counter = field(default_factory=Counter)
+    """Points by classification code."""
+    z_window: tuple[float, float] = (-np.inf, np.inf)
+    """z inside this is not an outlier, m (module docstring)."""
+    z_sampled: bool = False
+    """The z percentiles come from a sample (more than :data:`Z_SAMPLE_POINTS` points)."""
+    n_z_outliers: int = 0
+    grid: PointGrid | None = None
+
+    @property
+    def density(self) -> float:
+        """Points per m² over the covered area of :attr:`grid` (NaN without)."""
+        area = self.grid.covered_m2 if self.grid is not None else 0.0
+        return self.n_points / area if area > 0 else float("nan")
 
 
 def summarise(
@@ -54,12 +139,19 @@ def summarise(
     agc_attribute: str | None = "user_data",
     chunk_points: int = DEFAULT_CHUNK_POINTS,
     bucket_points: int = DEFAULT_BUCKET_POINTS,
+    grid_cells: int = GRID_CELLS,
 ) -> LasSummary:
-    """Check a LAS waveform file and count what it holds (no waveform bytes are decoded)."""
+    """Check a LAS waveform file and count what it holds (no waveform bytes are decoded).
+
+    ``grid_cells``: most cells of :attr:`LasSummary.grid` along the longer side of the extent.
+    """
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         reader = WaveformPulseReader(path, agc_attribute=agc_attribute, chunk_points=chunk_points, bucket_points=bucket_points)
         s = LasSummary(las=reader.las)
+        keep = min(1.0, Z_SAMPLE_POINTS / max(reader.las.n_points, 1))
+        rng = named_generator("las_summary_z", 0)
+        z_sample = []
         for rec in reader.buckets():
             if not len(rec):
                 continue
@@ -67,6 +159,12 @@ def summarise(
             s.n_points += len(rec)
             s.n_pulses += index.n_pulses
             s.n_without_waveform += int(np.count_nonzero(index.chosen == len(rec)))
+            s.points_per_pulse.update(dict(zip(*np.unique(np.diff(index.starts), return_counts=True))))
+            scan = rec["scan"][np.isfinite(rec["scan"])]
+            if scan.size:
+                s.scan_range = (min(s.scan_range[0], float(scan.min())), max(s.scan_range[1], float(scan.max())))
+            z = rec["xyz"][:, 2]
+            z_sample.append(z if keep >= 1.0 else z[rng.random(len(z)) < keep])
             s.returns_by_number.update(dict(zip(*np.unique(rec["ret"], return_counts=True))))
             used = rec["wpi"] > 0
             s.points_by_descriptor.update(dict(zip(*np.unique(rec["wpi"][used], return_counts=True))))
@@ -85,8 +183,83 @@ def summarise(
             if agc.size:
                 s.agc_range = (min(s.agc_range[0], float(agc.min())), max(s.agc_range[1], float(agc.max())))
         s.agc_dimension = reader.stats.agc_dimension
+        if s.n_points:
+            z = np.concatenate(z_sample)
+            p1, p99 = np.percentile(z, [1, 99])
+            d = max(p99 - p1, Z_OUTLIER_MIN_M)
+            s.z_window, s.z_sampled = (float(p1 - d), float(p99 + d)), keep < 1.0
+            del z, z_sample
+            _point_pass(s, int(chunk_points), grid_cells)
     s.notes = [str(w.message) for w in caught]
     return s
+
+
+def _point_pass(s: LasSummary, chunk_points: int, grid_cells: int) -> None:
+    """The second pass: classes, z outliers, the CRS and the point grid of ``s`` (points with a
+    non-finite GPS time left out, as in the first pass)."""
+    las = s.las
+    w, h = s.maxs[:2] - s.mins[:2]
+    cell = grid_cell_size(w, h, s.n_points, grid_cells)
+    nx, ny = max(1, int(np.ceil(w / cell))), max(1, int(np.ceil(h / cell)))
+    count = np.zeros(nx * ny, np.int64)
+    top = np.full(nx * ny, -np.inf)
+    lo, hi = s.z_window
+    try:
+        reader = open_point_reader(las)
+    except Exception as exc:
+        raise fail(las.path, f"cannot open the point records ({type(exc).__name__}: {exc})") from exc
+    with reader:
+        s.crs = crs_description(reader.header.vlrs)
+        reader.header.point_count = las.n_points
+        for pts in reader.chunk_iterator(chunk_points):
+            arr = pts.array
+            ok = np.isfinite(arr["gps_time"])
+            xyz = [(arr[k][ok] * las.scales[i] + las.offsets[i]) for i, k in enumerate("XYZ")]
+            cls = np.asarray(pts.classification, dtype=np.int64)[ok]
+            s.classes.update(dict(zip(*np.unique(cls, return_counts=True))))
+            inside = (xyz[2] >= lo) & (xyz[2] <= hi)
+            s.n_z_outliers += int(np.count_nonzero(~inside))
+            ix = np.clip(((xyz[0] - s.mins[0]) / cell).astype(np.int64), 0, nx - 1)
+            iy = np.clip(((xyz[1] - s.mins[1]) / cell).astype(np.int64), 0, ny - 1)
+            at = iy * nx + ix
+            count += np.bincount(at, minlength=nx * ny)
+            np.maximum.at(top, at[inside], xyz[2][inside])
+    top[~np.isfinite(top)] = np.nan
+    s.grid = PointGrid(float(s.mins[0]), float(s.mins[1]), cell, count.reshape(ny, nx), top.reshape(ny, nx))
+
+
+def crs_description(vlrs) -> str:
+    """The coordinate system named by laspy-parsed VLRs: the WKT VLR's name and EPSG code, else the
+    GeoTIFF keys' EPSG code and citation; ``"not stated"`` without either."""
+    for v in vlrs:
+        if type(v).__name__ == "WktCoordinateSystemVlr":
+            text = str(getattr(v, "string", "") or "").strip("\x00 \n")
+            name = re.match(r'\s*\w+\[\s*"([^"]*)"', text)
+            code = re.search(r'AUTHORITY\[\s*"EPSG"\s*,\s*"?(\d+)"?\s*\]\s*\]\s*$', text)
+            if name or code:
+                label = name.group(1) if name else "unnamed"
+                epsg = f"EPSG:{code.group(1)}" if code and code.group(1) != "0" else "no EPSG code"
+                return f"{label} ({epsg}; WKT VLR)"
+    keys, ascii_ = {}, ""
+    for v in vlrs:
+        kind = type(v).__name__
+        if kind == "GeoKeyDirectoryVlr":
+            keys = {int(k.id): k for k in v.geo_keys}
+        elif kind == "GeoAsciiParamsVlr":
+            ascii_ = "".join(getattr(v, "strings", []) or [])
+    if not keys:
+        return "not stated"
+    code = next((int(keys[k].value_offset) for k in (3072, 2048) if k in keys and keys[k].tiff_tag_location == 0
+                 and int(keys[k].value_offset) not in (0, 32767)), None)
+    cite = ""
+    for k in (3073, 1026, 2049):
+        g = keys.get(k)
+        if g is not None and g.tiff_tag_location == 34737 and ascii_:
+            cite = ascii_[g.value_offset:g.value_offset + g.count].strip("|\x00 ")
+            if cite:
+                break
+    epsg = f"EPSG:{code}" if code else "no EPSG code"
+    return f"{cite or 'user-defined'} ({epsg}; GeoTIFF keys)"
 
 
 def _n(v) -> str:
@@ -148,6 +321,19 @@ def format_summary(s: LasSummary) -> str:
             f"GPS time:              {s.gps_range[0]:.6f} .. {s.gps_range[1]:.6f} s",
             f"bounds min (x, y, z):  {s.mins[0]:.3f} {s.mins[1]:.3f} {s.mins[2]:.3f}",
             f"bounds max (x, y, z):  {s.maxs[0]:.3f} {s.maxs[1]:.3f} {s.maxs[2]:.3f}",
+            "points per pulse:      " + ", ".join(f"{int(k)}: {_n(v)} pulses" for k, v in sorted(s.points_per_pulse.items())),
+            "scan angle:            " + (f"{s.scan_range[0]:.3f} .. {s.scan_range[1]:.3f} deg"
+                                         if np.isfinite(s.scan_range[0]) else "n/a"),
+        ]
+    if s.grid is not None:
+        lines += [
+            "classification:        " + ", ".join(f"{int(k)} {ASPRS_CLASSES.get(int(k), 'user-defined')}: {_n(v)}"
+                                                  for k, v in sorted(s.classes.items())),
+            f"z outliers:            {_n(s.n_z_outliers)} outside {s.z_window[0]:.3f} .. {s.z_window[1]:.3f} "
+            f"(P1 - d .. P99 + d, d = max(P99 - P1, {Z_OUTLIER_MIN_M:g} m){'; percentiles from a sample' if s.z_sampled else ''})",
+            f"covered area:          {s.grid.covered_m2:.1f} m2 ({s.grid.cell_m:.2f}-m cells holding a point); "
+            f"{s.density:.2f} points/m2",
+            f"coordinate system:     {s.crs}",
         ]
     if s.n_points:
         differ = not (

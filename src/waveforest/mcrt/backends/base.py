@@ -37,7 +37,8 @@ def check_triangles(triangles: np.ndarray, dtype=np.float32) -> np.ndarray:
 class RayQueries:
     """The scaffold every backend shares: ray checks, output arrays, the empty batch.
 
-    A backend implements ``_intersect(o, d, tfar, prim, threads)`` and
+    A backend is built on ``triangles``: (n, 3, 3) float32, m, in the internal frame (a few
+    metres around the origin). It implements ``_intersect(o, d, tfar, prim, threads)`` and
     ``_occluded(o, d, tmax, out, threads)``, which fill the arrays they are given for a
     non-empty batch; :attr:`tmax_dtype` is the precision of the occlusion lengths it compares.
     """

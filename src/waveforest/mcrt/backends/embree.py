@@ -281,15 +281,8 @@ def _commit(lib, scene, what: str):
 
 
 class DirectEmbreeIntersector(RayQueries):
-    """Nearest-hit and occlusion queries on an Embree 4 BVH, called from Numba kernels.
-
-    Parameters
-    ----------
-    triangles : (n, 3, 3) float32, m
-        Triangles in the internal frame (a few metres around the origin).
-    quality : {"low", "medium", "high"}
-        Embree BVH build quality.
-    """
+    """Nearest-hit and occlusion queries on an Embree 4 BVH of ``triangles`` (:class:`RayQueries`),
+    called from Numba kernels; ``quality`` ({"low", "medium", "high"}) is the BVH build quality."""
 
     backend = "embree"
 

@@ -36,13 +36,8 @@ def _pool(workers: int) -> ThreadPoolExecutor:
 
 
 class EmbreeIntersector(RayQueries):
-    """Nearest-hit and occlusion queries on an Embree 4 BVH through embreex's ``run``.
-
-    Parameters
-    ----------
-    triangles : (n, 3, 3) float32, m
-        Triangles in the internal frame (a few metres around the origin).
-    """
+    """Nearest-hit and occlusion queries on an Embree 4 BVH of ``triangles`` (:class:`RayQueries`)
+    through embreex's ``run``."""
 
     backend = "embreex"
 

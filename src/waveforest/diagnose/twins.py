@@ -1,13 +1,14 @@
 """The study's real simulation chain as the diagnosis's ``simulate(pulses, effects, seed)``.
 
-A thin adapter over :func:`waveforest.stages.simulate.simulate_pulses` (vegetation ->
+A thin adapter over :func:`waveforest.model.simulate.simulate_pulses` (vegetation ->
 MCRT -> sensor -> CFD; effects routed to the module that applies each) and
 :func:`waveforest.sensor.feature_table` (first-echo features, the same code as for the real
 pulses). It adds four things:
 
-* **the seed**: ``simulate_pulses`` derives every random number from the config's master
+* **the seed**: ``simulate_pulses`` derives every random number from the settings' master
   seed, the dataset, the sample and the vegetation instance; the adapter passes the search's
-  seed as that master seed, so one seed gives the same plants, rays and noise for every
+  seed as that master seed (the study's :class:`~waveforest.model.simulate.SimulateSettings`
+  with the seed replaced), so one seed gives the same plants, rays and noise for every
   effect value (common random numbers) and another seed an independent replicate;
 * **scene reuse**: a cache of prepared (Embree) scenes keyed by species, height, scene seed
   and vegetation keyword arguments. Effects that do not act on the plants (``mcrt``,
@@ -38,7 +39,6 @@ calibration, and when no twin has an echo. Measured costs: docs/validation.md (S
 
 from __future__ import annotations
 
-import copy
 import threading
 from collections import OrderedDict
 from dataclasses import replace
@@ -49,6 +49,7 @@ import pyarrow as pa
 import pyarrow.compute as pc
 
 from waveforest.diagnose.catalogue import VEGETATION_EFFECTS
+from waveforest.diagnose.settings import DiagnoseSettings
 from waveforest.diagnose.strata import (
     BELOW_CROWN,
     BELOW_CROWN_ATTEMPTS,
@@ -60,10 +61,10 @@ from waveforest.effects import CATALOGUE
 from waveforest.errors import WaveforestError
 from waveforest.io.tables import dataset_row
 from waveforest.mcrt import prepare
+from waveforest.model.simulate import SimulateSettings, simulate_pulses
 from waveforest.rng import hash_ids, stable_hash
-from waveforest.sensor import CFDParams, FeatureParams, feature_table, range_correction_of
+from waveforest.sensor import feature_table, range_correction_of
 from waveforest.sensor.calibration import calibration_effects
-from waveforest.stages.simulate import simulate_pulses
 from waveforest.vegetation import build_scene, species_table
 
 SCENE_CACHE_SIZE = 512
@@ -91,7 +92,7 @@ def _vegetation_effects(species: str, kw: dict) -> tuple:
                         and float(v) != CATALOGUE[k].off and (k != "understory" or _is_tree_model(species))))
 
 
-class _SceneCache:
+class SceneCache:
     """``scene_builder`` for ``simulate_pulses`` that returns cached prepared scenes.
 
     Keyed by (species, height, scene seed, vegetation keyword arguments); least recently
@@ -156,25 +157,20 @@ class StudySimulator:
         The campaign's datasets.csv (:func:`waveforest.io.tables.read_datasets`).
     calibrations : dict
         Dataset -> (Calibration of :mod:`waveforest.sensor.calibration`, calibration JSON dict).
-    cfg : dict
-        Loaded study config.
-    n_rays : int, optional
-        MCRT rays per pulse (default ``diagnose.n_rays``, at most ``mcrt.n_rays``).
+    settings : DiagnoseSettings
+        The study's simulation chain (``simulate``), the base model's effects under every
+        call's ``effects`` (``base_effects``), the rules (``strata``) and
+        ``range_correction`` (the calibration's CFD range correction on the features' own
+        CFD echoes, as in the ``features`` stage).
     threads : int, optional
         Threads of each MCRT call.
-    base_effects : dict, optional
-        Effects of the base model (``simulate.effects``), under every call's ``effects``.
-    range_correction : bool
-        Apply the calibration's CFD range correction to the features' own CFD echoes (as
-        the ``features`` stage does with ``sensor.cfd.range_correction``).
     calibration_pulses : dict, optional
-        Dataset -> :class:`waveforest.sensor.calibration.CalibrationPulses`, to recalibrate
+        Dataset -> :class:`waveforest.model.calibration_pulses.CalibrationPulses`, to recalibrate
         S(t) under the sensor effects tried (module docstring).
     """
 
-    def __init__(self, selected: dict, datasets: pd.DataFrame, calibrations: dict, cfg: dict, *,
-                 n_rays: int | None = None, threads: int | None = None, base_effects: dict | None = None,
-                 range_correction: bool = True, calibration_pulses: dict | None = None):
+    def __init__(self, selected: dict, datasets: pd.DataFrame, calibrations: dict, settings: DiagnoseSettings, *,
+                 threads: int | None = None, calibration_pulses: dict | None = None):
 
         self.selected = selected
         self.info = {ds: dataset_row(datasets, ds) for ds in selected}
@@ -182,15 +178,15 @@ class StudySimulator:
         if missing:
             raise WaveforestError(f"diagnose: no calibration for dataset(s) {', '.join(missing)}")
         self.calibrations = calibrations
-        self.cfg = cfg
-        self.n_rays = int(n_rays or min(cfg["diagnose"]["n_rays"] or cfg["mcrt"]["n_rays"], cfg["mcrt"]["n_rays"]))
-        self.base_effects = dict(base_effects or {})
-        self.range_correction = bool(range_correction)
+        self.simulate = settings.simulate
+        self.strata = settings.strata
+        self.base_effects = dict(settings.base_effects)
+        self.range_correction = bool(settings.range_correction)
         self.threads = threads
-        self.scenes = _SceneCache(base_effects=self.base_effects)
+        self.scenes = SceneCache(base_effects=self.base_effects)
         self.pulses_simulated = 0
         self.calibration_pulses = dict(calibration_pulses or {})
-        self._recalibrated: dict = {}
+        self.recalibrated: dict = {}
 
     def calibration(self, dataset: str, effects: dict) -> tuple:
         """(Calibration, calibration JSON) of ``dataset`` for a model with ``effects`` (all of them).
@@ -203,34 +199,27 @@ class StudySimulator:
         if wanted == calibration_effects(self.base_effects) or dataset not in self.calibration_pulses:
             return self.calibrations[dataset]
         key = (dataset, tuple(sorted(wanted.items())))
-        if key not in self._recalibrated:
+        if key not in self.recalibrated:
             cal, meta = self.calibrations[dataset]
             system = self.calibration_pulses[dataset].system_waveform(wanted)
-            self._recalibrated[key] = (replace(cal, system=system), {**meta, "fwhm_ns": system.fwhm_ns})
-        return self._recalibrated[key]
+            self.recalibrated[key] = (replace(cal, system=system), {**meta, "fwhm_ns": system.fwhm_ns})
+        return self.recalibrated[key]
 
-    def _cfg(self, seed: int) -> dict:
-        c = copy.deepcopy(self.cfg)
-        c["seed"] = int(seed) % 2**63
-        c["mcrt"]["n_rays"] = self.n_rays
-        c["simulate"]["max_pulses"] = None
-        c["simulate"]["instances_per_sample"] = self.cfg["diagnose"]["instances_per_sample"]
-        return c
-
-    def _features(self, sub: pa.Table, ds: str, model: dict, cfg: dict, stream: int = 0) -> pd.DataFrame | None:
+    def _features(self, sub: pa.Table, ds: str, model: dict, simulate: SimulateSettings,
+                  stream: int = 0) -> pd.DataFrame | None:
         """Feature table of the twins of the rows of ``sub`` (one dataset); None when none has an echo."""
 
         cal, meta = self.calibration(ds, model)
-        sim, _ = simulate_pulses(sub, self.info[ds], cal, cfg, effects=model, progress=False, threads=self.threads,
-                                 scene_builder=self.scenes, stream=stream)
+        sim, _ = simulate_pulses(sub, self.info[ds], cal, simulate, effects=model, progress=False,
+                                 threads=self.threads, scene_builder=self.scenes, stream=stream)
         self.pulses_simulated += sub.num_rows
         if sim.num_rows == 0:
             return None
         rc = {ds: range_correction_of(meta)} if self.range_correction else None
-        return feature_table(sim, {ds: meta}, FeatureParams.from_config(cfg), cfd=cal.cfd or CFDParams.from_config(cfg),
+        return feature_table(sim, {ds: meta}, simulate.sensor.features, cfd=cal.cfd or simulate.sensor.cfd,
                              range_corrections=rc)
 
-    def _below_crown(self, sub: pa.Table, ds: str, model: dict, cfg: dict) -> list[pd.DataFrame]:
+    def _below_crown(self, sub: pa.Table, ds: str, model: dict, simulate: SimulateSettings) -> list[pd.DataFrame]:
         """Twins of the pulses under the crowns: for each, the first of up to
         :data:`BELOW_CROWN_ATTEMPTS` attempts whose first echo meets ``select``'s rule for the
         stratum (lower than ``select.tree_min_echo_h_m``, within ``select.tree_radius_m`` of the
@@ -238,15 +227,15 @@ class StudySimulator:
         azimuth (:func:`turned_about_stems`) and draws rays, noise and offsets anew (random
         stream k) over the same plant."""
 
-        low, radius = float(self.cfg["select"]["tree_min_echo_h_m"]), float(self.cfg["select"]["tree_radius_m"])
+        low, radius = float(self.strata.rules.tree_min_echo_h_m), float(self.strata.rules.tree_radius_m)
         found = []
         for k in range(BELOW_CROWN_ATTEMPTS):
             if sub.num_rows == 0:
                 break
             ids = sub.column("pulse_id").to_numpy()
             turned = sub if k == 0 else turned_about_stems(
-                sub, hash_ids(stable_hash(int(cfg["seed"]), ds, "azimuth", k), ids) / 2.0**64 * 2.0 * np.pi)
-            feats = self._features(turned, ds, model, cfg, stream=k)
+                sub, hash_ids(stable_hash(int(simulate.seed), ds, "azimuth", k), ids) / 2.0**64 * 2.0 * np.pi)
+            feats = self._features(turned, ds, model, simulate, stream=k)
             if feats is None:
                 continue
             order = np.argsort(ids)
@@ -267,7 +256,7 @@ class StudySimulator:
             Feature table of the simulated pulses (dataset, pulse_id, sample_id, species,
             is_tree, H, Npeaks, Apeak, FWHM, E, n_echoes, ...), selection rules applied.
         """
-        cfg = self._cfg(seed)
+        simulate = replace(self.simulate, seed=int(seed) % 2**63)
         model = {**self.base_effects, **effects}
         parts = []
         for ds, rows in pulses.groupby("dataset", sort=True):
@@ -280,8 +269,8 @@ class StudySimulator:
             sub = sub.set_column(sub.schema.get_field_index("comparison_set"), "comparison_set",
                                  pa.array(np.ones(sub.num_rows, bool)))
             under = np.isin(sub.column("pulse_id").to_numpy(), np.asarray(below, np.int64))
-            feats = [self._features(sub.filter(pa.array(~under)), ds, model, cfg)] if (~under).any() else []
-            feats += self._below_crown(sub.filter(pa.array(under)), ds, model, cfg) if under.any() else []
+            feats = [self._features(sub.filter(pa.array(~under)), ds, model, simulate)] if (~under).any() else []
+            feats += self._below_crown(sub.filter(pa.array(under)), ds, model, simulate) if under.any() else []
             feats = [f for f in feats if f is not None]
             if not feats:
                 continue
@@ -291,4 +280,4 @@ class StudySimulator:
             parts.append(feats)
         if not parts:
             raise WaveforestError("diagnose: the simulation produced no pulse with an echo")
-        return apply_rules(pd.concat(parts, ignore_index=True), self.cfg)
+        return apply_rules(pd.concat(parts, ignore_index=True), self.strata)

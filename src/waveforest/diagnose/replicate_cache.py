@@ -3,7 +3,7 @@
 A *simulator* is ``simulate(pulses, effects, seed) -> feature table`` (:data:`Simulator`).
 :class:`SimulationCache` holds the pulses of each half of the field samples
 (:data:`HALVES`) and one seed per half; ``get(half, effects)`` simulates that half under
-``effects`` once (``replicates`` calls, replicate r with seed ``SeedSequence([seed, r])``)
+``effects`` once (``replicates`` calls, replicate r with the seed ``named_seed("replicate", seed, r)``)
 and keeps the concatenated feature table, keyed by the half and the effects rounded to 12
 decimals (:func:`effects_key`). The same seed for every model of a half gives common random numbers
 (docs/method.md §(j), the search). Errors: :class:`waveforest.errors.WaveforestError` when
@@ -14,10 +14,10 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-import numpy as np
 import pandas as pd
 
 from waveforest.errors import WaveforestError
+from waveforest.rng import named_seed
 
 Simulator = Callable[[pd.DataFrame, dict, int], pd.DataFrame]
 """``simulate(pulses, effects, seed) -> feature table``: one row per simulated pulse with
@@ -69,10 +69,11 @@ class SimulationCache:
 
 def simulate_all(simulate: Simulator, keys: pd.DataFrame, effects: dict, seed: int, replicates: int) -> pd.DataFrame:
     """All of ``keys`` simulated under ``effects`` in one go (no halves, no cache): replicate r
-    with seed ``SeedSequence([seed, r])``, as :meth:`SimulationCache.get` draws them."""
+    with the seed ``named_seed("replicate", seed, r)`` (:mod:`waveforest.rng`), as
+    :meth:`SimulationCache.get` draws them."""
     parts = []
     for r in range(replicates):
-        s = int(np.random.SeedSequence([seed, r]).generate_state(1)[0])
+        s = named_seed("replicate", seed, r)
         out = simulate(keys.assign(replicate=r), dict(effects), s)
         if not isinstance(out, pd.DataFrame):
             raise WaveforestError("diagnose: the simulator must return a pandas DataFrame")
