@@ -124,3 +124,31 @@ def test_top_level_help_lines_are_whole_sentences():
         line = short_help(target)
         assert line.endswith(".") and not line.endswith("..."), (name, line)
         assert f" {name} {line}" in flat, name
+
+
+def test_every_command_that_reads_a_file_shows_a_valid_example():
+    """The help of each command with an input file ends in an example whose options exist and
+    that gives every required option."""
+    import importlib
+    import re
+
+    from waveforest.cli import COMMANDS
+
+    checked = 0
+    for name, target in COMMANDS.items():
+        module, attr = target.split(":")
+        command = getattr(importlib.import_module(module), attr)
+        takes_file = any(isinstance(p, click.Argument) for p in command.params) or name in ("compare", "diagnose",
+                                                                                              "report")
+        if not takes_file:
+            continue
+        found = re.search(r"Example:\s*(?:\x08\s*)?(waveforest [^\n]*)", command.help or "")
+        assert found, f"{name}: no example in --help"
+        flags = set(re.findall(r"(--[a-z-]+)", found.group(1)))
+        options = {o for p in command.params for o in getattr(p, "opts", [])}
+        assert flags <= options, (name, flags - options)
+        required = {p.opts[0] for p in command.params
+                    if isinstance(p, click.Option) and p.required}
+        assert required <= flags, (name, required - flags)
+        checked += 1
+    assert checked >= 12, checked

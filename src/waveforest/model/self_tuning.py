@@ -291,9 +291,11 @@ def tune_pulse_table(pulses_path, settings: SelfTuningSettings, *, batch_rows: i
 
     path = Path(pulses_path)
     n_rows = check_columns(path)
-    with tqdm(total=2 * n_rows, unit="pulse", unit_scale=True, disable=not progress, file=sys.stderr,
-              desc=f"tune-cfd {path.name}") as bar:
+    with tqdm(total=n_rows, unit="pulse", unit_scale=True, disable=not progress, file=sys.stderr,
+              desc=f"tune-cfd {path.name}, pass 1/2 (sample and tune)") as bar:
         first = _tune_on_sample(path, n_rows, settings, batch_rows, bar)
+        bar.reset(total=n_rows)
+        bar.set_description(f"tune-cfd {path.name}, pass 2/2 (check every pulse)")
         a = _check_every_pulse(path, first, settings.features, batch_rows, bar)
     corr = first.tuning.ranges.correction
     return SelfTuning(_result(path, n_rows, settings, first, a), a["amp"], a["width"] / first.fwhm_ns, a["res"],

@@ -61,6 +61,11 @@ def agc(pulses, targets_csv, datasets_csv, out, fit, plot, cfg):
     """Fit the AGC law on AGC targets; normalise waveforms and intensities (docs/method.md §(b), Eq. 1).
 
     PULSES is the pulse table of one dataset (`waveforest ingest` output).
+
+    Example:
+
+    \b
+    waveforest agc results/pulses/2010_12_1.parquet --targets campaign/targets.csv --datasets campaign/datasets.csv --out agc.parquet --fit agc.json
     """
 
     res = run(pulses, read_targets(targets_csv), read_datasets(datasets_csv), out, fit, cfg, plot_path=plot)

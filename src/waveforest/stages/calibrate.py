@@ -121,6 +121,11 @@ def calibrate(pulses, targets_csv, datasets_csv, out, json_out, plot, agc_fit, c
     """System waveform S(t) and noise of one dataset from reference targets (Eq. 8, docs/method.md §(e)).
 
     PULSES is the AGC-normalised pulse table of one dataset (`waveforest agc` output).
+
+    Example:
+
+    \b
+    waveforest calibrate agc.parquet --targets campaign/targets.csv --datasets campaign/datasets.csv --out system.parquet --json calibration.json
     """
 
     fit = read_agc_fit(agc_fit) if agc_fit else None

@@ -64,6 +64,11 @@ def classify(features, select_paths, out, cfg):
     """LDA of four functional groups on one dataset's real pulses (docs/method.md §(i4), Table 4).
 
     FEATURES is the feature table of the dataset's selected real pulses.
+
+    Example:
+
+    \b
+    waveforest classify features_real.parquet --select select.parquet --out classify.json
     """
 
     r = run(features, out, cfg, select_paths=select_paths)

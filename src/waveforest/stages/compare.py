@@ -102,7 +102,13 @@ def markdown_report(t3: pd.DataFrame, checks: pd.DataFrame) -> str:
 @force_option
 @stage_options
 def compare(real, sim, pulses_real, pulses_sim, out, force, cfg):
-    """Real vs simulated features: the Table 3 analogue and Figures 6-7 (docs/method.md §(i1))."""
+    """Real vs simulated features: the Table 3 analogue and Figures 6-7 (docs/method.md §(i1)).
+
+    Example:
+
+    \b
+    waveforest compare --real real.parquet --sim sim.parquet --out compare/
+    """
 
     r = run(real, sim, pulses_real, pulses_sim, out, cfg, force=force)
     click.echo(f"compare: {r.table_csv}, {r.table_md}, {r.order_csv} and {len(r.figures)} figures")

@@ -330,6 +330,11 @@ def diagnose(selected, features_real, calibration, system, agc, datasets, target
 
     Beyond the paper: each effect of the catalogue (src/waveforest/effects.py) is fitted on
     one half of the field samples and tested on the other (config section `diagnose`).
+
+    Example:
+
+    \b
+    waveforest diagnose --selected select.parquet --features-real real.parquet --calibration calibration.json --system system.parquet --datasets campaign/datasets.csv --out diagnose/
     """
 
     res = run(list(selected), list(features_real), list(calibration), out, cfg,

@@ -58,6 +58,11 @@ def features(pulses, calibration, cfd, out, progress, cfg):
 
     PULSES are one or more pulse tables (e.g. the chunks of `waveforest simulate`). Give either
     --calibration (the study) or --cfd (one file tuned by `waveforest tune-cfd`, no targets needed).
+
+    Example:
+
+    \b
+    waveforest features pulses.parquet --cfd cfd.json --out features.parquet
     """
     if bool(calibration) == bool(cfd):
         raise click.UsageError("give either --calibration (one or more) or --cfd, not both and not neither")

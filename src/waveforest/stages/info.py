@@ -23,7 +23,13 @@ from waveforest.io.las.info import format_summary, summarise
 @stage_options
 def info(las_file, agc_attribute, cfg):
     """Summarise a LAS waveform file: version, point format, descriptors, pulses, packets,
-    returns, samples per packet, AGC and bounds (like lasinfo)."""
+    returns, samples per packet, AGC and bounds (like lasinfo).
+
+    Example:
+
+    \b
+    waveforest info flight.las
+    """
 
     icfg = cfg["ingest"]
     summary = summarise(

@@ -34,7 +34,13 @@ from waveforest.io.las.pulses import las_to_pulses
 @stage_options
 def ingest(las_file, out, dataset, trajectory, nominal_range, agc_attribute, chunk_points, progress, cfg):
     """Read a LAS 1.3/1.4 waveform file (point format 4, 5, 9, 10; packets internal or in a .wdp)
-    into a Parquet pulse table: one row per pulse (returns grouped by GPS time)."""
+    into a Parquet pulse table: one row per pulse (returns grouped by GPS time).
+
+    Example:
+
+    \b
+    waveforest ingest flight.las --trajectory flight_trajectory.csv --out pulses.parquet
+    """
 
     icfg = cfg["ingest"]
     with warnings_to_stderr():

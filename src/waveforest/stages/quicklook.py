@@ -88,6 +88,11 @@ def quicklook(las_file, out, dataset, trajectory, progress, force, cfg):
     first-echo features, and one HTML page (docs/own-data.md).
 
     LAS_FILE is a LAS or LAZ 1.3/1.4 waveform file (packets in a .wdp beside it or inside).
+
+    Example:
+
+    \b
+    waveforest quicklook flight.laz --out look/
     """
     with warnings_to_stderr():
         res = run(las_file, out, cfg, dataset=dataset, trajectory=trajectory, progress=progress, force=force)

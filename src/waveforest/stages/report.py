@@ -58,7 +58,7 @@ def run(results, out_html, cfg: dict | None, out_md=None, title: str = "wavefore
 @click.option("--results", type=click.Path(exists=True, file_okay=False, path_type=Path), default=Path("results"),
               show_default=True, help="Results folder of the run.")
 @click.option("--out", type=click.Path(dir_okay=False, path_type=Path), required=True,
-              help="Output HTML (results/report/report.html).")
+              help="Output HTML file (required; the workflow writes results/report/report.html).")
 @click.option("--markdown", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Output Markdown (default: beside --out, suffix .md).")
 @click.option("--study-config", default=None,
@@ -77,6 +77,11 @@ def report(inputs, results, out, markdown, study_config, cfg):
 
     Also writes table4.csv and table4.md (Table 4 analogue with the paper's values) beside
     the report, and lists the config used and the software versions.
+
+    Example:
+
+    \b
+    waveforest report --results results --out results/report/report.html
     """
 
     r = run(results, out, cfg, markdown,

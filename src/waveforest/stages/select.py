@@ -90,6 +90,11 @@ def select(pulses, fields, datasets, out, cfg):
     comparison_set (modelled species, birch 2.5-5 m), and below_crown_set: pulses under a
     comparison tree's crown whose first echo is lower than select.tree_min_echo_h_m (for
     diagnose only).
+
+    Example:
+
+    \b
+    waveforest select agc.parquet --fields campaign/fields.csv --datasets campaign/datasets.csv --out select.parquet
     """
 
     s = run(pulses, fields, datasets, out, cfg)

@@ -72,6 +72,11 @@ def simulate(selected, fields, datasets, system, calibration, chunk, chunks, eff
     CHUNK (a stable hash of the sample and its vegetation instance) are simulated with the
     real pulse geometry, the dataset's S(t) and noise, and written with source = sim and
     the real pulse_id.
+
+    Example:
+
+    \b
+    waveforest simulate select.parquet --datasets campaign/datasets.csv --system system.parquet --calibration calibration.json --out sim.parquet
     """
 
     eff = dict(cfg["simulate"]["effects"])

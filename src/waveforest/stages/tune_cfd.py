@@ -52,6 +52,11 @@ def tune_cfd_command(pulses, out, plot, progress, cfg):
     last samples, the system pulse width from the narrowest single echoes, the CFD fraction,
     delay and range correction by the width-class rule of `calibrate`; reports the share of
     pulses whose first CFD echo lies within 0.10 m of the first DR echo.
+
+    Example:
+
+    \b
+    waveforest tune-cfd pulses.parquet --out cfd.json --plot cfd.png
     """
     with warnings_to_stderr():
         res = run(pulses, out, cfg, plot_path=plot, progress=progress)

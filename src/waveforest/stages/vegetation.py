@@ -94,6 +94,11 @@ def vegetation(species, height, out, png, no_png, effect_items, mean_leaf_angle,
 
     The faces carry rho, tau and kind (0 ground, 1 leaf, 2 wood, 3 other), as
     `waveforest trace` reads them. The seed is the config seed (or --seed).
+
+    Example:
+
+    \b
+    waveforest vegetation --species birch --height 3 --out birch.ply
     """
     png_path = None if no_png else (png or Path(out).with_suffix(".png"))
     veg = cfg["vegetation"]
