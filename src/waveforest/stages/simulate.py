@@ -59,8 +59,8 @@ def run(selected_path, datasets_path, system_path, calibration_path, out_path, c
 @click.option("--datasets", type=EXISTING_FILE, required=True, help="datasets.csv of the campaign folder.")
 @click.option("--system", type=EXISTING_FILE, required=True, help="Calibrated S(t) of the dataset (Parquet).")
 @click.option("--calibration", type=EXISTING_FILE, required=True, help="Calibration JSON (noise_mean, noise_sd).")
-@click.option("--chunk", type=int, default=0, show_default=True, help="Chunk index, 0 .. chunks-1.")
-@click.option("--chunks", type=int, default=None, help="Number of chunks (default simulate.chunks).")
+@click.option("--chunk", type=click.IntRange(min=0), default=0, show_default=True, help="Chunk index, 0 .. chunks-1.")
+@click.option("--chunks", type=click.IntRange(min=1), default=None, help="Number of chunks (default simulate.chunks).")
 @click.option("--effect", "effects", multiple=True, metavar="NAME=VALUE",
               help="Add an effect to the model (src/waveforest/effects.py); repeatable. Overrides simulate.effects.")
 @click.option("--out", type=OUT_FILE, required=True, help="Output Parquet: the simulated pulse table (source = sim).")
