@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+from fixtures.real import quicklook_of_riegl
 from fixtures.tables import plate_scene
 
 from waveforest import config
@@ -201,10 +202,7 @@ def test_output_files_publishes_all_or_none(tmp_path):
 def looked(tmp_path_factory):
     """quicklook of the bundled RIEGL file: (folder with the input, output folder, its files)."""
     tmp = tmp_path_factory.mktemp("ql")
-    shutil.copy(RIEGL, tmp / RIEGL.name)
-    shutil.copy(RIEGL.with_suffix(".wdp"), tmp / RIEGL.with_suffix(".wdp").name)
-    out = tmp / "look"
-    assert wf("quicklook", tmp / RIEGL.name, "--out", out, "--no-progress") == 0
+    _, out = quicklook_of_riegl(tmp)
     return tmp, out, snapshot(out)
 
 

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import json
 import re
-import shutil
 
 import numpy as np
 import pyarrow.parquet as pq
 import pytest
+from fixtures.real import quicklook_of_riegl
 from reference_io import RIEGL
 from test_laz import assert_tables_identical
 
@@ -20,12 +20,7 @@ from waveforest.report.quicklook import detect_afterpulse, fmt
 
 @pytest.fixture(scope="module")
 def looked(tmp_path_factory):
-    tmp = tmp_path_factory.mktemp("ql")
-    shutil.copy(RIEGL, tmp / RIEGL.name)
-    shutil.copy(RIEGL.with_suffix(".wdp"), tmp / RIEGL.with_suffix(".wdp").name)
-    out = tmp / "look"
-    main(["quicklook", str(tmp / RIEGL.name), "--out", str(out), "--no-progress"])
-    return out
+    return quicklook_of_riegl(tmp_path_factory.mktemp("ql"))[1]
 
 
 def test_quicklook_writes_every_output(looked, capsys):
