@@ -65,6 +65,14 @@ def test_options_are_named_as_typed(capsys):
     assert code == 2 and "Did you mean '--species'" in _one_error_line(lines)
 
 
+def test_a_scene_file_name_without_ply_is_refused_before_work(tmp_path, capsys):
+    out = tmp_path / "scene.txt"
+    code, lines = _run(["vegetation", "--species", "birch", "--height", "2", "--out", str(out)], capsys)
+    line = _one_error_line(lines)
+    assert code == 2 and "'--out'" in line and "scene.txt: expected a .ply file name" in line, line
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_bad_input_content_exits_1_with_one_line(tmp_path, capsys):
     junk = tmp_path / "junk.las"
     junk.write_bytes(b"not a LAS file at all" * 20)

@@ -7,11 +7,13 @@ import re
 
 import numpy as np
 import pandas as pd
+import pytest
 from test_analysis_classify import _features
 
 from waveforest import config
 from waveforest.analysis.classify import classify_dataset
 from waveforest.cli import main
+from waveforest.errors import WaveforestError
 from waveforest.report import plots
 from waveforest.settings import classify_settings
 from waveforest.stages.report import run
@@ -85,3 +87,12 @@ def test_report_cli(tmp_path):
     main(["report", "--results", str(res), "--config", str(cfgp), "--out", str(tmp_path / "r" / "report.html")])
     assert (tmp_path / "r" / "report.html").stat().st_size > 10000
     assert "seed: 3" in (tmp_path / "r" / "report.md").read_text()
+
+
+def test_report_of_a_folder_without_results_is_an_error_and_writes_nothing(tmp_path):
+    (tmp_path / "empty").mkdir()
+    (tmp_path / "empty" / "notes.txt").write_text("mine")
+    out = tmp_path / "r" / "report.html"
+    with pytest.raises(WaveforestError, match=r"empty: no result of a run found"):
+        run(tmp_path / "empty", out, None)
+    assert not (tmp_path / "r").exists()

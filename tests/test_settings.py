@@ -31,6 +31,7 @@ LIBRARY_DEFAULTS = {
     (FeatureParams, "segment_sd"): "sensor/features/segment_sd",
     (FeatureParams, "peak_rise_sd"): "sensor/features/peak_rise_sd",
     (FeatureParams, "echo_search_ns"): "sensor/features/echo_search_ns",
+    (FeatureParams, "decomposition"): "sensor/features/decomposition",
 }
 """(dataclass, field) with a default -> the schema key whose default it restates."""
 

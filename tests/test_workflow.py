@@ -165,8 +165,16 @@ def test_readme_override_of_a_nested_value(workdir):
     said = typo.stdout + typo.stderr
     errors = [line for line in said.splitlines() if line.startswith("waveforest: error:")]
     assert typo.returncode != 0 and len(errors) == 1, said
-    assert errors[0].startswith("waveforest: error: config: mcrt/n_rayz: unknown key; expected one of n_rays, "), said
+    assert errors[0].startswith("waveforest: error: --config on the command line: mcrt/n_rayz: unknown key; "
+                                "expected one of n_rays, "), said
     assert "Traceback" not in said and "schema" not in said  # one line, not Snakemake's dump of the schema
+    # a key given on the command line is blamed on it, not on the --configfile beside it
+    typo = _snakemake("-n", "--cores", "2", "--configfile", "config/test/config.yaml", "--config", "dta=x",
+                      cwd=workdir)
+    said = typo.stdout + typo.stderr
+    assert typo.returncode != 0, said
+    assert "waveforest: error: --config on the command line: dta: unknown key" in said, said
+    assert "config/test/config.yaml:" not in said, said
 
 
 def test_config_change_reruns_exactly_the_stages_that_use_it(workdir):

@@ -52,6 +52,7 @@ COMMANDS = {
     "diagnose": "waveforest.stages.diagnose:diagnose",
     "report": "waveforest.stages.report:report",
     "quicklook": "waveforest.stages.quicklook:quicklook",
+    "decompose": "waveforest.stages.decompose:decompose",
 }
 
 

@@ -43,6 +43,10 @@ class ConfigError(WaveforestError):
     """An invalid configuration."""
 
 
+COMMAND_LINE = "--config on the command line"
+"""Where an error in a key given with Snakemake's ``--config KEY=VALUE`` is said to come from."""
+
+
 @functools.cache
 def _schema_cached() -> dict:
     with open(SCHEMA_PATH) as fh:
@@ -70,28 +74,41 @@ def fill_defaults(sub_schema: dict, instance: Any) -> None:
             fill_defaults(prop, instance[name])
 
 
-def _message(exc: jsonschema.ValidationError) -> str:
-    """``path: what was expected`` of one schema violation."""
-    where = "/".join(str(p) for p in exc.absolute_path)
+def _message(exc: jsonschema.ValidationError) -> tuple[list[str], str]:
+    """The key path of one schema violation and ``path: what was expected``."""
+    parts = [str(p) for p in exc.absolute_path]
     if exc.validator == "additionalProperties" and exc.validator_value is False and isinstance(exc.instance, dict):
         known = list(exc.schema.get("properties", {}))
         extra = [k for k in exc.instance if k not in known]
-        path = "/".join([where, str(extra[0])]) if where else str(extra[0])
-        return f"{path}: unknown key; expected one of {', '.join(known)}"
+        parts = parts + [str(extra[0])]
+        return parts, f"{'/'.join(parts)}: unknown key; expected one of {', '.join(known)}"
     if "propertyNames" in exc.relative_schema_path and exc.validator == "enum":
-        path = "/".join([where, str(exc.instance)]) if where else str(exc.instance)
-        return f"{path}: unknown name; expected one of {', '.join(map(str, exc.validator_value))}"
-    return f"{where or '(top level)'}: {exc.message}"
+        parts = parts + [str(exc.instance)]
+        return parts, f"{'/'.join(parts)}: unknown name; expected one of {', '.join(map(str, exc.validator_value))}"
+    return parts, f"{'/'.join(parts) or '(top level)'}: {exc.message}"
 
 
-def _check_names(config: dict, source: str) -> None:
+def _given(parts: list[str], overrides: dict | None) -> bool:
+    """Whether the key path ``parts`` (or a parent of it) was set in ``overrides``."""
+    here = overrides
+    for part in parts:
+        if not isinstance(here, dict) or part not in here:
+            return False
+        here = here[part]
+        if not isinstance(here, dict):
+            return True
+    return bool(parts)
+
+
+def _check_names(config: dict, source: str, overrides: dict | None) -> None:
     """Species slugs and functional groups of the config are known ones."""
     known = species_slugs()
 
     def check(values, path: str, allowed, what: str) -> None:
         for v in values:
             if v not in allowed:
-                raise ConfigError(f"{source}: {path}: unknown {what} {v!r}; expected one of {', '.join(allowed)}")
+                where = COMMAND_LINE if _given(path.split("/"), overrides) else source
+                raise ConfigError(f"{where}: {path}: unknown {what} {v!r}; expected one of {', '.join(allowed)}")
 
     for section, key in SPECIES_LISTS:
         check(config[section][key] or (), f"{section}/{key}", known, "species")
@@ -101,13 +118,15 @@ def _check_names(config: dict, source: str) -> None:
     check(config["classify"]["groups"], "classify/groups", FUNCTIONAL_GROUPS, "functional group")
 
 
-def validate(config: dict, source: str = "<config>") -> dict:
+def validate(config: dict, source: str = "<config>", overrides: dict | None = None) -> dict:
     """Fill defaults into ``config`` in place, validate it, and return it.
 
     Parameters
     ----------
     config : mapping of a (possibly partial) config; keys absent get the schema's defaults.
     source : name of the config in error messages (a file name).
+    overrides : the part of ``config`` given on the command line (Snakemake's ``--config``);
+        an error in a key it sets is blamed on :data:`COMMAND_LINE`, not on ``source``.
 
     Raises
     ------
@@ -119,8 +138,9 @@ def validate(config: dict, source: str = "<config>") -> dict:
     fill_defaults(sch, config)
     error = jsonschema.exceptions.best_match(jsonschema.Draft202012Validator(sch).iter_errors(config))
     if error is not None:
-        raise ConfigError(f"{source}: {_message(error)}")
-    _check_names(config, source)
+        parts, text = _message(error)
+        raise ConfigError(f"{COMMAND_LINE if _given(parts, overrides) else source}: {text}")
+    _check_names(config, source, overrides)
     return config
 
 

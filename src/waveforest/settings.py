@@ -49,7 +49,7 @@ def feature_params(cfg: dict) -> FeatureParams:
     """The first-echo feature settings of ``sensor.features``."""
     sec = cfg["sensor"]["features"]
     return FeatureParams(segment_sd=float(sec["segment_sd"]), peak_rise_sd=float(sec["peak_rise_sd"]),
-                         echo_search_ns=float(sec["echo_search_ns"]))
+                         echo_search_ns=float(sec["echo_search_ns"]), decomposition=bool(sec["decomposition"]))
 
 
 def sensor_settings(cfg: dict) -> SensorSettings:

@@ -63,7 +63,8 @@ with open(os.path.join(workflow.current_basedir, SCHEMA)) as _fh:
 # not in Snakemake's dump of the schema.
 _sources = [str(f) for f in (getattr(workflow.config_settings, "configfiles", None) or [])]
 try:
-    waveforest_config.validate(config, source=", ".join(_sources) or "config")
+    waveforest_config.validate(config, source=", ".join(_sources) or "config",
+                               overrides=dict(workflow.config_settings.config))
 except waveforest_config.ConfigError as _exc:
     sys.exit(f"waveforest: error: {_exc}")
 validate(config, schema=SCHEMA)

@@ -35,6 +35,7 @@ import pandas as pd
 
 from waveforest import __version__
 from waveforest.errors import WaveforestError, WaveforestWarning
+from waveforest.sensor.features import DECOMPOSITION_FEATURES
 from waveforest.stats import lda
 
 THREE_SPECIES_FEATURES = ("Apeak", "FWHM", "E")
@@ -43,8 +44,9 @@ THREE_SPECIES_FEATURES = ("Apeak", "FWHM", "E")
 SAMPLE_FEATURES = {"maxH": "H"}
 """Sample-level features: name -> the pulse column whose maximum over the sample it is."""
 
-HEIGHT_FEATURES = ("H", "maxH")
-"""Heights above the ground, m: not divided by the normaliser (the sand road's H is about 0)."""
+HEIGHT_FEATURES = ("H", "maxH", "gd_depth", "gd_last_H", "gd_n")
+"""Heights and distances (m) and the echo count: not divided by the normaliser (the sand road's
+H and depth are about 0, its count about 1)."""
 
 
 @dataclass(frozen=True)
@@ -268,6 +270,8 @@ def classify_dataset(features: pd.DataFrame, settings: ClassifySettings, selecti
     min_pulses = settings.min_pulses
     feats = list(settings.features)
     extra = [list(s) for s in settings.extra_feature_sets]
+    # a decomposition set on a feature table made without the decomposition is left out
+    extra = [s for s in extra if all(f in features.columns for f in s if f in DECOMPOSITION_FEATURES)]
     every = sorted(set(feats) | {f for s in extra for f in s} | set(THREE_SPECIES_FEATURES))
     needed = sorted({SAMPLE_FEATURES.get(f, f) for f in every})
     missing = [f for f in needed + ["species", "functional_group", "sample_id", "n_echoes"]

@@ -29,7 +29,7 @@ columns and for no matching real feature row.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import pandas as pd
@@ -364,5 +364,5 @@ def below_crown_features(keys: pd.DataFrame, selected: dict, metas: dict, strata
     for ds, rows in below.groupby("dataset", sort=True):
         table = selected[ds]
         sub = table.filter(pc.is_in(table.column("pulse_id"), value_set=pa.array(rows["pulse_id"].to_numpy(np.int64))))
-        parts.append(feature_table(sub, {ds: metas[ds]}, strata.sensor.features))
+        parts.append(feature_table(sub, {ds: metas[ds]}, replace(strata.sensor.features, decomposition=False)))
     return real_features(pd.concat(parts, ignore_index=True), below, strata) if parts else pd.DataFrame()

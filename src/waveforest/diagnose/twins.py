@@ -216,8 +216,9 @@ class StudySimulator:
         if sim.num_rows == 0:
             return None
         rc = {ds: range_correction_of(meta)} if self.range_correction else None
-        return feature_table(sim, {ds: meta}, simulate.sensor.features, cfd=cal.cfd or simulate.sensor.cfd,
-                             range_corrections=rc)
+        # the gap reads first-echo features only: no decomposition of the twins
+        return feature_table(sim, {ds: meta}, replace(simulate.sensor.features, decomposition=False),
+                             cfd=cal.cfd or simulate.sensor.cfd, range_corrections=rc)
 
     def _below_crown(self, sub: pa.Table, ds: str, model: dict, simulate: SimulateSettings) -> list[pd.DataFrame]:
         """Twins of the pulses under the crowns: for each, the first of up to

@@ -182,7 +182,7 @@ def cfd_features(pulse_paths, cfd_path, out_path, settings: FeatureTableSettings
                 if not path.exists():
                     raise WaveforestError(f"{path}: no such file")
                 total = pq.read_metadata(path).num_rows
-                with tqdm(total=total, unit="pulse", unit_scale=True, disable=not progress, file=sys.stderr,
+                with tqdm(total=total, unit="waveform", unit_scale=True, disable=not progress, file=sys.stderr,
                           desc=f"features {path.name}") as bar:
                     for batch in iter_pulses(path, batch_rows):
                         batch = check_pulses(batch, path)

@@ -25,7 +25,7 @@ from waveforest.sensor.cfd import RangeCorrection, detect_echoes
 from waveforest.sensor.cfd_tuning import WIDTH_EDGES, CFDTuning, tune_cfd
 from waveforest.sensor.features import first_echo_features
 from waveforest.sensor.noise import NoiseStats
-from waveforest.sensor.params import CFDParams, FeatureParams
+from waveforest.sensor.params import RANGE_GATE_M, CFDParams, FeatureParams
 from waveforest.sensor.self_calibration import (
     closing_note,
     dr_agreement,
@@ -40,6 +40,9 @@ from waveforest.sensor.self_calibration import (
 STREAM_ROWS = 8192
 """Pulses per batch read: a batch of 256-sample waveforms, padded, with the CFD and features on
 it, takes ~100 MB, which keeps a whole run within the ingest memory bound (docs/own-data.md)."""
+
+PLOT_SAMPLE = 20_000
+"""Pulses kept for the residual plot (a seeded reservoir sample beyond that, so memory stays bounded)."""
 
 COLUMNS = ["dataset", "sampling_ns", "samples", "n_echoes", "echo_time_ns"]
 """Pulse-table columns the tuning reads."""
@@ -110,9 +113,10 @@ class SelfTuning:
     """What :func:`tune_pulse_table` found.
 
     ``result``: the JSON content (a calibration JSON without S(t): dataset, noise_mean,
-    noise_sd, fwhm_ns, cfd, range_correction, and the check). The per-pulse arrays (n,) of the
-    check, for the residual plot: CFD echo amplitude, DN; first-echo FWHM / system FWHM;
-    residual (DR - corrected CFD range), m; ``plotted`` the pulses with a DR echo and a CFD echo.
+    noise_sd, fwhm_ns, cfd, range_correction, and the check). For the residual plot, arrays (n,)
+    over the pulses with a DR echo and a CFD echo, all of them in table order up to
+    :data:`PLOT_SAMPLE`, else a seeded reservoir sample of that many: CFD echo amplitude, DN;
+    first-echo FWHM / system FWHM; residual (DR - corrected CFD range), m; ``plotted`` (all True).
     """
 
     result: dict
@@ -231,35 +235,121 @@ def _tune_on_sample(path: Path, n_rows: int, s: SelfTuningSettings, batch_rows: 
     return _SampleTuning(name, noise, fwhm, width_report, tuning, int(len(d)))
 
 
-def _check_every_pulse(path: Path, first: _SampleTuning, fp: FeatureParams, batch_rows: int, bar) -> dict:
-    """Pass 2: the chosen CFD on every pulse; per pulse DR - CFD and the residual (m), amplitude,
-    first-echo FWHM at the DR time, DR echo present and visible, sampling interval."""
+def _check_every_pulse(path: Path, n_rows: int, first: _SampleTuning, fp: FeatureParams, batch_rows: int,
+                       seed: int, bar) -> dict:
+    """Pass 2: the chosen CFD on every pulse. Returns the agreement (:func:`_agreement`), the median
+    sampling interval and, for the plot, a seeded sample (:func:`_keep_sample`) of at most
+    :data:`PLOT_SAMPLE` of the pulses with a DR and a CFD echo: float32 CFD amplitude, first-echo
+    FWHM at the DR time and residual (DR - corrected CFD range, m). Held per pulse: the gated
+    residuals (4 bytes each, 8 at the end); the rest is counted batch by batch."""
     noise, cfd, corr = first.noise, first.tuning.cfd, first.tuning.ranges.correction
     level = noise.mean + cfd.arming_sd * noise.sd
-    cols = {k: [] for k in ("dr", "res", "amp", "width", "has", "vis", "dt")}
+    r = np.empty(n_rows, np.float32)
+    sample = {k: np.empty(PLOT_SAMPLE, np.float32) for k in ("amp", "width", "res")}
+    rng = named_generator("quicklook_scatter", int(seed))
+    parts, dt_counts, n_gated, n_seen = [], {}, 0, 0
     for batch in iter_pulses(path, batch_rows, columns=COLUMNS):
         p = Pulses.of(batch)
         ech = detect_echoes(p.samples, p.lengths, p.sampling_ns, noise.mean, noise.sd, cfd, 1)
-        dr = dr_minus_cfd(p.dr_time_ns, ech.times_ns[:, 0])
+        dr = dr_minus_cfd(p.dr_time_ns, ech.times_ns[:, 0]).astype(np.float32)
         amp = ech.amplitudes[:, 0]
-        w = _first_echo_widths(p, noise, fp)["FWHM"]
-        cols["dr"].append(dr.astype(np.float32))
-        cols["res"].append((dr - corr(amp)).astype(np.float32))
-        cols["amp"].append(amp.astype(np.float32))
-        cols["width"].append(w.astype(np.float32))
-        cols["has"].append(np.isfinite(p.dr_time_ns))
-        cols["vis"].append(dr_visible(p.samples, p.lengths, p.sampling_ns, p.dr_time_ns, level, first.fwhm_ns / 2))
-        cols["dt"].append(p.sampling_ns.astype(np.float32))
+        res = (dr_minus_cfd(p.dr_time_ns, ech.times_ns[:, 0]) - corr(amp)).astype(np.float32)
+        has = np.isfinite(p.dr_time_ns)
+        plotted = has & np.isfinite(dr)
+        gated = plotted & (np.abs(dr.astype(np.float64)) < RANGE_GATE_M)
+        r[n_gated:n_gated + int(gated.sum())] = res[gated]
+        n_gated += int(gated.sum())
+        width = _first_echo_widths(p, noise, fp)["FWHM"]
+        n_seen = _keep_sample(sample, n_seen, {"amp": amp[plotted], "width": width[plotted], "res": res[plotted]}, rng)
+        vis = dr_visible(p.samples, p.lengths, p.sampling_ns, p.dr_time_ns, level, first.fwhm_ns / 2)
+        parts.append(dr_agreement(dr, res, has, vis))
+        for v, c in zip(*np.unique(p.sampling_ns.astype(np.float32), return_counts=True)):
+            dt_counts[v] = dt_counts.get(v, 0) + int(c)
         bar.update(batch.num_rows)
-    return {k: np.concatenate(v) for k, v in cols.items()}
+    out = {k: v[:min(n_seen, PLOT_SAMPLE)].copy() for k, v in sample.items()}
+    r64 = r[:n_gated].astype(np.float64)
+    del r
+    out["agree"] = _agreement(parts, r64)
+    out["sampling"] = _median_of_counts(dt_counts)
+    return out
+
+
+def _keep_sample(sample: dict, n_seen: int, new: dict, rng: np.random.Generator) -> int:
+    """Reservoir sampling (Algorithm R) of the rows of ``new`` into the arrays of ``sample`` (length
+    k) after ``n_seen`` rows; returns the rows seen. Keeps every row, in order, while at most k are seen."""
+    k = len(next(iter(sample.values())))
+    m = len(next(iter(new.values())))
+    idx = np.arange(n_seen, n_seen + m)
+    slot = idx.copy()
+    late = idx >= k
+    if late.any():
+        slot[late] = np.floor(rng.random(int(late.sum())) * (idx[late] + 1)).astype(np.int64)
+    put = slot < k  # later rows overwrite earlier ones in the same slot, as one by one
+    for name, values in new.items():
+        sample[name][slot[put]] = values[put]
+    return n_seen + m
+
+
+def _median_of_counts(counts: dict) -> float:
+    """``float(np.median(x))`` of the float32 values ``x`` given as {value: count}."""
+    values = np.array(sorted(counts), dtype=np.float32)
+    cum = np.cumsum([counts[v] for v in values])
+    n = int(cum[-1])
+    lo, hi = (values[np.searchsorted(cum, k, side="right")] for k in ((n - 1) // 2, n // 2))
+    return float(np.mean(np.array([lo, hi], dtype=np.float32)))
+
+
+def _residual_stats(r: np.ndarray) -> tuple[float | None, float | None, float | None]:
+    """Median, mean and robust SD (1.4826 MAD) of the gated residuals ``r`` (float64, consumed:
+    sorted and overwritten in place), equal to those of :func:`dr_agreement` without its copies."""
+    if not r.size:
+        return None, None, None
+    mean = float(np.mean(r))
+    med = _median_in_place(r)
+    np.subtract(r, med, out=r)
+    np.abs(r, out=r)
+    return float(med), mean, float(1.4826 * _median_in_place(r))
+
+
+def _median_in_place(x: np.ndarray) -> np.float64:
+    """``np.median(x)`` of a float64 array without NaN, partitioning ``x`` in place."""
+    n = x.size
+    k = (n - 1) // 2, n // 2
+    x.partition(k)
+    return np.mean(x[[k[0], k[1]]]) if n % 2 == 0 else x[k[0]]
+
+
+def _agreement(parts: list[dict], r: np.ndarray) -> dict:
+    """:func:`dr_agreement` of all pulses from its results per batch (``parts``, counts added) and
+    the gated residuals of all pulses in table order (``r``, consumed)."""
+    count = lambda share, n: 0 if share is None else round(share * n)  # noqa: E731
+    n = sum(q["n_pulses"] for q in parts)
+    n_gated = sum(q["n_gated"] for q in parts)
+    within = sum(count(q["within_0_10_m"], q["n_pulses"]) for q in parts)
+    below = sum(q["n_dr_below_noise"] for q in parts)
+    within_vis = sum(count(q["within_0_10_m_dr_above_noise"], q["n_pulses"] - q["n_dr_below_noise"]) for q in parts)
+    reasons = {k: sum(q["limits"][k]["n"] for q in parts) for k in parts[0]["limits"]} if parts else {}
+    share = (lambda m: float(np.int64(m) / n)) if n else (lambda m: None)
+    med, mean, sd = _residual_stats(r)
+    return {
+        "n_pulses": n,
+        "within_0_10_m": share(within),
+        "n_gated": n_gated,
+        "within_0_10_m_gated": float(np.int64(within) / n_gated) if n_gated else None,
+        "median_residual_m": med,
+        "mean_residual_m": mean,
+        "residual_sd_robust_m": sd,
+        "limits": {k: {"n": m, "share": share(m)} for k, m in reasons.items()},
+        "n_dr_below_noise": below,
+        "within_0_10_m_dr_above_noise": float(np.int64(within_vis) / (n - below)) if n - below else None,
+    }
 
 
 def _result(path: Path, n_rows: int, s: SelfTuningSettings, first: _SampleTuning, a: dict) -> dict:
     """The JSON content: noise, width, CFD, range correction, the check and the tuning grid."""
     noise, tuning, fwhm = first.noise, first.tuning, first.fwhm_ns
     cfd, corr = tuning.cfd, tuning.ranges.correction
-    agree = dr_agreement(a["dr"], a["res"], a["has"], a["vis"])
-    sampling = float(np.median(a["dt"]))
+    agree, sampling = a["agree"], a["sampling"]
     result = {
         "dataset": first.dataset, "source": str(path), "n_pulses_total": int(n_rows), "n_pulses": agree["n_pulses"],
         "noise_mean": noise.mean, "noise_sd": noise.sd, "noise_sd_analog": noise.sd_analog, "noise_lag1": noise.lag1,
@@ -291,15 +381,15 @@ def tune_pulse_table(pulses_path, settings: SelfTuningSettings, *, batch_rows: i
 
     path = Path(pulses_path)
     n_rows = check_columns(path)
-    with tqdm(total=n_rows, unit="pulse", unit_scale=True, disable=not progress, file=sys.stderr,
+    with tqdm(total=n_rows, unit="waveform", unit_scale=True, disable=not progress, file=sys.stderr,
               desc=f"tune-cfd {path.name}, pass 1/2 (sample and tune)") as bar:
         first = _tune_on_sample(path, n_rows, settings, batch_rows, bar)
         bar.reset(total=n_rows)
         bar.set_description(f"tune-cfd {path.name}, pass 2/2 (check every pulse)")
-        a = _check_every_pulse(path, first, settings.features, batch_rows, bar)
+        a = _check_every_pulse(path, n_rows, first, settings.features, batch_rows, settings.seed, bar)
     corr = first.tuning.ranges.correction
     return SelfTuning(_result(path, n_rows, settings, first, a), a["amp"], a["width"] / first.fwhm_ns, a["res"],
-                      a["has"] & np.isfinite(a["dr"]), corr)
+                      np.ones(len(a["res"]), bool), corr)
 
 
 def summary_line(res: dict, out) -> str:

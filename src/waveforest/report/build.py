@@ -33,6 +33,7 @@ from waveforest.io.results import read_agc_fit, read_calibration_json, read_clas
 from waveforest.report.markdown import format_value, round_floats, shift_headings, to_html, to_markdown
 from waveforest.report.source import source_parts, virtual_caveat
 from waveforest.report.summary import ReportSettings, missing, read_csv, summary_parts
+from waveforest.stats.proportion import wilson_interval
 
 MAX_TABLE_ROWS = 400
 """Longest table shown in full; longer ones are cut (the CSV holds all rows)."""
@@ -275,9 +276,11 @@ def _classify(results: Path, used: set, out_dir: Path, settings: ReportSettings)
                     s = b.get(scheme)
                     if s:
                         gain = ((e.get("gain_pp") or {}).get(level) or {}).get(scheme)
+                        lo, hi = wilson_interval(s["accuracy"], int(e.get("n_samples") or 0))
                         extra_rows.append({"dataset": r["dataset"], "features": "+".join(e["features"]),
                                            "level": level, "scheme": scheme,
-                                           "correct_pct": 100 * s["accuracy"], "kappa": s["kappa"],
+                                           "correct_pct": 100 * s["accuracy"],
+                                           "ci95_pct": f"{100 * lo:.1f}-{100 * hi:.1f}", "kappa": s["kappa"],
                                            "gain_pp": gain if gain is not None else missing(
                                                "main set has no score" if "gain_pp" in e else
                                                "classify JSON without gain_pp")})
@@ -296,8 +299,13 @@ def _classify(results: Path, used: set, out_dir: Path, settings: ReportSettings)
                                            "scheme": scheme, "correct_pct": 100 * s["accuracy"],
                                            "kappa": s["kappa"], "n": s["n"]})
     if extra_rows:
+        sec.text("gd_* are the Gaussian decomposition's multi-echo features (docs/method.md §(f2)): gd_n echoes, "
+                 "gd_E total energy, gd_later_A amplitude after the first echo, gd_depth first-to-last echo "
+                 "distance, gd_last_H last-echo height; on the same pulses as the first-echo sets.")
         sec.table("Other feature sets; gain_pp = accuracy minus the main set's, percentage points "
-                  "(paper: adding FWHM gains < 1 pp, max H per sample +0.4 to +7.8 pp)",
+                  "(paper: adding FWHM gains < 1 pp, max H per sample +0.4 to +7.8 pp); ci95_pct: Wilson "
+                  "interval with the field samples as the independent trials (pulses of a sample are not "
+                  "independent, so this is the wider, honest one)",
                   pd.DataFrame(extra_rows))
     if three_rows:
         sec.table("Three-species LDA on real data, Apeak + FWHM + E (paper: 78.6-88.3 % 1-pulse, "
@@ -410,6 +418,9 @@ def collect(results: str | Path, settings: ReportSettings, out_dir: Path, config
     for s in (_selection(results, used, settings), _others(results, used)):
         if s:
             sections.append(s)
+    if len(sections) == 2:
+        raise WaveforestError(f"{results}: no result of a run found (expected the folders a run writes, "
+                              f"e.g. {', '.join(f + '/' for f, *_ in _STUDIES)}, classify/, diagnose/)")
     s = _benchmarks(results)
     if s:
         sections.append(s)

@@ -155,8 +155,9 @@ def fig7_waveforms(aligned: dict, grid_ns: np.ndarray, dataset: str, path: str |
     return _save(fig, path)
 
 
-def fig8_sensitivity(table: pd.DataFrame, path: str | Path, source: str = "") -> Path:
-    """Mean Apeak +- SE against each swept vegetation parameter (Fig. 8 analogue).
+def fig8_sensitivity(table: pd.DataFrame, path: str | Path, source: str = "", height_m: float | None = None) -> Path:
+    """Mean Apeak +- SE against each swept vegetation parameter (Fig. 8 analogue) of a birch of
+    ``height_m`` (named in the title).
 
     ``table`` columns: parameter, value, mean_apeak, se_apeak; a row with parameter
     ``baseline`` (the species model as is) is drawn as a dashed line in every panel.
@@ -180,15 +181,17 @@ def fig8_sensitivity(table: pd.DataFrame, path: str | Path, source: str = "") ->
         _legend(ax)
     for ax in list(axes.flat)[len(params):]:
         ax.set_visible(False)
-    fig.suptitle("Sensitivity of simulated 3-m birch Apeak" + (f" ({source})" if source else ""))
+    crown = f"{height_m:g}-m birch" if height_m is not None else "birch"
+    fig.suptitle(f"Sensitivity of simulated {crown} Apeak" + (f" ({source})" if source else ""))
     return _save(fig, path)
 
 
-def fig9_sensor(table: pd.DataFrame, path: str | Path) -> Path:
+def fig9_sensor(table: pd.DataFrame, path: str | Path, species=(), features=()) -> Path:
     """LDA overall accuracy against each sensor parameter (Fig. 9 analogue).
 
     ``table`` columns: parameter, value, level (1-pulse / 5-pulse), scheme
-    (resubstitution / cross_validated), accuracy.
+    (resubstitution / cross_validated), accuracy. ``species`` and ``features`` name the
+    classes and the LDA's features in the title, as the study ran them.
     """
     plt = pyplot()
     params = list(dict.fromkeys(table["parameter"])) or ["(none)"]
@@ -210,5 +213,6 @@ def fig9_sensor(table: pd.DataFrame, path: str | Path) -> Path:
         ax.set_ylabel("overall accuracy (%)")
         ax.set_ylim(0, 102)
         _legend(ax)
-    fig.suptitle("Simulated birch / raspberry / fireweed: LDA on Apeak, FWHM, E")
+    title = "Simulated " + (" / ".join(species) or "species") + ": LDA"
+    fig.suptitle(title + (" on " + ", ".join(features) if features else ""))
     return _save(fig, path)

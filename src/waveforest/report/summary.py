@@ -480,27 +480,29 @@ def detection_limits(d: Path) -> pd.DataFrame | None:
         power, reps = _num(r.get("power")), _num(r.get("replicates"))
         rows.append({
             "effect": str(r.get("effect")),
-            "smallest detectable": (f"{sd:.3g} {unit}".strip() if np.isfinite(sd) else
+            "weakest effect detected": (f"{sd:.3g} {unit}".strip() if np.isfinite(sd) else
                                     missing(f"nothing up to {ub:.3g} {unit} is detectable".replace("  ", " ")
                                             if np.isfinite(ub) else "nothing within the bounds is detectable")),
-            "bound of the range tried": f"{ub:.3g} {unit}".strip() if np.isfinite(ub) else missing("no bound given"),
+            "strongest value tried (range: off to this)": f"{ub:.3g} {unit}".strip() if np.isfinite(ub) else missing("no bound given"),
             "power": f"{power:.2f}" if np.isfinite(power) else missing("no power given"),
             "replicates": f"{int(reps)}" if np.isfinite(reps) else missing("no count given"),
         })
-    return pd.DataFrame(rows, columns=["effect", "smallest detectable", "bound of the range tried", "power",
-                                       "replicates"])
+    return pd.DataFrame(rows, columns=["effect", "weakest effect detected",
+                                       "strongest value tried (range: off to this)", "power", "replicates"])
 
 
 def detection_sentence(dl: pd.DataFrame) -> str:
     """What the diagnosis could have seen, in words, from :func:`detection_limits`'s table."""
-    seen = dl[~dl["smallest detectable"].str.startswith(NO_VALUE)]
+    seen = dl[~dl["weakest effect detected"].str.startswith(NO_VALUE)]
     text = (f"Detection limits (power {', '.join(sorted(set(dl['power'])))}): "
-            + (", ".join(f"{e} from {v}" for e, v in zip(seen["effect"], seen["smallest detectable"]))
+            + (", ".join(f"{e} from {v}" for e, v in zip(seen["effect"], seen["weakest effect detected"]))
                + " would have been detected" if len(seen) else "no effect is detectable within its bounds"))
     if 0 < len(seen) < len(dl):
         text += f"; {len(dl) - len(seen)} of {len(dl)} effects are not detectable within their bounds"
-    text += (". The range tried runs from the effect off to its bound (downwards for effects that grow as "
-             "the value falls)")
+    text += (". The range tried runs from the effect off to its strongest value. For leaf_albedo the effect "
+             "grows as the value falls, and clumping and nonlinearity grow as 1/value (their off is an infinite "
+             "value, written 0), so for these a weaker effect has a larger value: clumping at 0.5 m is weaker "
+             "than at 0.05 m. A limit between off and the weakest value simulated is interpolated")
     if set(dl["replicates"]) == {"1"}:
         text += (". Each limit rests on one pseudo-real replicate: it says where the effect was detected once, "
                  "not where it is detected with the stated power (more replicates: diagnose.power.replicates)")

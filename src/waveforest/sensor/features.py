@@ -40,6 +40,7 @@ from waveforest.constants import RANGE_PER_NS
 from waveforest.errors import WaveforestWarning
 from waveforest.io.pulses import PULSE_SCHEMA, list_to_padded
 from waveforest.sensor.cfd import detect_echoes
+from waveforest.sensor.decompose import decompose
 from waveforest.sensor.noise import NoiseStats
 from waveforest.sensor.params import ECHO_SEARCH_NS, CFDParams, FeatureParams
 
@@ -201,6 +202,33 @@ def _noise_of(noise: Mapping, dataset: str) -> tuple[float, float, float | None]
     return float(mean), float(sd), (v[2] if len(v) > 2 else None)
 
 
+DECOMPOSITION_FEATURES = ("gd_n", "gd_E", "gd_later_A", "gd_depth", "gd_last_H")
+"""Multi-echo features of the Gaussian decomposition (docs/method.md §(f2)), per pulse: echo count,
+total energy (DN ns), summed amplitude of the echoes after the first (DN), distance from the
+first to the last echo along z (m, 0 for one echo) and the last echo's height above the ground (m).
+A pulse without an echo has count 0 and the others 0, except gd_last_H (NaN)."""
+
+
+def decomposition_columns(samples, lens, dt, mean, sd, fwhm_ns, anchor_z, dir_z, ground) -> dict:
+    """:data:`DECOMPOSITION_FEATURES` of a table of waveforms ((n,) arrays each; ``fwhm_ns``:
+    the system pulse FWHM or None)."""
+    d = decompose(samples, lens, dt, mean, sd, pulse_fwhm_ns=fwhm_ns)
+    k = d.n_echoes.astype(np.int64)
+    has = k > 0
+    rows = np.arange(len(k))
+    last_t = np.where(has, d.time_ns[rows, np.maximum(k - 1, 0)], np.nan)
+    first_t = d.time_ns[:, 0]
+    dz = RANGE_PER_NS * np.abs(dir_z)
+    later = np.nansum(d.amplitude, axis=1) - np.where(has, d.amplitude[:, 0], 0.0)
+    return {
+        "gd_n": k.astype(np.int16),
+        "gd_E": np.nansum(d.energy, axis=1),
+        "gd_later_A": later,
+        "gd_depth": np.where(has, (last_t - first_t) * dz, 0.0),
+        "gd_last_H": anchor_z + dir_z * last_t * RANGE_PER_NS - ground,
+    }
+
+
 PASS_THROUGH = ("sample_id", "species", "functional_group", "ground_z")
 """Columns added by ``select`` that a feature table keeps when present."""
 
@@ -232,9 +260,11 @@ def feature_table(pulses: pa.Table, noise: Mapping, params: FeatureParams | None
     t_echo = _first(pulses.column("echo_time_ns"), n)
     mean = np.empty(n)
     sd = np.empty(n)
+    widths = {}
     for name in pd.unique(datasets):
         m = datasets == name
         mean[m], sd[m], fwhm = _noise_of(noise, name)
+        widths[name] = fwhm
         missing = m & ~np.isfinite(t_echo) & (lens > 0)
         if missing.any():
 
@@ -270,6 +300,15 @@ def feature_table(pulses: pa.Table, noise: Mapping, params: FeatureParams | None
         "echo_z": echo_z,
         "seg_start_ns": feats["seg_start_ns"], "seg_end_ns": feats["seg_end_ns"],
     })
+    if params.decomposition:
+        gd = {f: np.zeros(n, np.int16 if f == "gd_n" else np.float64) for f in DECOMPOSITION_FEATURES}
+        for name, fwhm in widths.items():
+            m = np.flatnonzero(datasets == name)
+            cols = decomposition_columns(samples[m], lens[m], dt[m], mean[m], sd[m], fwhm, col("anchor_z")[m],
+                                         col("dir_z")[m], ground[m])
+            for f in DECOMPOSITION_FEATURES:
+                gd[f][m] = cols[f]
+        out.update(gd)
     return pd.DataFrame(out)
 
 

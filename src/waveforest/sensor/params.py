@@ -153,11 +153,14 @@ class FeatureParams:
         relative to the adjacent minima (the segment ends count as threshold-level minima).
     echo_search_ns : float
         Largest distance from the echo time to the nearest sample above the threshold, ns.
+    decomposition : bool
+        Also the multi-echo features of the Gaussian decomposition (:data:`DECOMPOSITION_FEATURES`).
     """
 
     segment_sd: float = 3.0
     peak_rise_sd: float = 2.0
     echo_search_ns: float = ECHO_SEARCH_NS
+    decomposition: bool = False
 
     def __post_init__(self):
         for name in ("segment_sd", "peak_rise_sd", "echo_search_ns"):

@@ -14,6 +14,7 @@ from waveforest.cliutil import (
     stage_options,
 )
 from waveforest.io.las.info import format_summary, summarise
+from waveforest.io.las.points_info import is_point_cloud, summarise_point_cloud
 
 
 @click.command()
@@ -25,6 +26,9 @@ def info(las_file, agc_attribute, cfg):
     """Summarise a LAS waveform file: version, point format, descriptors, pulses, packets,
     returns, samples per packet, AGC and bounds (like lasinfo).
 
+    A point cloud without waveforms (e.g. the output of `waveforest decompose`) gets its
+    header facts, counts, extent and the range of each extra-bytes dimension.
+
     Example:
 
     \b
@@ -32,6 +36,9 @@ def info(las_file, agc_attribute, cfg):
     """
 
     icfg = cfg["ingest"]
+    if is_point_cloud(las_file):
+        click.echo(summarise_point_cloud(las_file, chunk_points=icfg["chunk_points"]))
+        return
     summary = summarise(
         las_file,
         agc_attribute=agc_attribute if agc_attribute is not None else cfg["agc"]["attribute"],

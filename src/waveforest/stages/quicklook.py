@@ -61,6 +61,7 @@ def _write(las_path: Path, folder: OutputFolder, cfg: dict, *, dataset, trajecto
     write_json(tuned.result, cfd_json)
     plot_self_tuning(tuned, cfd_png, seed=int(cfg["seed"]))
     res = tuned.result
+    del tuned  # its per-pulse arrays are not needed further on
     _say(summary_line(res, final(cfd_json)))
     _say(f"3/4 features -> {final(feats)}")
     fr = cfd_features([pulses], cfd_json, feats, settings.feature_table_settings(cfg), progress=progress)

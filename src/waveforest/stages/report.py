@@ -36,18 +36,24 @@ def run(results, out_html, cfg: dict | None, out_md=None, title: str = "wavefore
     """
     out_html = Path(out_html)
     out_md = Path(out_md) if out_md else out_html.with_suffix(".md")
-    out_html.parent.mkdir(parents=True, exist_ok=True)
     config_yaml = yaml.safe_dump(cfg, sort_keys=True).strip() if cfg else None
     settings = report_settings(cfg if cfg else config.load(None))
     if not cfg:  # no config: the schema's defaults, and no datasets named for the run
         settings = replace(settings, datasets=())
-    with output_files():  # the page, its twin and table4.csv/md together, or none of them
-        sections = collect(results, settings, out_html.parent, config_yaml,
-                           None if config_path is None else str(config_path), config.changes(cfg) if cfg else ())
-        with atomic_path(out_html) as tmp:
-            tmp.write_text(render_html(sections, title))
-        with atomic_path(out_md) as tmp:
-            tmp.write_text(render_markdown(sections, title, out_md.parent))
+    made = not out_html.parent.exists()
+    out_html.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        with output_files():  # the page, its twin and table4.csv/md together, or none of them
+            sections = collect(results, settings, out_html.parent, config_yaml,
+                               None if config_path is None else str(config_path), config.changes(cfg) if cfg else ())
+            with atomic_path(out_html) as tmp:
+                tmp.write_text(render_html(sections, title))
+            with atomic_path(out_md) as tmp:
+                tmp.write_text(render_markdown(sections, title, out_md.parent))
+    except BaseException:
+        if made and not any(out_html.parent.iterdir()):
+            out_html.parent.rmdir()  # no empty folder left behind
+        raise
     items = [i for s in sections for i in s.items]
     return ReportOutputs(out_html, out_md, len(sections), sum(i[0] == "table" for i in items),
                          sum(i[0] == "figure" for i in items))

@@ -52,7 +52,7 @@ def run(out_dir, cfg: dict, system_path=None, calibration_path=None, progress: b
             table[table["parameter"] == "baseline"].drop(columns="value").to_csv(tmp, index=False,
                                                                                  float_format="%.6g")
         write_table(pa.Table.from_pandas(result.pulses, preserve_index=False), paths["pq"])
-        plots.fig8_sensitivity(table, paths["png"], source=ref.source)
+        plots.fig8_sensitivity(table, paths["png"], source=ref.source, height_m=st.height_m)
     return SensitivitySummary(folder.final(paths["csv"]), folder.final(paths["png"]), folder.final(paths["pq"]),
                               len(table), st.pulses, ref.source)
 

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from waveforest.analysis.sensor_study import run_sensor_study
+from waveforest.analysis.sensor_study import FEATURES, run_sensor_study
 from waveforest.atomic import OutputFolder, atomic_path
 from waveforest.cliutil import reference_sensor_options
 from waveforest.report import plots
@@ -45,7 +45,7 @@ def run(out_dir, cfg: dict, system_path=None, calibration_path=None, progress: b
             result.table.to_csv(tmp, index=False, float_format="%.6g")
         with atomic_path(paths["feat"]) as tmp:
             result.features.to_csv(tmp, index=False, float_format="%.6g")
-        plots.fig9_sensor(result.table, paths["png"])
+        plots.fig9_sensor(result.table, paths["png"], species=list(st.heights_m), features=FEATURES)
     return SensorStudySummary(folder.final(paths["csv"]), folder.final(paths["png"]), folder.final(paths["feat"]),
                               result.n_settings, result.n_pulses, ref.source)
 

@@ -100,6 +100,8 @@ def vegetation(species, height, out, png, no_png, effect_items, mean_leaf_angle,
     \b
     waveforest vegetation --species birch --height 3 --out birch.ply
     """
+    if Path(out).suffix.lower() != ".ply":
+        raise click.BadParameter(f"{out}: expected a .ply file name", param_hint="'--out'")
     png_path = None if no_png else (png or Path(out).with_suffix(".png"))
     veg = cfg["vegetation"]
     summary = run(species, height, cfg["seed"], out, png=png_path, ground_rho=veg["ground_rho"],

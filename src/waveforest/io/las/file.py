@@ -33,9 +33,11 @@ from waveforest.io.las.format import (
     HEADER_14,
     HEADER_SIZE,
     LAS_SIGNATURE,
+    LASF_PROJECTION,
     LASF_SPEC,
     LASZIP_RECORD_ID,
     LASZIP_USER_ID,
+    MAX_PROJECTION_BYTES,
     VLR_HEADER,
     WAVEFORM_HEADER_SIZE,
     WAVEFORM_POINT_FORMATS,
@@ -110,6 +112,8 @@ class LasWaveformFile:
     """The header and VLR bytes laspy reads in place of the file's (text fields patched), or None."""
     compressed: bool = False
     """The point records are LAZ-compressed (LASzip; decompressed by laspy's lazrs backend)."""
+    projection_evlrs: tuple[tuple[int, bytes], ...] = ()
+    """(record id, body) of each LASF_Projection EVLR (a LAS 1.4 CRS may live there)."""
 
     def descriptor_tables(self) -> dict[str, np.ndarray]:
         """Per descriptor index (0..255) lookup arrays: n_samples, sample_bytes, spacing_ps, gain, offset."""
@@ -221,6 +225,9 @@ def open_waveform_las(path: str | os.PathLike) -> LasWaveformFile:
     if not compressed:  # LAZ: the compressed size says nothing about the count; the reader checks it
         _check_point_count(path, hdr, n_points, record_length, file_size, evlrs)
     descriptors, evlr_waveform = _descriptors(path, prefix, vlrs, evlrs)
+    projection = tuple((int(h["record_id"]), _read_at(path, pos + EVLR_HEADER.itemsize, int(h["record_length"])))
+                       for pos, h in evlrs if bytes(h["user_id"]).rstrip(b"\0") == LASF_PROJECTION
+                       and int(h["record_length"]) <= MAX_PROJECTION_BYTES)
 
     waveform = _locate_waveform_data(path, file_size, int(hdr["global_encoding"]), int(hdr["start_of_waveform_data"]),
                                      evlr_waveform, end_of_points, compressed)
@@ -247,6 +254,7 @@ def open_waveform_las(path: str | os.PathLike) -> LasWaveformFile:
         extra_dimension_names=extra_names,
         header_bytes=prefix if fixed else None,
         compressed=compressed,
+        projection_evlrs=projection,
     )
 
 
@@ -683,6 +691,11 @@ def _locate_waveform_data(
         internal_pos = evlr_pos
     elif start_field:
         internal_pos = start_field  # trusted below, with a warning if malformed
+    wdz = next((c for c in map(path.with_suffix, (".wdz", ".WDZ", ".Wdz")) if c.is_file()), None)
+    if wdp is None and wdz is not None and (external or internal_pos is None):
+        raise fail(path, f"the waveform packets are in {wdz.name}, LASzip-compressed, which waveforest cannot read; "
+                         f"decompress them first with LAStools: laszip -i {path.name} -o {path.stem}_wf.las "
+                         f"(writes {path.stem}_wf.wdp beside it), then read {path.stem}_wf.las")
     if not external and not internal:
         if wdp is not None:
             warn(f"{path}: global encoding ({ge}) sets neither waveform bit; using {wdp.name} beside it")

@@ -38,6 +38,9 @@ from waveforest.errors import WaveforestError, WaveforestWarning
 LAS_SIGNATURE = b"LASF"
 LASF_SPEC = b"LASF_Spec"
 LASF_PROJECTION = b"LASF_Projection"
+"""User ID of the coordinate-system records (WKT 2112, GeoTIFF keys 34735-34737)."""
+MAX_PROJECTION_BYTES = 1 << 20
+"""Largest coordinate-system record read; a bigger one is not a CRS."""
 WAVEFORM_RECORD_ID = 65535
 """Record id of the Waveform Data Packet Record (an EVLR, or the header of a ``.wdp``)."""
 WPD_FIRST_RECORD_ID = 100

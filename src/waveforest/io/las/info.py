@@ -21,6 +21,7 @@ from collections import Counter
 from dataclasses import dataclass, field
 
 import numpy as np
+from laspy.vlrs.known import GeoAsciiParamsVlr, GeoKeyDirectoryVlr, WktCoordinateSystemVlr
 
 from waveforest.io.las.file import LasWaveformFile, fail, open_point_reader
 from waveforest.io.las.format import GE_WAVEFORM_EXTERNAL, GE_WAVEFORM_INTERNAL, GE_WKT
@@ -209,7 +210,7 @@ def _point_pass(s: LasSummary, chunk_points: int, grid_cells: int) -> None:
     except Exception as exc:
         raise fail(las.path, f"cannot open the point records ({type(exc).__name__}: {exc})") from exc
     with reader:
-        s.crs = crs_description(reader.header.vlrs)
+        s.crs = crs_description(reader.header.vlrs, projection_records(las.projection_evlrs))
         reader.header.point_count = las.n_points
         for pts in reader.chunk_iterator(chunk_points):
             arr = pts.array
@@ -228,10 +229,32 @@ def _point_pass(s: LasSummary, chunk_points: int, grid_cells: int) -> None:
     s.grid = PointGrid(float(s.mins[0]), float(s.mins[1]), cell, count.reshape(ny, nx), top.reshape(ny, nx))
 
 
-def crs_description(vlrs) -> str:
-    """The coordinate system named by laspy-parsed VLRs: the WKT VLR's name and EPSG code, else the
-    GeoTIFF keys' EPSG code and citation; ``"not stated"`` without either."""
-    for v in vlrs:
+PROJECTION_RECORDS = {cls.official_record_ids()[0]: cls
+                      for cls in (WktCoordinateSystemVlr, GeoKeyDirectoryVlr, GeoAsciiParamsVlr)}
+"""laspy's parsers of the coordinate-system records, by record id."""
+
+
+def projection_records(pairs) -> list:
+    """laspy records parsed from ``(record id, body)`` pairs (:attr:`LasWaveformFile.projection_evlrs`);
+    a record laspy cannot parse is left out."""
+    out = []
+    for rid, body in pairs:
+        if rid in PROJECTION_RECORDS:
+            record = PROJECTION_RECORDS[rid]()
+            try:
+                record.parse_record_data(body)
+            except Exception:  # a garbled CRS record reads as no CRS
+                continue
+            out.append(record)
+    return out
+
+
+def crs_description(vlrs, evlrs=()) -> str:
+    """The coordinate system named by laspy-parsed VLRs or EVLRs (LAS 1.4 may keep it in either):
+    the WKT record's name and EPSG code, else the GeoTIFF keys' EPSG code and citation;
+    ``"not stated"`` without either."""
+    records = [(v, "VLR") for v in vlrs] + [(v, "EVLR") for v in evlrs]
+    for v, kind in records:
         if type(v).__name__ == "WktCoordinateSystemVlr":
             text = str(getattr(v, "string", "") or "").strip("\x00 \n")
             name = re.match(r'\s*\w+\[\s*"([^"]*)"', text)
@@ -239,13 +262,13 @@ def crs_description(vlrs) -> str:
             if name or code:
                 label = name.group(1) if name else "unnamed"
                 epsg = f"EPSG:{code.group(1)}" if code and code.group(1) != "0" else "no EPSG code"
-                return f"{label} ({epsg}; WKT VLR)"
-    keys, ascii_ = {}, ""
-    for v in vlrs:
-        kind = type(v).__name__
-        if kind == "GeoKeyDirectoryVlr":
-            keys = {int(k.id): k for k in v.geo_keys}
-        elif kind == "GeoAsciiParamsVlr":
+                return f"{label} ({epsg}; WKT {kind})"
+    keys, ascii_, where = {}, "", "VLR"
+    for v, kind in records:
+        name = type(v).__name__
+        if name == "GeoKeyDirectoryVlr" and not keys:
+            keys, where = {int(k.id): k for k in v.geo_keys}, kind
+        elif name == "GeoAsciiParamsVlr" and not ascii_:
             ascii_ = "".join(getattr(v, "strings", []) or [])
     if not keys:
         return "not stated"
@@ -259,7 +282,8 @@ def crs_description(vlrs) -> str:
             if cite:
                 break
     epsg = f"EPSG:{code}" if code else "no EPSG code"
-    return f"{cite or 'user-defined'} ({epsg}; GeoTIFF keys)"
+    suffix = "GeoTIFF keys" if where == "VLR" else "GeoTIFF keys, EVLR"
+    return f"{cite or 'user-defined'} ({epsg}; {suffix})"
 
 
 def _n(v) -> str:

@@ -21,6 +21,7 @@ from waveforest.io.las.read import (
     DEFAULT_CHUNK_POINTS,
     LasWaveformFile,
     WaveformPulseReader,
+    with_rate,
 )
 from waveforest.io.pulses import write_pulse_batches
 from waveforest.io.trajectory import nominal_range_locator, read_trajectory, trajectory_locator
@@ -160,7 +161,7 @@ def las_to_pulses(
         reader.on_points = bar.update
         batches = iter(reader)
         try:
-            n = write_pulse_batches(batches, out)
+            n = write_pulse_batches(with_rate(batches, bar), out)
         finally:
             batches.close()  # on failure too: removes spilled buckets and unmaps now, not at GC
     st = reader.stats

@@ -1,0 +1,198 @@
+"""A LAS waveform file -> an echo point cloud by Gaussian decomposition, streamed
+(:mod:`waveforest.sensor.decompose`; docs/method.md §(f2)).
+
+Each batch of pulses from :class:`waveforest.io.las.read.WaveformPulseReader` is decomposed
+and its echoes written to a LAS 1.4 point format 6 file with extra bytes
+(:mod:`waveforest.io.las.extra_bytes`); memory is one batch. Per echo: the centre along the
+beam (``anchor + dir * t * c/2``), range, amplitude, SD, FWHM, energy, the pulse's fit residual,
+echo number and count, and the backscatter cross-section (Eq. F2):
+
+    sigma_bs = C_cal * R^4 * A * s                                                   (F2)
+
+(Wagner et al. 2006, with a Gaussian system pulse of fixed width). Without a calibration
+constant ``C_cal`` the relative value ``(R / 1000 m)^4 * A * s`` (DN ns) is written;
+:func:`calibration_constant` gives ``C_cal`` from a reference target of known reflectance.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+
+from waveforest.atomic import atomic_path, output_files, write_json
+from waveforest.constants import RANGE_PER_NS
+from waveforest.errors import WaveforestError
+from waveforest.io.las.extra_bytes import EchoCloudWriter, echo_header
+from waveforest.io.las.file import open_point_reader
+from waveforest.io.las.info import projection_records
+from waveforest.io.las.pulses import sensor_locator
+from waveforest.io.las.read import WaveformPulseReader
+from waveforest.io.pulses import list_to_padded
+from waveforest.model.self_tuning import Pulses
+from waveforest.sensor.calibration import load_calibration
+from waveforest.sensor.decompose import FLAGS, decompose
+from waveforest.sensor.self_calibration import tail_noise
+
+REFERENCE_RANGE_M = 1000.0
+"""Range the relative cross-section is scaled to, m."""
+
+
+@dataclass(frozen=True)
+class DecomposeSettings:
+    """How waveforms are decomposed (:func:`waveforest.sensor.decompose.decompose`).
+
+    min_snr : detection level, noise SDs.  max_echoes : most echoes per pulse.
+    fixed_width : every echo has the system pulse's width (needs a CFD/calibration JSON).
+    calibration_constant : C_cal of Eq. F2, m^2 / (m^4 DN ns); None: relative cross-sections.
+    batch_pulses : pulses decomposed at once (memory).
+    """
+
+    min_snr: float = 3.0
+    max_echoes: int = 8
+    fixed_width: bool = False
+    calibration_constant: float | None = None
+    batch_pulses: int = 20000
+
+
+@dataclass
+class DecomposeSummary:
+    """What :func:`decompose_file` wrote and found."""
+
+    out: Path
+    n_pulses: int = 0
+    n_echoes: int = 0
+    echoes_per_pulse: dict = field(default_factory=dict)
+    flags: dict = field(default_factory=dict)
+    noise_mean: float = math.nan
+    noise_sd: float = math.nan
+    pulse_fwhm_ns: float | None = None
+    noise_source: str = ""
+    seconds: float = 0.0
+
+    def as_dict(self) -> dict:
+        return {"out": str(self.out), "n_pulses": self.n_pulses, "n_echoes": self.n_echoes,
+                "echoes_per_pulse": {str(k): v for k, v in sorted(self.echoes_per_pulse.items())},
+                "flagged_pulses": self.flags, "noise_mean_dn": self.noise_mean, "noise_sd_dn": self.noise_sd,
+                "pulse_fwhm_ns": self.pulse_fwhm_ns, "noise_source": self.noise_source,
+                "seconds": round(self.seconds, 3)}
+
+
+def calibration_constant(reflectance: float, incidence_deg: float, divergence_mrad: float, range_m: float,
+                         amplitude_dn: float, sigma_ns: float) -> float:
+    """C_cal of Eq. F2 from an extended Lambertian reference target of known ``reflectance``,
+    whose cross-section is ``pi rho R^2 beta^2 cos(alpha)`` (beta: full divergence, rad)."""
+    beta = divergence_mrad * 1e-3
+    sigma_ref = math.pi * reflectance * range_m ** 2 * beta ** 2 * math.cos(math.radians(incidence_deg))
+    return sigma_ref / (range_m ** 4 * amplitude_dn * sigma_ns)
+
+
+def noise_and_width(cfd_path, first: pa.Table) -> tuple[float, float, float | None, str]:
+    """Noise mean and SD (DN), system pulse FWHM (ns, None: unknown) and where they came from:
+    the CFD or calibration JSON, else the tail noise of the first batch (no FWHM)."""
+    if cfd_path is not None:
+        cal = load_calibration(cfd_path)
+        fwhm = cal.meta.get("fwhm_ns") or cal.meta.get("system_fwhm_ns")
+        return cal.noise_mean, cal.noise_sd, (float(fwhm) if fwhm else None), str(cfd_path)
+    p = Pulses.of(first)
+    try:
+        noise = tail_noise(p.samples, p.lengths, p.sampling_ns, p.last_echo_ns)
+    except ValueError as exc:
+        raise WaveforestError(f"cannot estimate the noise from the waveforms' tails ({exc}); give --cfd "
+                              "(the JSON of `waveforest tune-cfd`)") from None
+    return noise.mean, noise.sd, None, "tail samples of the first batch"
+
+
+def echo_columns(batch: pa.Table, dec, settings: DecomposeSettings, first_pulse: int) -> dict:
+    """The echoes of one decomposed batch as flat point columns (:class:`EchoCloudWriter`)."""
+    k = dec.n_echoes.astype(np.int64)
+    rows = np.repeat(np.arange(len(k)), k)
+    has = np.isfinite(dec.time_ns)  # found echoes are the first k of each row, in time order
+    t = dec.time_ns[has]
+    col = lambda c: batch.column(c).to_numpy(zero_copy_only=False).astype(np.float64)[rows]  # noqa: E731
+    d = t * RANGE_PER_NS
+    xyz = {a: col(f"anchor_{a}") + col(f"dir_{a}") * d for a in "xyz"}
+    to_sensor = np.sqrt(sum((col(f"anchor_{a}") - col(f"sensor_{a}")) ** 2 for a in "xyz"))
+    rng = to_sensor + d
+    amp, sig = dec.amplitude[has], dec.sigma_ns[has]
+    if settings.calibration_constant is None:
+        cross = (rng / REFERENCE_RANGE_M) ** 4 * amp * sig
+    else:
+        cross = settings.calibration_constant * rng ** 4 * amp * sig
+    number = (np.arange(dec.time_ns.shape[1])[None, :] + 1 + np.zeros_like(dec.time_ns, dtype=np.int64))[has]
+    return {**xyz, "gps_time": col("gps_time"), "scan_angle_deg": col("scan_angle_deg"),
+            "return_number": number, "number_of_returns": k[rows], "intensity": amp,
+            "pulse_id": first_pulse + rows, "echo_time_ns": t, "range_m": rng, "amplitude_dn": amp,
+            "sigma_ns": sig, "fwhm_ns": dec.fwhm_ns[has], "energy_dn_ns": dec.energy[has],
+            "residual_dn": dec.rms_residual[rows], "cross_section": cross}
+
+
+def decompose_file(las_path, out_path, settings: DecomposeSettings, *, cfd_path=None, trajectory=None,
+                   nominal_range_m: float | None = None, progress: bool = True) -> DecomposeSummary:
+    """Decompose every waveform of ``las_path`` into ``out_path`` (.las or .laz) and a summary
+    JSON beside it (``<out>.json``); both written atomically, together.
+
+    Raises
+    ------
+    WaveforestError
+        Unreadable input, a bad CFD JSON, or noise that cannot be estimated.
+    """
+    from tqdm import tqdm
+
+    las_path, out_path = Path(las_path), Path(out_path)
+    if out_path.suffix.lower() not in (".las", ".laz"):
+        raise WaveforestError(f"{out_path}: expected a .las or .laz output file")
+    locate, _ = sensor_locator(trajectory, nominal_range_m)
+    reader = WaveformPulseReader(las_path, locate=locate, agc_attribute=None, batch_pulses=settings.batch_pulses,
+                                 tmp_dir=out_path.parent)
+    las = reader.las
+    with open_point_reader(las) as pr:
+        vlrs = [v for v in pr.header.vlrs if type(v).__name__ in ("WktCoordinateSystemVlr", "GeoKeyDirectoryVlr",
+                                                                   "GeoDoubleParamsVlr", "GeoAsciiParamsVlr")]
+    vlrs += projection_records(las.projection_evlrs)
+    header = echo_header(las.scales, las.offsets, vlrs,
+                         "relative" if settings.calibration_constant is None else "m2")
+    summary = DecomposeSummary(out_path)
+    started = time.perf_counter()
+    total = int(las.header_points_by_return[0]) or None
+    batches = iter(reader)
+    with output_files(), tqdm(total=total, unit="waveform", unit_scale=True, disable=not progress,
+                              file=sys.stderr, desc=f"decompose {las_path.name}") as bar:
+        with atomic_path(out_path) as tmp, EchoCloudWriter(tmp, header, out_path.suffix.lower() == ".laz") as w:
+            try:
+                for batch in batches:
+                    if summary.n_pulses == 0:
+                        mean, sd, fwhm, source = noise_and_width(cfd_path, batch)
+                        summary.noise_mean, summary.noise_sd = mean, sd
+                        summary.pulse_fwhm_ns, summary.noise_source = fwhm, source
+                        if settings.fixed_width and fwhm is None:
+                            raise WaveforestError("--fixed-width needs the system pulse FWHM: give --cfd")
+                    x, lens = list_to_padded(batch.column("samples"))
+                    dt = batch.column("sampling_ns").to_numpy(zero_copy_only=False).astype(np.float64)
+                    dec = decompose(x, lens, dt, summary.noise_mean, summary.noise_sd,
+                                    pulse_fwhm_ns=summary.pulse_fwhm_ns, fixed_width=settings.fixed_width,
+                                    min_snr=settings.min_snr, max_echoes=settings.max_echoes)
+                    w.write(echo_columns(batch, dec, settings, summary.n_pulses))
+                    _count(summary, dec)
+                    bar.update(batch.num_rows)
+            finally:
+                batches.close()
+        summary.seconds = time.perf_counter() - started
+        write_json(summary.as_dict(), out_path.with_name(out_path.name + ".json"))
+    return summary
+
+
+def _count(summary: DecomposeSummary, dec) -> None:
+    summary.n_pulses += len(dec.n_echoes)
+    summary.n_echoes += int(dec.n_echoes.sum())
+    for k, c in zip(*np.unique(dec.n_echoes, return_counts=True)):
+        summary.echoes_per_pulse[int(k)] = summary.echoes_per_pulse.get(int(k), 0) + int(c)
+    for bit, name in FLAGS.items():
+        c = int(np.count_nonzero(dec.flags & bit))
+        if c:
+            summary.flags[name] = summary.flags.get(name, 0) + c
