@@ -27,7 +27,8 @@ def test_quicklook_writes_every_output(looked, capsys):
     names = sorted(p.name for p in looked.iterdir() if p.name != ".waveforest")  # beside the folder's manifest
     assert names == ["cfd.json", "cfd.png", "features.parquet", "pulses.parquet", "quicklook.html"]  # no temporaries
     page = (looked / "quicklook.html").read_text()
-    assert len(re.findall(r'<img src="data:image/png;base64,', page)) == 5  # maps, CFD, gallery, histograms, map
+    # maps, CFD, gallery, decomposition, histograms, map
+    assert len(re.findall(r'<img src="data:image/png;base64,', page)) == 6
     assert "within 0.10 m" in page and "criterion met" in page and "riegl_fwf.las" in page
 
 
@@ -156,3 +157,16 @@ def test_one_rounding_rule(looked):
     assert not re.search(r"-0(\.0+)?(?!\d)", text)  # no negative zero anywhere
     facts = _facts(page)
     assert facts["median residual"] == "0.0 cm"  # -0.04 cm rounds to the page's 0.1 cm
+
+
+def test_quicklook_shows_the_decomposition(looked):
+    """The echoes-per-pulse chart and profile come from decomposing the file's own pulses: on the
+    RIEGL file most pulses hold two echoes (the return and its afterpulse, ~11 ns later)."""
+    from waveforest.report.quicklook import decomposition_sample
+
+    page = (looked / "quicklook.html").read_text()
+    assert "Echoes of the Gaussian decomposition" in page and 'alt="echoes per pulse and a profile' in page
+    res = json.loads((looked / "cfd.json").read_text())
+    counts, xyz = decomposition_sample(looked / "pulses.parquet", res, seed=7)
+    assert counts.sum() == 2368 and int(np.argmax(counts)) == 2
+    assert len(xyz) == int((np.arange(len(counts)) * counts).sum()) and np.isfinite(xyz).all()

@@ -29,6 +29,7 @@ GENERATORS = {
     "quicklook_reservoir": lambda s: np.random.default_rng([int(s), 0x91C]),
     "quicklook_gallery": lambda s: np.random.default_rng([int(s), 0x6A1]),
     "quicklook_scatter": lambda s: np.random.default_rng([int(s), 0x9107]),
+    "quicklook_decomposition": lambda s: np.random.default_rng([int(s), 0xDEC]),
     "compare_waveforms": lambda s: np.random.default_rng(int(s)),
     "search_split": lambda s: np.random.default_rng(s),
     "bootstrap": lambda s: np.random.default_rng(s),

@@ -145,6 +145,7 @@ STREAMS: dict[str, NamedStream] = {
     "quicklook_reservoir": NamedStream((0x91C,), "quicklook: the per-feature sample that places the histogram edges"),
     "quicklook_gallery": NamedStream((0x6A1,), "quicklook: the pulses of the waveform gallery"),
     "quicklook_scatter": NamedStream((0x9107,), "quicklook report: the pulses drawn in a scatter plot"),
+    "quicklook_decomposition": NamedStream((0xDEC,), "quicklook: the pulses decomposed for the echo figures"),
     "compare_waveforms": NamedStream((), "compare: the example waveforms of Figs. 6-7 (real, then simulated)"),
     "missing_effects": NamedStream((8,), "diagnosis, 3 seeds: search, 'after' simulations, before/after bootstrap"),
     "power": NamedStream((9,), "power analysis: one seed per pseudo-real replicate"),

@@ -33,6 +33,7 @@ from waveforest.model.self_tuning import SelfTuning
 from waveforest.plotting import pyplot, save_png
 from waveforest.rng import named_generator
 from waveforest.sensor.cfd_tuning import WIDTH_EDGES
+from waveforest.sensor.decompose import decompose
 from waveforest.sensor.params import CFD_CHECK_M, RANGE_GATE_M
 from waveforest.sensor.self_calibration import BIAS_LIMIT_M, PAPER_SHARE
 
@@ -111,7 +112,9 @@ def plot_self_tuning(tuned: SelfTuning, path, *, seed: int) -> Path:
 
 
 def gallery_figure(waveforms: Sequence[dict], noise_mean: float, arming_level: float, *, cols: int = 3):
-    """Waveforms with their DR echoes (red dashed) and CFD echoes (green solid, range-corrected).
+    """Waveforms with their DR echoes (red dashed), CFD echoes (green solid, range-corrected) and,
+    when an item has ``gd`` ((k, 3): amplitude DN, centre ns, SD ns), its Gaussian decomposition
+    (blue: the fitted sum over the noise mean, and a dot on each echo's peak).
 
     Each item: ``t_ns`` (n,), ``samples`` (n,), ``dr_ns`` (list), ``cfd_ns`` (list), ``label``.
     """
@@ -129,6 +132,12 @@ def gallery_figure(waveforms: Sequence[dict], noise_mean: float, arming_level: f
             ax.axvline(t, color="tab:red", lw=1.0, ls="--")
         for t in w["cfd_ns"]:
             ax.axvline(t, color="tab:green", lw=1.0)
+        gd = w.get("gd")
+        if gd is not None and len(gd):
+            tt = np.asarray(w["t_ns"], np.float64)
+            fit = noise_mean + sum(a * np.exp(-0.5 * ((tt - mu) / sd) ** 2) for a, mu, sd in gd)
+            ax.plot(tt, fit, color="tab:blue", lw=1.0)
+            ax.plot([mu for _, mu, _ in gd], [noise_mean + a for a, _, _ in gd], "o", color="tab:blue", ms=3)
         ax.set_title(w["label"], fontsize=8)
         ax.tick_params(labelsize=7)
     for ax in axes[-1]:
@@ -145,6 +154,24 @@ PAGE_PX = 1100
 FIGURE_DPI = 100
 FONT_PT = 11
 """Font size of the page's figures; at 1:1 display 11 pt at 100 dpi shows as 15 px (9 pt at 96 dpi is 12 px)."""
+
+
+def decomposition_figure(counts: np.ndarray, profile_x: np.ndarray, profile_z: np.ndarray, strip: str):
+    """Echoes per pulse (bar chart of ``counts``: pulses with 0, 1, 2, ... echoes) and a profile:
+    echo z against x of the sampled pulses in a strip (``strip`` describes it)."""
+    plt = pyplot()
+    _page_style(plt)
+    fig, (a, b) = plt.subplots(1, 2, figsize=(PAGE_PX / FIGURE_DPI, 3.6), dpi=FIGURE_DPI, layout="constrained",
+                               gridspec_kw={"width_ratios": [1, 2]})
+    a.bar(np.arange(len(counts)), counts, color="tab:blue")
+    a.set_xlabel("echoes per pulse")
+    a.set_ylabel("pulses (sample)")
+    b.plot(profile_x, profile_z, ".", ms=2, color="tab:blue")
+    b.ticklabel_format(useOffset=False, style="plain")
+    b.set_xlabel("x, m")
+    b.set_ylabel("echo z, m")
+    b.set_title(strip, fontsize=FONT_PT)
+    return fig
 
 
 def _page_style(plt) -> None:
@@ -247,7 +274,8 @@ def write_page(path, *, title: str, summary_text: str, facts: Sequence[tuple[str
                files: Sequence[tuple[str, str]], map_name: str = "") -> Path:
     """Write the quicklook page (atomically).
 
-    ``figures``: section name -> data URI (``maps``, ``cfd``, ``gallery``, ``histograms``, ``map``).
+    ``figures``: section name -> data URI (``maps``, ``cfd``, ``gallery``, ``decomposition``,
+    ``histograms``, ``map``).
     ``notes``: paragraphs shown under the file's facts (e.g. an afterpulse).
     ``files``: (name, what) of the outputs beside the page.
     """
@@ -269,9 +297,14 @@ def write_page(path, *, title: str, summary_text: str, facts: Sequence[tuple[str
 {_table(agreement_rows)}
 {img("cfd", "residuals against amplitude and echo width")}
 <h2>Waveforms</h2>
-<p>Red dashed: the sensor's DR echoes. Green: the tuned CFD's echoes (range-corrected). Grey: the noise mean and
+<p>Red dashed: the sensor's DR echoes. Green: the tuned CFD's echoes (range-corrected). Blue: the Gaussian
+decomposition (the fitted sum and each echo's peak; <code>waveforest decompose</code>). Grey: the noise mean and
 the CFD arming level.</p>
 {img("gallery", "waveform gallery")}
+<h2>Echoes of the Gaussian decomposition</h2>
+<p>A seeded sample of at most {DECOMPOSED:,} pulses: how many echoes each holds, and a cross-section of their
+echoes by height. <code>waveforest decompose</code> writes every echo of the file as a point cloud.</p>
+{img("decomposition", "echoes per pulse and a profile of the echoes")}
 <h2>First-echo features</h2>
 {img("histograms", "feature histograms")}
 <h2>Map of the first echoes' {esc(map_name)}</h2>
@@ -421,6 +454,49 @@ def _gallery(pulses: Path, features: Path, ok, checked, k: int, seed: int) -> li
         start += batch.num_rows
     assert want == set(out)
     return [out[r] for r in rows]
+
+
+DECOMPOSED = 20_000
+"""Pulses decomposed (a seeded sample) for the echoes-per-pulse chart and the profile."""
+
+
+def decomposition_sample(pulses: Path, res: dict, seed: int):
+    """Echoes per pulse (counts of 0, 1, 2, ...) and echo (x, y, z) of a seeded sample of at most
+    :data:`DECOMPOSED` pulses, decomposed with the tuned noise and system width (docs/method.md §(f2))."""
+    n_total = pq.read_metadata(pulses).num_rows
+    rng = named_generator("quicklook_decomposition", int(seed))
+    p = min(1.0, DECOMPOSED / max(n_total, 1))
+    counts = np.zeros(16, np.int64)
+    xyz = []
+    cols = ["samples", "sampling_ns", *(f"{k}_{a}" for k in ("anchor", "dir") for a in "xyz")]
+    for rb in iter_pulses(pulses, READ_ROWS, columns=cols):
+        take = np.flatnonzero(rng.random(rb.num_rows) < p)
+        if not take.size:
+            continue
+        sub = rb.take(pa.array(take))
+        x, lens = list_to_padded(sub.column("samples"))
+        d = decompose(x, lens, sub.column("sampling_ns").to_numpy(zero_copy_only=False), res["noise_mean"],
+                      res["noise_sd"], pulse_fwhm_ns=res.get("system_fwhm_ns"), max_echoes=15)
+        counts += np.bincount(d.n_echoes.astype(np.int64), minlength=16)[:16]
+        has = np.isfinite(d.time_ns)
+        rows = np.nonzero(has)[0]
+        dist = d.time_ns[has] * RANGE_PER_NS
+        xyz.append(np.stack([sub.column(f"anchor_{a}").to_numpy(zero_copy_only=False)[rows]
+                             + sub.column(f"dir_{a}").to_numpy(zero_copy_only=False)[rows] * dist for a in "xyz"], 1))
+    last = int(np.flatnonzero(counts).max()) + 1 if counts.any() else 1
+    return counts[:last], (np.concatenate(xyz) if xyz else np.zeros((0, 3)))
+
+
+def _profile(xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray, str]:
+    """Echoes in a strip along x through the median y: 2 % of the y extent wide, at least 1 m."""
+    fin = np.all(np.isfinite(xyz), axis=1)
+    xyz = xyz[fin]
+    if not len(xyz):
+        return np.zeros(0), np.zeros(0), "no echo"
+    y0 = float(np.median(xyz[:, 1]))
+    half = max(0.5, 0.01 * float(np.ptp(xyz[:, 1])))
+    inside = np.abs(xyz[:, 1] - y0) <= half
+    return xyz[inside, 0], xyz[inside, 2], f"profile: echoes within {fmt(half, 'm')} of y = {fmt(y0, 'm')}"
 
 
 def criterion_met(res: dict) -> bool:
@@ -606,6 +682,14 @@ def quicklook_page(page, *, las_path, summary: LasSummary, tuning: dict, pulses,
         if np.isfinite(grid).any():
             figures["map"] = figure_uri(map_figure(grid, extent, settings.map_feature))
     gal = _gallery(pulses, features, ok, checked, settings.gallery, settings.seed)
+    for g in gal:
+        d = decompose(g["samples"][None, :], None, float(g["t_ns"][1] - g["t_ns"][0]) if len(g["t_ns"]) > 1 else 1.0,
+                      res["noise_mean"], res["noise_sd"], pulse_fwhm_ns=res.get("system_fwhm_ns"), max_echoes=15)
+        k = int(d.n_echoes[0])
+        g["gd"] = list(zip(d.amplitude[0, :k], d.time_ns[0, :k], d.sigma_ns[0, :k]))
+    counts, xyz = decomposition_sample(pulses, res, settings.seed)
+    if counts.sum():
+        figures["decomposition"] = figure_uri(decomposition_figure(counts, *_profile(xyz)))
     if gal:
         figures["gallery"] = figure_uri(gallery_figure(gal, res["noise_mean"],
                                                        res["noise_mean"] + res["cfd"]["arming_sd"] * res["noise_sd"]))
