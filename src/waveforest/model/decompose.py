@@ -124,7 +124,7 @@ def echo_columns(batch: pa.Table, dec, settings: DecomposeSettings, first_pulse:
         cross = (rng / REFERENCE_RANGE_M) ** 4 * amp * sig
     else:
         cross = settings.calibration_constant * rng ** 4 * amp * sig
-    number = (np.arange(dec.time_ns.shape[1])[None, :] + 1 + np.zeros_like(dec.time_ns, dtype=np.int64))[has]
+    number = np.broadcast_to(np.arange(1, dec.time_ns.shape[1] + 1), dec.time_ns.shape)[has]
     return {**xyz, "gps_time": col("gps_time"), "scan_angle_deg": col("scan_angle_deg"),
             "return_number": number, "number_of_returns": k[rows], "intensity": amp,
             "pulse_id": first_pulse + rows, "echo_time_ns": t, "range_m": rng, "amplitude_dn": amp,

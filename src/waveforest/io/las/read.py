@@ -2,8 +2,6 @@
 
 :class:`WaveformPulseReader` streams a file checked by :func:`waveforest.io.las.file.open_waveform_las`
 as pulse tables (:data:`waveforest.io.pulses.PULSE_SCHEMA`); :func:`read_waveform_las` reads it whole.
-:func:`iter_waveforms` is the one call for a command that processes a file chunk by chunk: pulse
-tables of at most ``batch_pulses`` rows, with a progress bar showing waveforms per second.
 
 Pulses
 ------
@@ -49,7 +47,6 @@ import math
 import mmap
 import os
 import shutil
-import sys
 import tempfile
 import time
 from collections.abc import Callable, Iterator
@@ -434,27 +431,3 @@ def with_rate(batches: Iterator[pa.Table], bar) -> Iterator[pa.Table]:
         n += batch.num_rows
         bar.set_postfix_str(f"{n / max(time.perf_counter() - t0, 1e-9):,.0f} waveforms/s", refresh=False)
         yield batch
-
-
-def iter_waveforms(path: str | os.PathLike, *, progress: bool = False, desc: str | None = None,
-                   **options) -> Iterator[pa.Table]:
-    """Stream a LAS/LAZ waveform file as pulse tables (:data:`waveforest.io.pulses.PULSE_SCHEMA`) of at
-    most ``batch_pulses`` rows (default :data:`DEFAULT_BATCH_PULSES`), in pulse-id order.
-
-    Memory is bounded by one bucket of points and one batch, whatever the file size (see the module
-    docstring). ``options`` are those of :class:`WaveformPulseReader` (``batch_pulses``,
-    ``bucket_points``, ``chunk_points``, ``agc_attribute``, ``locate``, ...). ``progress``: a tqdm
-    bar on stderr over the point passes with waveforms per second. Closing the generator early
-    unmaps the file and removes spilled buckets.
-    """
-    from tqdm import tqdm
-
-    reader = WaveformPulseReader(path, **options)
-    with tqdm(total=reader.n_passes * reader.las.n_points, unit="pt", unit_scale=True, disable=not progress,
-              file=sys.stderr, desc=desc or f"read {reader.las.path.name}") as bar:
-        reader.on_points = bar.update
-        batches = iter(reader)
-        try:
-            yield from with_rate(batches, bar)
-        finally:
-            batches.close()
