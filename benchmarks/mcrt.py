@@ -1,5 +1,5 @@
 """MCRT speed: ms per pulse on a 6 x 6 m random-leaf canopy and on the vegetation scenes, the
-bare-Embree floor, scene build.
+bare-Embree floor, scene build; Monte Carlo error in sigma(t) and where the sensor sees it.
 
 Scenes: the issue's canopy (LAI 3.35 of small leaves, spherical LAD, 6.7 cm^2 each, ~180,000
 triangles, between 0 and 1.2 m over a ground) and the paper's three species built by
@@ -69,14 +69,25 @@ accurate per ray; its own error is << that of the estimators):
 * the headline ``efficiency_vs_random_30k`` of :data:`RECOMMENDED`, with its
   ``recommended_cpu_ms_per_pulse_amortised_1`` and ``recommended_n_rays``.
 
+The error where the sensor sees it (``--sections sensor``; :func:`bench_sensor`), per scene on
+``--error-pulses`` fixed pulses of a fixed instance over ``--seeds`` seeds, for
+:data:`SENSOR_METHODS` (or ``--methods``): the recorded waveform's Monte Carlo error in digitiser
+noise SDs (``<m>_wave_err_rms``, ``_p95``, ``_frac_below_third``), the Monte Carlo SD of Apeak, E
+and FWHM over their SD between :data:`INSTANCES` plant instances, rays and CPU per pulse, and
+each efficiency against ``random_30k`` with a bootstrap 95 % interval over the seeds.
+
+The virtual campaign's Monte Carlo noise (``--sections campaign``; :func:`bench_campaign`): its
+fixed 256 rays and its adaptive budget at ``--campaign-tolerances``, against the true sensor's
+digitiser noise.
+
 The speed section traces with the settings of ``--method`` (default :data:`RECOMMENDED`, the
-tracer's default in the study config; ``random_30k`` is the default before issue 27; the
-flat ``ms_per_pulse_amortised_1`` uses the method's one-pulse BVH quality) and prints its
-``n_rays``.
+tracer's default in the study config; the flat ``ms_per_pulse_amortised_1`` uses the method's
+one-pulse BVH quality) and prints its ``n_rays`` (unused by an adaptive method) and
+``traced_rays_per_pulse``.
 
 Wall times are the minimum of ``--repeat`` runs (the machine is shared). Run:
 ``python benchmarks/mcrt.py [--pulses 16] [--repeat 3] [--species birch raspberry fireweed]
-[--sections speed error] [--quick]``.
+[--sections speed error sensor campaign] [--quick]``.
 """
 
 from __future__ import annotations
@@ -158,15 +169,35 @@ METHODS = {
     "sobol_rr_256": dict(n_rays=256, sampler="sobol", roulette=0.5, quality="medium"),
     "sobol_rr_512": dict(n_rays=512, sampler="sobol", roulette=0.5, quality="medium"),
     "sobol_rr_768": dict(n_rays=768, sampler="sobol", roulette=0.5, quality="medium"),
+    "adaptive_0.33": dict(n_rays=16384, sampler="sobol", roulette=0.5, quality="medium", tolerance=1 / 3),
+    "adaptive_0.25": dict(n_rays=16384, sampler="sobol", roulette=0.5, quality="medium", tolerance=0.25),
+    "adaptive_0.2": dict(n_rays=16384, sampler="sobol", roulette=0.5, quality="medium", tolerance=0.2),
+    "sobol_rr_dark0.5_16k": dict(n_rays=16384, sampler="sobol", roulette=0.5, quality="medium", dark_survival=0.5),
+    "sobol_rr_dark0.25_16k": dict(n_rays=16384, sampler="sobol", roulette=0.5, quality="medium", dark_survival=0.25),
 }
 """Estimators of the error section: ``trace`` keywords, and the BVH quality a one-pulse
 instance gets (``quality``). ``random_30k`` was the default before ``sobol_rr_16k``;
-``random_1500`` was the virtual campaign's own tracing before ``sobol_rr_512``."""
+``random_1500`` was the virtual campaign's own tracing before ``sobol_rr_512``; ``adaptive_<tol>``:
+the adaptive ray budget (``trace(tolerance=...)``, :func:`trace_kwargs`) at that fraction of the
+digitiser noise SD :data:`NOISE_SD_DN` of the waveform of S(t) :data:`SYSTEM_FWHM_NS`, :data:`SYSTEM_PEAK`
+(``n_rays`` unused)."""
+
+SENSOR_METHODS = ("random_30k", "sobol_rr_16k", "adaptive_0.33", "adaptive_0.25", "adaptive_0.2")
+"""Estimators of the sensor section (:func:`bench_sensor`): the paper's, today's fixed default, the adaptive budgets."""
+
+NOISE_SD_DN = 1.3
+"""Digitiser noise SD of the sensor section and of the adaptive methods, DN (2010_12_1)."""
+
+INSTANCES = 8
+"""Plant instances per scene whose spread sets the features' between-instance SD (sensor section)."""
+
+BOOTSTRAP = 2000
+"""Bootstrap resamples of the seeds for the efficiencies' 95 % intervals."""
 
 QUICK_METHODS = ("random_30k", "sobol_16k", "sobol_rr_12k", "sobol_rr_16k")
 
-RECOMMENDED = "sobol_rr_16k"
-"""The method of the headline figures."""
+RECOMMENDED = "adaptive_0.2"
+"""The method of the headline figures: the study's default (``mcrt.tolerance`` 0.2)."""
 
 SYSTEM_FWHM_NS, SYSTEM_PEAK = 7.2, 1.5e9
 """Gaussian S(t) of the feature errors: 2010_12_1's pulse width; peak in DN m^2 per unit
@@ -177,6 +208,17 @@ BRICKS, BRICK_M = 36, 2.0
 
 SPECIES = {"birch": 3.0, "raspberry": 1.3, "fireweed": 1.5}
 """The paper's species and the heights they are benchmarked at, m (as benchmarks/vegetation.py)."""
+
+
+def trace_kwargs(method: dict, n: int | None = None) -> dict:
+    """``trace`` keywords of a :data:`METHODS` entry (its ``quality`` left out); an adaptive one
+    gets the system pulse and noise (:data:`SYSTEM_PEAK`, :data:`NOISE_SD_DN` at :data:`RANGE_M`)."""
+    kw = {k: v for k, v in method.items() if k != "quality"}
+    if kw.get("tolerance") is not None:
+        from waveforest.sensor.system_waveform import gaussian_system_waveform
+
+        kw.update(kernel=gaussian_system_waveform(SYSTEM_FWHM_NS, SYSTEM_PEAK).s, noise=NOISE_SD_DN * RANGE_M**2)
+    return kw
 
 
 def bench_bricks(beams, kw: dict, args, out) -> None:
@@ -225,9 +267,8 @@ def bench_scene(prefix: str, scene, beams, args, full: bool, bricks: bool = Fals
     build_medium = best(lambda: prepare(scene, quality="medium"), args.repeat)
     out("scene_build_ms_medium", build_medium * 1e3, "ms")
     medium = prepare(scene, quality="medium")
-    method = dict(METHODS[args.method])
-    q1 = method.pop("quality")  # the BVH of a one-pulse instance
-    kw = dict(max_order=MAX_ORDER, seed=args.seed, **method)
+    q1 = METHODS[args.method]["quality"]  # the BVH of a one-pulse instance
+    kw = dict(max_order=MAX_ORDER, seed=args.seed, **trace_kwargs(METHODS[args.method]))
     out("n_rays", kw["n_rays"], "rays", "d")
     if q1 not in ("medium", "high"):
         build_one = best(lambda: prepare(scene, quality=q1), args.repeat)
@@ -242,6 +283,7 @@ def bench_scene(prefix: str, scene, beams, args, full: bool, bricks: bool = Fals
     rec = Recorder(prepared.intersector)
     traced = type(prepared)(prepared.scene, rec, prepared.shift, prepared.tri_data, prepared.bounds)
     res = trace(traced, beams, threads=threads, parallel="rays", **kw)
+    out("traced_rays_per_pulse", float(res.rays.mean()), "rays")
     n_isect = sum(len(o) for o, _ in rec.intersects)
     n_occl = sum(len(o) for o, _, _ in rec.occludes)
 
@@ -383,7 +425,7 @@ def bench_error(prefix: str, scene, beams, args, methods) -> dict:
     rays = dict.fromkeys(methods, 0)
     for seed in range(args.seeds):
         for m, kw in methods.items():
-            tkw = {k: v for k, v in kw.items() if k != "quality"}
+            tkw = trace_kwargs(kw)
             target = counted[kw["quality"]]
             target.intersector.rays = 0
             c = time.process_time()
@@ -436,8 +478,179 @@ def bench_error(prefix: str, scene, beams, args, methods) -> dict:
         print(f"{prefix}recommended_method: {RECOMMENDED}")
         out("efficiency_vs_random_30k", (e0**2 * t0) / (e**2 * t), "x", ".2f")
         out("recommended_cpu_ms_per_pulse_amortised_1", (t + b) * 1e3, "ms", ".1f")
-        out("recommended_n_rays", methods[RECOMMENDED]["n_rays"], "rays", "d")
+        if methods[RECOMMENDED].get("tolerance") is None:  # an adaptive budget's rays vary by pulse
+            out("recommended_n_rays", methods[RECOMMENDED]["n_rays"], "rays", "d")
     return found
+
+
+def recorded(res, noise_sd: float = NOISE_SD_DN) -> tuple[np.ndarray, np.ndarray]:
+    """The noise-free recorded waveforms of ``res`` (Eq. 7 with the Gaussian S(t) of
+    :data:`SYSTEM_FWHM_NS`, :data:`SYSTEM_PEAK` at R = :data:`RANGE_M`, sampled every 1 ns), DN,
+    and their first-echo features (n, 3) Apeak (DN), E (DN), FWHM (ns), the echo segment at
+    3 ``noise_sd`` as the study finds it on recorded waveforms."""
+    from waveforest.sensor.features import first_echo_features
+    from waveforest.sensor.signal import analog_waveforms
+    from waveforest.sensor.system_waveform import gaussian_system_waveform
+
+    system = gaussian_system_waveform(SYSTEM_FWHM_NS, SYSTEM_PEAK)
+    v, _ = analog_waveforms(res.sigma, res.t0_ns, RANGE_M, system, bin_ns=res.bin_ns)
+    w = v[:, ::int(round(1.0 / res.bin_ns))]
+    f = first_echo_features(w, None, 1.0, np.argmax(w, axis=1).astype(float), 0.0, noise_sd)
+    return w, np.column_stack([f["Apeak"], f["E"], f["FWHM"]])
+
+
+def boot_ratio(a: np.ndarray, b: np.ndarray, cost_a: float, cost_b: float, rng) -> tuple[float, float, float]:
+    """Efficiency (mean a x cost_a) / (mean b x cost_b) of per-seed squared errors ``a``, ``b``
+    (same seeds), and its bootstrap 95 % interval over the seeds (paired resampling)."""
+    est = (a.mean() * cost_a) / (b.mean() * cost_b)
+    idx = rng.integers(0, a.size, (BOOTSTRAP, a.size))
+    r = (a[idx].mean(axis=1) * cost_a) / np.maximum(b[idx].mean(axis=1) * cost_b, 1e-300)
+    lo, hi = np.percentile(r, [2.5, 97.5])
+    return float(est), float(lo), float(hi)
+
+
+def bench_sensor(prefix: str, scene, instance, beams, args, methods) -> dict:
+    """The Monte Carlo error where the sensor sees it (``--sections sensor``), on one scene.
+
+    For ``methods`` over ``--seeds`` seeds at a fixed instance and pulses, against a reference of
+    :data:`REF_RAYS` rays: the recorded waveform's error e (per pulse and seed: RMS over the
+    1-ns samples where the reference waveform reaches 0.1 noise SD, of the difference, in noise
+    SDs :data:`NOISE_SD_DN`: ``<m>_wave_err_rms`` its RMS, ``<m>_wave_err_p95`` its 95th
+    percentile, ``<m>_wave_frac_below_third`` the share of pulse-seeds below 1/3); the Monte
+    Carlo SD of Apeak, E (relative) and FWHM (ns) and each over the SD between
+    :data:`INSTANCES` plant instances (``instance(k)``: the scene of instance k) at the same
+    pulses (``<m>_<f>_mc_over_instance_sd``); CPU per pulse (one thread, median over the seeds),
+    rays per pulse; efficiencies (err^2 x CPU of random_30k over the method's) for the waveform
+    and each feature with a bootstrap 95 % interval over the seeds (``..._lo95``, ``..._hi95``).
+    """
+    def out(name: str, value: float, unit: str, fmt: str = ".4f") -> None:
+        print(f"{prefix}{name}: {value:{fmt}} {unit}", flush=True)
+
+    n = len(beams)
+    prepared = prepare(scene, quality="high")
+    trace(prepared, beams[:1], n_rays=256, max_order=3, sampler="sobol", roulette=0.5)  # compile
+    ref_res = trace(prepared, beams, n_rays=REF_RAYS, sampler="sobol", roulette=0.0, seed=10**6,
+                    max_order=MAX_ORDER)
+    w_ref, f_ref = recorded(ref_res)
+    support = w_ref >= 0.1 * NOISE_SD_DN
+    inst = []  # features of each instance (a fixed estimator, its MC spread << the instances')
+    for k in range(INSTANCES):
+        r = trace(instance(k), beams, seed=k, max_order=MAX_ORDER, **trace_kwargs(METHODS["sobol_rr_16k"]))
+        inst.append(recorded(r)[1])
+    inst_sd = np.nanstd(np.array(inst), axis=0, ddof=1)  # (n, 3)
+    for j, name in enumerate(("apeak", "e", "fwhm")):
+        unit = "ns" if name == "fwhm" else "fraction"
+        val = np.nanmean(inst_sd[:, j] if name == "fwhm" else inst_sd[:, j] / f_ref[:, j])
+        out(f"instance_sd_{name}", val, unit)
+    out("reference_apeak_dn", float(np.mean(f_ref[:, 0])), "DN", ".1f")
+    medium = prepare(scene, quality="medium")
+    err2 = {m: [] for m in methods}  # per seed: mean over pulses of e^2
+    ferr2 = {m: [] for m in methods}  # per seed: (3,) mean over pulses of the features' squared errors
+    allerr = {m: [] for m in methods}
+    cpu = {m: [] for m in methods}
+    rays = {m: [] for m in methods}
+    for seed in range(args.seeds):  # seeds outermost: every method sees the same load
+        for m in methods:
+            c = time.thread_time()
+            res = trace(medium, beams, seed=seed, max_order=MAX_ORDER, threads=1, **trace_kwargs(METHODS[m]))
+            cpu[m].append(time.thread_time() - c)
+            rays[m].append(res.rays.mean())
+            w, f = recorded(res)
+            e = np.sqrt(np.where(support, (w - w_ref) ** 2, 0).sum(axis=1) / np.maximum(support.sum(axis=1), 1))
+            e = e / NOISE_SD_DN
+            allerr[m].extend(e.tolist())
+            err2[m].append(np.mean(e**2))
+            d = f - f_ref
+            d[:, :2] /= f_ref[:, :2]
+            ferr2[m].append(np.nanmean(d**2, axis=0))
+    rng = np.random.default_rng(0)
+    base = "random_30k" if "random_30k" in methods else None
+    found = {}
+    for m in methods:
+        e2, fe2 = np.array(err2[m]), np.array(ferr2[m])
+        t = float(np.median(cpu[m])) / n
+        found[m] = (e2, fe2, t)
+        out(f"{m}_rays_per_pulse", float(np.mean(rays[m])), "rays", ".0f")
+        out(f"{m}_cpu_ms_per_pulse", t * 1e3, "ms", ".1f")
+        a = np.array(allerr[m])
+        out(f"{m}_wave_err_rms", float(np.sqrt(np.mean(a**2))), "noise_sd")
+        out(f"{m}_wave_err_p95", float(np.percentile(a, 95)), "noise_sd")
+        out(f"{m}_wave_frac_below_third", float(np.mean(a < 1 / 3)), "fraction", ".3f")
+        for j, name in enumerate(("apeak", "e", "fwhm")):
+            sd = np.sqrt(fe2[:, j].mean())
+            out(f"{m}_{name}_mc_sd", sd, "ns" if name == "fwhm" else "fraction")
+            rel = inst_sd[:, j] if name == "fwhm" else inst_sd[:, j] / f_ref[:, j]
+            out(f"{m}_{name}_mc_over_instance_sd", sd / float(np.nanmean(rel)), "ratio")
+    if base is None:
+        return found
+    b2, bf2, tb = found[base]
+    for m, (e2, fe2, t) in found.items():
+        if m == base:
+            continue
+        for name, a, b in [("wave", b2, e2)] + [(q, bf2[:, j], fe2[:, j]) for j, q in enumerate(("apeak", "e", "fwhm"))]:
+            est, lo, hi = boot_ratio(a, b, tb, t, rng)
+            out(f"{m}_eff_{name}_vs_{base}", est, "x", ".2f")
+            out(f"{m}_eff_{name}_vs_{base}_lo95", lo, "x", ".2f")
+            out(f"{m}_eff_{name}_vs_{base}_hi95", hi, "x", ".2f")
+    return found
+
+
+CAMPAIGN_DATASET = "2010_12_1"
+"""The dataset whose true sensor the campaign section records with."""
+
+
+def bench_campaign(prefix: str, scene, beams, args) -> None:
+    """The virtual campaign's Monte Carlo noise against its digitiser noise (``--sections campaign``).
+
+    The field-sample pulses of ``beams`` on a fixed instance, traced as the campaign traces them
+    (:func:`waveforest.campaign.site_trace.site_budget`, the true sensor of
+    :data:`CAMPAIGN_DATASET`, R = :data:`RANGE_M`, recorded at the gain the budget assumes,
+    :data:`waveforest.campaign.site_trace.AGC_HIGH_SD` SDs of the terrain level above its mean) over ``--seeds`` seeds, with the fixed 256 rays of before and the adaptive budget at
+    each of ``--campaign-tolerances``: ``campaign_<tol>_wave_err_rms`` (RMS over pulses and seeds
+    of the recorded waveform's error against a reference of :data:`REF_RAYS` rays, RMS over the
+    samples with signal, in noise SDs), ``..._p95``, ``..._rays_per_pulse``, ``..._cpu_ms_per_pulse``.
+    """
+    from waveforest.campaign.params import load_datasets
+    from waveforest.campaign.site_trace import AGC_HIGH_SD, SiteJob, TraceSettings, site_budget
+    from waveforest.campaign.truth_sensor import TruthSensor
+    from waveforest.sensor.signal import analog_waveforms
+
+    sensor = TruthSensor.from_row(load_datasets([CAMPAIGN_DATASET]).iloc[0])
+    n = len(beams)
+    job = SiteJob("bench", "sample", "", 0.0, 0.0, 0.0, 0.0, 0.0, beams.origin, beams.direction,
+                  np.full(n, DIVERGENCE_MRAD), np.full(n, RANGE_M), np.zeros(n, np.int64), np.arange(n))
+    g = float(sensor.agc.gain(sensor.agc.bg_mean + AGC_HIGH_SD * sensor.agc.bg_sd))
+    system = sensor.system_waveform()
+
+    def wave(res):
+        v, _ = analog_waveforms(res.sigma, res.t0_ns, RANGE_M, system, gain=np.full(n, g), bin_ns=res.bin_ns)
+        return v[:, ::int(round(sensor.sampling_ns / res.bin_ns))]
+
+    prepared = prepare(scene, quality="medium")
+    w_ref = wave(trace(prepared, beams, n_rays=REF_RAYS, sampler="sobol", roulette=0.0, seed=10**6,
+                       max_order=MAX_ORDER))
+    support = w_ref >= 0.1 * sensor.noise_sd_dn
+    print(f"{prefix}campaign_peak_dn: {w_ref.max(axis=1).mean():.1f} DN")
+    for tol in [None] + list(args.campaign_tolerances):
+        st = TraceSettings(seed=0, n_rays=256, max_order=MAX_ORDER, viewed_diameter_m=5.0, specular=0.0,
+                           hotspot=1.0, trigger_loss=0.0, ground_rho=0.3, lai_jitter=0.0, vegetation_effects=(),
+                           sensors=(sensor,), bvh_quality="medium", sampler="sobol", roulette=0.5,
+                           tolerance=tol, max_rays=32768)
+        errs, cpu, rays = [], [], []
+        for seed in range(args.seeds):
+            c = time.thread_time()
+            res = trace(prepared, beams, n_rays=256, max_order=MAX_ORDER, seed=seed, sampler="sobol", roulette=0.5,
+                        threads=1, **site_budget(job, st))
+            cpu.append(time.thread_time() - c)
+            rays.append(res.rays.mean())
+            d = np.where(support, (wave(res) - w_ref) ** 2, 0.0).sum(axis=1) / np.maximum(support.sum(axis=1), 1)
+            errs.extend((np.sqrt(d) / sensor.noise_sd_dn).tolist())
+        e = np.array(errs)
+        name = "campaign_fixed256" if tol is None else f"campaign_{tol:g}"
+        print(f"{prefix}{name}_wave_err_rms: {np.sqrt(np.mean(e**2)):.3f} noise_sd")
+        print(f"{prefix}{name}_wave_err_p95: {np.percentile(e, 95):.3f} noise_sd")
+        print(f"{prefix}{name}_rays_per_pulse: {np.mean(rays):.0f} rays")
+        print(f"{prefix}{name}_cpu_ms_per_pulse: {np.median(cpu) / n * 1e3:.1f} ms", flush=True)
 
 
 def main() -> None:
@@ -446,7 +659,9 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--species", nargs="*", default=list(SPECIES), help="species to benchmark (none: canopy only)")
-    ap.add_argument("--sections", nargs="+", default=["speed", "error"], choices=["speed", "error"])
+    ap.add_argument("--sections", nargs="+", default=["speed", "error"], choices=["speed", "error", "sensor", "campaign"])
+    ap.add_argument("--campaign-tolerances", type=float, nargs="+", default=[0.33, 0.2, 0.1],
+                    help="adaptive tolerances of the campaign section")
     ap.add_argument("--method", default=RECOMMENDED, choices=list(METHODS),
                     help="tracer settings of the speed section (default: the study's default)")
     ap.add_argument("--seeds", type=int, default=16, help="seeds per method in the error section")
@@ -474,6 +689,11 @@ def main() -> None:
 
         scenes.update({f"{sp}_": build_scene(sp, SPECIES[sp], args.seed) for sp in args.species})
     methods = {m: METHODS[m] for m in (args.methods or (QUICK_METHODS if args.quick else METHODS))}
+    builders = {"": lambda k: random_leaves(LAI, (0.0, HEIGHT_M), SIZE_M, LEAF_AREA_M2, seed=args.seed + 1 + k)}
+    for sp in args.species:
+        from waveforest.vegetation import build_scene
+
+        builders[f"{sp}_"] = lambda k, sp=sp: build_scene(sp, SPECIES[sp], args.seed + 1 + k)
     for prefix, scene in scenes.items():
         if "speed" in args.sections:
             bench_scene(prefix, scene, beams, args, full=True, bricks=prefix == "")
@@ -483,6 +703,15 @@ def main() -> None:
                 eb = Beams.toward(0.3 * targets[:args.error_pulses], RANGE_M, 0.0, 0.0,
                                   divergence_mrad=DIVERGENCE_MRAD)
             bench_error(prefix, scene, eb, args, methods)
+        if "sensor" in args.sections:
+            eb = beams[:args.error_pulses]
+            if prefix == "birch_":
+                eb = Beams.toward(0.3 * targets[:args.error_pulses], RANGE_M, 0.0, 0.0,
+                                  divergence_mrad=DIVERGENCE_MRAD)
+            bench_sensor(prefix, scene, builders[prefix], eb, args,
+                         [m for m in (args.methods or SENSOR_METHODS)])
+        if "campaign" in args.sections:
+            bench_campaign(prefix, scene, beams[:args.error_pulses], args)
     print(f"load_average_1min_end: {os.getloadavg()[0]:.2f} processes")
 
 

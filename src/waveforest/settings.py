@@ -84,11 +84,17 @@ def reference_system(cfg: dict) -> ReferenceSystem:
 
 
 def mcrt_setup(cfg: dict, n_rays: int | None = None, effects: dict | None = None) -> MCRTSetup:
-    """The tracer settings of section ``mcrt``; ``n_rays`` (None or 0: ``mcrt.n_rays``) and mcrt effects."""
+    """The tracer settings of section ``mcrt``; ``n_rays`` (None or 0: ``mcrt.n_rays``) and mcrt effects.
+
+    The ray budget: a section's own ``n_rays`` fixes the rays per pulse (tolerance None); else
+    ``mcrt.tolerance`` (null: ``mcrt.n_rays`` rays per pulse) with ``mcrt.min_rays`` and ``mcrt.max_rays``.
+    """
     m = cfg["mcrt"]
+    tol = None if n_rays else m["tolerance"]
     return MCRTSetup(n_rays=int(n_rays or m["n_rays"]), max_order=int(m["max_order"]), bin_ns=float(m["bin_ns"]),
                      viewed_diameter_m=float(m["viewed_diameter_m"]), sampler=str(m["sampler"]),
-                     roulette=float(m["roulette"]), effects=dict(effects or {}))
+                     roulette=float(m["roulette"]), tolerance=None if tol is None else float(tol),
+                     min_rays=int(m["min_rays"]), max_rays=int(m["max_rays"]), effects=dict(effects or {}))
 
 
 # -- campaign ------------------------------------------------------------------------------------
@@ -96,7 +102,7 @@ def mcrt_setup(cfg: dict, n_rays: int | None = None, effects: dict | None = None
 
 def campaign_settings(cfg: dict) -> CampaignSettings:
     """The virtual campaign (``seed``, ``datasets``, ``campaign``, ``vegetation``, ``select.tree_radius_m``,
-    ``mcrt.sampler``, ``mcrt.roulette``)."""
+    ``mcrt.sampler``, ``mcrt.roulette``, ``mcrt.max_rays``)."""
     camp, veg = cfg["campaign"], cfg["vegetation"]
     per_species, cap, species = camp["samples_per_species"], camp["max_pulses_per_site"], camp["species"]
     return CampaignSettings(
@@ -108,6 +114,8 @@ def campaign_settings(cfg: dict) -> CampaignSettings:
         bvh_quality=str(camp["bvh_quality"]), ground_rho=float(veg["ground_rho"]),
         lai_jitter=float(veg["lai_jitter"]), tree_radius_m=float(cfg["select"]["tree_radius_m"]),
         sampler=str(cfg["mcrt"]["sampler"]), roulette=float(cfg["mcrt"]["roulette"]),
+        tolerance=None if camp["tolerance"] is None else float(camp["tolerance"]),
+        max_rays=int(cfg["mcrt"]["max_rays"]),
         record={"campaign": copy.deepcopy(dict(camp.items())),
                 "vegetation": {"ground_rho": veg["ground_rho"], "lai_jitter": veg["lai_jitter"]}})
 
@@ -288,7 +296,8 @@ def diagnose_settings(cfg: dict) -> DiagnoseSettings:
             near_stem_m=None if near is None else float(near), below_crown=bool(d["below_crown"]),
             max_pulses=None if cap is None else int(cap), seed=int(cfg["seed"]), sensor=sensor_settings(cfg)),
         simulate=replace(chain, max_pulses=None, instances_per_sample=None if k is None else int(k),
-                         mcrt=replace(chain.mcrt, n_rays=int(n_rays))),
+                         mcrt=replace(chain.mcrt, n_rays=int(n_rays),
+                                      tolerance=None if d["n_rays"] else chain.mcrt.tolerance)),
         range_correction=bool(cfg["sensor"]["cfd"]["range_correction"]),
         fit_pulses=None if fit is None else int(fit),
     )

@@ -2,7 +2,10 @@
 
 Every site (field sample or target) is one unit of work: its true scene is built once
 (:mod:`.scenes`), prepared once (Embree BVH) and every pulse of every dataset over it is
-traced in a single batched :func:`waveforest.mcrt.trace` call. Per dataset, the sigma(t) of
+traced in a single batched :func:`waveforest.mcrt.trace` call. The rays of a field sample's
+pulse: the adaptive budget (``campaign.tolerance``; :func:`site_budget`) against the true
+sensor of its dataset, ``campaign.n_rays`` the fewest; planar targets at most
+:data:`~.scenes.TARGET_RAYS` (exact whatever the count). Per dataset, the sigma(t) of
 its pulses is trimmed to the bins that hold light (float32) and the noise-free unit-gain
 analog peak of each pulse (what the AGC loop scales) is computed.
 
@@ -53,6 +56,11 @@ class TraceSettings:
     sampler: str
     roulette: float
     """MCRT estimator (config ``mcrt.sampler``, ``mcrt.roulette``: the model's)."""
+    tolerance: float | None = None
+    """Adaptive budget of the field samples' pulses (config ``campaign.tolerance``): the recorded
+    waveform's Monte Carlo SD as a fraction of the digitiser noise SD; None = ``n_rays`` rays."""
+    max_rays: int = 0
+    """Most rays per pulse of the adaptive budget (config ``mcrt.max_rays``)."""
 
 
 @dataclass(frozen=True)
@@ -142,6 +150,35 @@ def trim(sigma: np.ndarray) -> tuple[int, np.ndarray]:
     return a, sigma[:, a:b].astype(np.float32)
 
 
+AGC_HIGH_SD = 1.0
+"""The adaptive budget assumes the AGC gain of the terrain level this many SDs above its mean
+(``agc_bg_mean + agc_bg_sd``): a pulse recorded at a higher gain shows its error larger."""
+
+
+def site_budget(job: SiteJob, st: TraceSettings) -> dict:
+    """``trace`` keywords of the adaptive budget of a field sample's pulses (``{}``: fixed ``n_rays``).
+
+    The recorded waveform of a pulse of dataset d is g S_d (x) sigma / R^2 plus noise of SD s_d
+    (Eq. 7, the true sensor). The kernel is the unit-peak S(t) of the site's dataset of the
+    narrowest pulse (the least smoothing: the error it shows is the largest); the noise of a
+    pulse in the kernel's units is s_d R^2 / (g_d peak(S_d)), g_d the gain law at the terrain
+    level :data:`AGC_HIGH_SD` SDs above its mean.
+    """
+    if st.tolerance is None:
+        return {}
+    present = [int(d) for d in np.unique(job.dataset)]
+    narrow = st.sensors[min(present, key=lambda d: st.sensors[d].system_waveform().fwhm_ns)]
+    kernel = narrow.system.s / narrow.system.s.max()
+    scale = np.zeros(len(st.sensors))
+    for d in present:
+        t = st.sensors[d]
+        g = float(t.agc.gain(t.agc.bg_mean + AGC_HIGH_SD * t.agc.bg_sd))
+        scale[d] = t.noise_sd_dn / (max(g, 1e-6) * t.system.s.max())
+    noise = scale[job.dataset] * job.range_m**2
+    return dict(tolerance=st.tolerance, min_rays=st.n_rays, max_rays=max(st.max_rays, st.n_rays), kernel=kernel,
+                noise=noise)
+
+
 def trace_site(job: SiteJob, st: TraceSettings, threads: int | None = None) -> SiteResult:
     """Build the site's true scene, trace all its pulses, trim sigma and compute a0 per dataset."""
 
@@ -150,16 +187,18 @@ def trace_site(job: SiteJob, st: TraceSettings, threads: int | None = None) -> S
         scene = sample_scene(job.species, job.height_m, st.seed, job.site, ground_rho=st.ground_rho,
                              lai_jitter=st.lai_jitter, vegetation_effects=dict(st.vegetation_effects))
         n_rays = st.n_rays
+        budget = site_budget(job, st)
     else:
         scene = target_scene(job.rho, job.side_m, job.on_ground_rho, job.reach_m)
         n_rays = min(TARGET_RAYS, st.n_rays)
+        budget = {}
     prepared = prepare(scene, quality=st.bvh_quality)
     t_trace = time.perf_counter()
     beams = Beams.from_divergence(job.origin, job.direction, job.divergence_mrad, job.range_m)
     res = trace(prepared, beams, n_rays=n_rays, max_order=st.max_order, bin_ns=BIN_NS,
                 viewed_diameter_m=st.viewed_diameter_m, seed=stream_seed31(st.seed, "trace", job.site),
                 specular=st.specular, hotspot=st.hotspot, threads=threads, sampler=st.sampler,
-                roulette=st.roulette)
+                roulette=st.roulette, **budget)
     cover = None
     if job.kind == "sample":
         fh = res.first_hit_counts.astype(np.float64)

@@ -104,6 +104,8 @@ class CampaignSettings:
         Config ``select.tree_radius_m``, m.
     sampler, roulette
         The MCRT estimator (config ``mcrt.sampler``, ``mcrt.roulette``: the model's).
+    tolerance, max_rays
+        The adaptive ray budget of the field samples (config ``campaign.tolerance``, ``mcrt.max_rays``).
     record : dict
         The config sections as ``truth.json`` records them (``campaign``, ``vegetation``); written, not read.
     """
@@ -125,6 +127,8 @@ class CampaignSettings:
     tree_radius_m: float
     sampler: str
     roulette: float
+    tolerance: float | None
+    max_rays: int
     record: dict
 
 
@@ -428,7 +432,8 @@ def _site_trace_settings(settings: CampaignSettings, eff: dict, sensors: tuple) 
         ground_rho=float(settings.ground_rho), lai_jitter=float(settings.lai_jitter),
         vegetation_effects=tuple((k, float(eff[k])) for k in VEGETATION_EFFECTS),
         sensors=sensors, bvh_quality=str(settings.bvh_quality),
-        sampler=str(settings.sampler), roulette=float(settings.roulette))
+        sampler=str(settings.sampler), roulette=float(settings.roulette), tolerance=settings.tolerance,
+        max_rays=int(settings.max_rays))
 
 
 def _site_jobs(allp: pd.DataFrame, si: pd.DataFrame, groups: dict, datasets: pd.DataFrame) -> list[SiteJob]:

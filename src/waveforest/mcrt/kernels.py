@@ -43,8 +43,9 @@ _TWO_M53 = 1.0 / 9007199254740992.0
 DRAWS_PER_ORDER = 8
 """Uniforms reserved per ray and scattering order (counter stride)."""
 
-SLOT_BRANCH, SLOT_LOBE, SLOT_DIR1, SLOT_DIR2 = 0, 1, 2, 3
-"""Which uniform of a ray's order decides what: reflect/transmit, specular lobe, direction."""
+SLOT_BRANCH, SLOT_LOBE, SLOT_DIR1, SLOT_DIR2, SLOT_DARK = 0, 1, 2, 3, 4
+"""Which uniform of a ray's order decides what: reflect/transmit, specular lobe, direction,
+the roulette of a ray from a vertex the receiver does not see (:func:`dark_roulette`)."""
 
 MISS_KIND = 4
 """Code of a miss in ``first_hit_counts`` (after the element kinds 0..3)."""
@@ -345,11 +346,11 @@ class BeamFrame:
 
 @njit(cache=True, parallel=True, nogil=True)
 def _emit_kernel(sensor, axis, e1, e2, sd, range_m, plane_m, key, n_rays,
-                 origin, direction, path, beam, ray, sampler, v):
+                 origin, direction, path, beam, ray, sampler, v, first_ray):
     nb = sensor.shape[0]
     for j in prange(nb * n_rays):
         b = j // n_rays
-        i = j - b * n_rays
+        i = first_ray[b] + j - b * n_rays
         s = _stream(key[b], i)
         if sampler == 1:
             u1 = _sobol_uniform(v, key[b], i, 0)
@@ -386,7 +387,8 @@ def _emit_kernel(sensor, axis, e1, e2, sd, range_m, plane_m, key, n_rays,
         ray[j] = i
 
 
-def emit_rays(frame: BeamFrame, footprint_m, range_m, plane_m, n_rays: int, sampler: str = "random") -> Rays:
+def emit_rays(frame: BeamFrame, footprint_m, range_m, plane_m, n_rays: int, sampler: str = "random",
+              first_ray: int = 0) -> Rays:
     """The rays of a chunk of beams, started on a plane just before the scene (docs/method.md §(d)).
 
     Ray offsets across the axis are Gaussian with per-axis SD ``footprint / (2 sqrt 2)``
@@ -408,6 +410,9 @@ def emit_rays(frame: BeamFrame, footprint_m, range_m, plane_m, n_rays: int, samp
     sampler : {"random", "sobol"}
         Source of the two uniforms of each offset (Box-Muller): pseudo-random, or Sobol'
         dimensions 0 and 1 (module docstring).
+    first_ray : int or (nb,) int
+        Index of each beam's first ray (its random-stream counter and Sobol' point): the rays
+        are points ``first_ray .. first_ray + n_rays - 1`` of the beam's sequence.
 
     Returns
     -------
@@ -417,6 +422,9 @@ def emit_rays(frame: BeamFrame, footprint_m, range_m, plane_m, n_rays: int, samp
     nb = len(frame)
     if n_rays < 1:
         raise ValueError(f"n_rays: expected >= 1, got {n_rays}")
+    first = np.ascontiguousarray(np.broadcast_to(np.asarray(first_ray, np.int64), (nb,)))
+    if nb and not (first.min() >= 0 and first.max() + n_rays <= 2**31 - 1):
+        raise ValueError(f"first_ray: expected 0 <= first_ray and first_ray + n_rays < 2**31, got {first_ray}")
     if sampler not in SAMPLERS:
         raise ValueError(f"sampler: expected one of {', '.join(SAMPLERS)}, got {sampler!r}")
     sensor = np.ascontiguousarray(frame.sensor, np.float64)
@@ -445,7 +453,7 @@ def emit_rays(frame: BeamFrame, footprint_m, range_m, plane_m, n_rays: int, samp
         _emit_kernel(sensor, axis, np.ascontiguousarray(e1), np.ascontiguousarray(e2),
                      fp / (2.0 * math.sqrt(2.0)), np.ascontiguousarray(rng), plane,
                      np.ascontiguousarray(frame.key, np.uint64), int(n_rays),
-                     origin, direction, path, beam, ray, SAMPLERS[sampler], SOBOL_V)
+                     origin, direction, path, beam, ray, SAMPLERS[sampler], SOBOL_V, first)
     power = np.full(m, 1.0 / n_rays)
     return Rays(origin, direction, power, path, beam, ray)
 
@@ -738,6 +746,29 @@ def _scatter(order, last, rays, tfar, prim, tri, frame, n_bins, bin_ns, viewed_d
                     o.value, o.bin, o.shadow_origin, o.shadow_direction, o.shadow_tmax,
                     o.origin, o.direction, o.power, o.path_m, o.alive, sampler, SOBOL_V, survive,
                     float(floor_power))
+
+
+@njit(cache=True, nogil=True)
+def _dark_roulette_kernel(order, alive, power, seen, beam, ray, key, q):
+    for i in range(alive.size):
+        if alive[i] and not seen[i]:
+            u = _uniform(_stream(key[beam[i]], ray[i]), order, SLOT_DARK)
+            if u >= q:
+                alive[i] = False
+            else:
+                power[i] = power[i] / q
+
+
+def dark_roulette(order: int, scattered: Scattered, rays: Rays, seen: np.ndarray, frame: BeamFrame,
+                  q: float) -> None:
+    """Russian roulette keyed to the receiver (in place): a next ray leaving a vertex whose
+    contribution the receiver does not see (outside the viewed cylinder, zero, or occluded;
+    ``seen`` False) continues with probability ``q`` and power / q (unbiased); ``q = 1`` = off.
+    Its uniform is the pseudo-random slot :data:`SLOT_DARK` of the ray's order."""
+    if q >= 1.0:
+        return
+    _dark_roulette_kernel(int(order), scattered.alive, scattered.power, np.ascontiguousarray(seen, np.bool_),
+                          rays.beam, rays.ray, np.ascontiguousarray(frame.key, np.uint64), float(q))
 
 
 @njit(cache=True, nogil=True)

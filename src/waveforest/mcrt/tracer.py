@@ -18,7 +18,9 @@ is ``window_ns`` long, and contributions after it are not binned but summed in
 
 Randomness: a counter-based generator keyed by (seed, pulse index in the call, ray, order,
 draw) (:mod:`waveforest.mcrt.kernels`), so the same seed gives the identical result whatever the threads,
-the chunking and the parallel mode. ``sampler="sobol"`` draws the same uniforms from a per-pulse
+the chunking and the parallel mode. Ray budget: ``n_rays`` per pulse, or (``tolerance``) an adaptive
+budget per pulse that stops once the recorded waveform's Monte Carlo error falls to a fraction
+of the digitiser noise (:func:`_trace_chunk_adaptive`; docs/method.md §(d), "Ray budget"). ``sampler="sobol"`` draws the same uniforms from a per-pulse
 Owen-scrambled Sobol' sequence instead (randomized QMC); ``roulette`` ends low-power paths by
 an unbiased Russian roulette (a weight window). The caller chooses ``n_rays``, ``sampler`` and
 ``roulette`` (config ``mcrt``); the defaults of ``max_order``, ``bin_ns``, ``viewed_diameter_m`` and
@@ -57,6 +59,7 @@ from waveforest.mcrt.kernels import (
     accumulate,
     beam_keys,
     compact,
+    dark_roulette,
     emit_rays,
     scatter,
     take_rays,
@@ -99,6 +102,26 @@ CHUNKS_PER_WORKER = 4
 PARALLEL_MODES = ("pulses", "rays")
 """How ``trace`` uses its threads: whole chunks of pulses per thread, or every call split."""
 
+BATCHES = 8
+"""Batches of consecutive rays whose spread gives a pulse's Monte Carlo error under the adaptive
+budget."""
+
+GROWTH = 4
+"""Largest factor by which a round of the adaptive budget multiplies a pulse's rays."""
+
+STEPS_PER_OCTAVE = 4
+"""The adaptive budget's ray counts are multiples of 2^(floor(log2 N) - 2): four per octave."""
+
+ERROR_STEP_NS = 1.0
+"""Sampling step of the recorded waveform in the adaptive budget's error estimate, ns."""
+
+SUPPORT_SD = 0.1
+"""The recorded waveform's error is averaged over the samples whose mean signal reaches this many
+noise SDs (:func:`waveform_error`)."""
+
+ADAPTIVE_CHUNK_PULSES = 32
+"""At most this many pulses per chunk under the adaptive budget (bounds the replicates' memory)."""
+
 
 @dataclass(frozen=True)
 class TraceResult:
@@ -120,9 +143,11 @@ class TraceResult:
     sigma_dropped : (n,) float64
         Contributions later than the window (not in ``sigma``).
     n_rays : int
-        Rays per pulse.
+        Rays per pulse (fixed budget); under the adaptive budget the most any pulse used.
     sigma_by_order : (n, max_order, n_bins) float64 or None
         sigma split by scattering order (``trace(..., by_order=True)``).
+    rays : (n,) int64 or None
+        Rays each pulse used (the adaptive budget varies them; fixed: all ``n_rays``).
     """
 
     sigma: np.ndarray
@@ -133,6 +158,7 @@ class TraceResult:
     sigma_dropped: np.ndarray
     n_rays: int
     sigma_by_order: np.ndarray | None = None
+    rays: np.ndarray | None = None
 
     def __len__(self) -> int:
         return self.sigma.shape[0]
@@ -235,6 +261,47 @@ def _check(n_rays, max_order, bin_ns, viewed_diameter_m, window_ns, specular, ho
 
 
 @dataclass(frozen=True)
+class _Adaptive:
+    """The checked adaptive budget of one :func:`trace` call."""
+
+    tolerance: float
+    min_rays: int
+    max_rays: int
+    kernel: np.ndarray
+    """(n_k,) the system pulse on the sigma grid."""
+    noise: np.ndarray
+    """(n,) noise SD of each pulse of the call, in the units of kernel (x) sigma."""
+
+
+def _pow2_floor(x: int) -> int:
+    return 1 << (max(1, int(x)).bit_length() - 1)
+
+
+def _adaptive(tolerance, min_rays, max_rays, kernel, noise, n: int) -> _Adaptive | None:
+    """The checked adaptive budget of a trace of ``n`` pulses (None when ``tolerance`` is None)."""
+    if tolerance is None:
+        return None
+    if not (np.isfinite(tolerance) and tolerance > 0):
+        raise ValueError(f"tolerance: expected a positive fraction of the noise SD or None, got {tolerance!r}")
+    for name, v in (("min_rays", min_rays), ("max_rays", max_rays)):
+        if not isinstance(v, (int, np.integer)) or v < 2 * BATCHES:
+            raise ValueError(f"{name}: expected an int >= {2 * BATCHES}, got {v!r}")
+    if max_rays < min_rays:
+        raise ValueError(f"max_rays: expected >= min_rays ({min_rays}), got {max_rays!r}")
+    if kernel is None or noise is None:
+        raise ValueError("tolerance: the adaptive budget needs the system pulse (kernel) and the noise SD (noise)")
+    k = np.ascontiguousarray(kernel, np.float64)
+    if k.ndim != 1 or k.size == 0 or not np.all(np.isfinite(k)) or k.max() <= 0:
+        raise ValueError("kernel: expected a finite 1-D system pulse with a positive peak")
+    sd = np.broadcast_to(np.asarray(noise, np.float64), (n,)).copy()
+    if not np.all(np.isfinite(sd) & (sd > 0)):
+        raise ValueError("noise: expected a positive noise SD per pulse")
+    lo = _pow2_floor(min_rays)
+    hi = max(lo, _pow2_floor(max_rays))
+    return _Adaptive(float(tolerance), lo, hi, k, sd)
+
+
+@dataclass(frozen=True)
 class _ChunkSettings:
     """What every chunk of one :func:`trace` call shares (its checked arguments)."""
 
@@ -252,6 +319,10 @@ class _ChunkSettings:
     survive: np.ndarray
     """(max_order + 1,) continuation probability after each order (:func:`survival_by_order`)."""
     roulette: float
+    adaptive: _Adaptive | None = None
+    """The adaptive budget (None: ``n_rays`` rays per pulse)."""
+    dark_survival: float = 1.0
+    """Continuation probability of a ray from a vertex the receiver does not see (:func:`.kernels.dark_roulette`)."""
 
     @property
     def layers(self) -> int:
@@ -259,25 +330,28 @@ class _ChunkSettings:
         return self.max_order if self.by_order else 1
 
 
-def _trace_chunk(prepared: PreparedScene, beams: Beams, index: np.ndarray, st: _ChunkSettings,
-                threads: int | None):
-    """Trace one chunk of beams (``index`` = their positions in the trace call), one wavefront
-    per scattering order.
-
-    Returns (sigma (nb, layers, n_bins), dropped (nb,), order_totals (nb, max_order),
-    first_hit_counts (nb, 5), t0_ns (nb,)).
-    """
-    nb = len(beams)
+def _frame(prepared: PreparedScene, beams: Beams, keys: np.ndarray) -> tuple[BeamFrame, np.ndarray]:
+    """The internal-frame constants of ``beams`` with stream keys ``keys``, and their start planes, m."""
     sensor = beams.origin - prepared.shift
     axis = beams.direction
     plane = start_plane(prepared.bounds, sensor, axis)
     t0 = 2.0 * plane / C_M_PER_NS - T0_LEAD_NS
-    frame = BeamFrame(np.ascontiguousarray(sensor), np.ascontiguousarray(axis), t0, beam_keys(st.key, index))
+    return BeamFrame(np.ascontiguousarray(sensor), np.ascontiguousarray(axis), t0, keys), plane
+
+
+def _wave(prepared: PreparedScene, frame: BeamFrame, footprint_m, range_m, plane: np.ndarray,
+          st: _ChunkSettings, n_rays: int, first_ray: int, threads: int | None):
+    """Trace rays ``first_ray .. first_ray + n_rays - 1`` of every beam of ``frame``, each of power
+    1 / n_rays, one wavefront per scattering order.
+
+    Returns (sigma (nb, layers, n_bins), dropped (nb,), order_totals (nb, max_order),
+    first_hit_counts (nb, 5)).
+    """
+    nb = len(frame)
     acc = np.zeros((nb, st.layers, st.n_bins))
     dropped = np.zeros(nb)
     totals = np.zeros((nb, st.max_order))
-
-    rays = emit_rays(frame, beams.footprint_m, beams.range_m, plane, st.n_rays, st.sampler)
+    rays = emit_rays(frame, footprint_m, range_m, plane, n_rays, st.sampler, first_ray=first_ray)
     buffers = rays  # the live rays are packed into the emission arrays after each order
     work = Scattered.empty(len(rays))
     isect = prepared.intersector
@@ -290,14 +364,149 @@ def _trace_chunk(prepared: PreparedScene, beams: Beams, index: np.ndarray, st: _
             first = _first_hits(prepared, rays, prim, nb)
         out = scatter(order, order == st.max_order, rays, tfar, prim, prepared, frame, st.n_bins, st.bin_ns,
                       st.viewed_diameter_m, st.specular, SPECULAR_PHONG_EXPONENT, st.hotspot, RAY_EPS_M,
-                      out=work, sampler=st.sampler, survive=st.survive, floor_power=st.roulette / st.n_rays)
+                      out=work, sampler=st.sampler, survive=st.survive, floor_power=st.roulette / n_rays)
         counted = np.flatnonzero(out.value > 0.0)
         if order > 1 and counted.size:
             counted = _visible(isect, out, counted, threads)
         accumulate(counted, rays.beam, out.value, out.bin, order, acc, dropped, totals, st.by_order)
         if order < st.max_order:
+            if st.dark_survival < 1.0:
+                seen = np.zeros(len(rays), np.bool_)
+                seen[counted] = True
+                dark_roulette(order, out, rays, seen, frame, st.dark_survival)
             rays = compact(out, rays, buffers)
-    return acc, dropped, totals, first, t0
+    if first is None:
+        first = np.zeros((nb, MISS_KIND + 1), np.int64)
+    return acc, dropped, totals, first
+
+
+def _trace_chunk(prepared: PreparedScene, beams: Beams, index: np.ndarray, st: _ChunkSettings,
+                 threads: int | None):
+    """Trace one chunk of beams (``index`` = their positions in the trace call): ``st.n_rays``
+    rays each, or the adaptive budget of ``st.adaptive`` (:func:`_trace_chunk_adaptive`).
+
+    Returns (sigma (nb, layers, n_bins), dropped (nb,), order_totals (nb, max_order),
+    first_hit_counts (nb, 5), t0_ns (nb,), rays (nb,)).
+    """
+    if st.adaptive is not None:
+        return _trace_chunk_adaptive(prepared, beams, index, st, threads)
+    frame, plane = _frame(prepared, beams, beam_keys(st.key, index))
+    acc, dropped, totals, first = _wave(prepared, frame, beams.footprint_m, beams.range_m, plane, st, st.n_rays,
+                                        0, threads)
+    return acc, dropped, totals, first, frame.t0_ns, np.full(len(beams), st.n_rays, np.int64)
+
+
+def _trace_chunk_adaptive(prepared: PreparedScene, beams: Beams, index: np.ndarray, st: _ChunkSettings,
+                          threads: int | None):
+    """The adaptive ray budget of one chunk of beams (docs/method.md §(d), "Ray budget").
+
+    A pulse that stops at N rays has exactly the sigma of a fixed budget of N rays (the first N
+    points of its scrambled Sobol' sequence; the same stream key). N starts at ``min_rays`` (a
+    power of two: a complete Sobol' net) and a round extends the pulses still running from N to
+    the rays the error calls for (variance ~ 1 / N), rounded up to a quarter octave
+    (:func:`next_budget`, at most :data:`GROWTH` x N). The error comes from :data:`BATCHES`
+    batch sums: the first round's are consecutive nets of N / BATCHES rays, and each round
+    appends a consecutive block of the new rays to each batch, so all batches hold the same
+    rays; their spread ignores the joint stratification of the Sobol' points, so the error is
+    overestimated, never under on average. A pulse stops once it is at most ``tolerance`` noise
+    SDs (:func:`waveform_error`), or at ``max_rays``.
+    """
+    ad = st.adaptive
+    nb, k = len(beams), BATCHES
+    frame, plane = _frame(prepared, beams, beam_keys(st.key, index))
+    total = np.zeros((nb, st.layers, st.n_bins))  # sums of contributions at unit power per ray
+    dropped = np.zeros(nb)
+    totals = np.zeros((nb, st.max_order))
+    first = np.zeros((nb, MISS_KIND + 1), np.int64)
+    batches = np.zeros((nb, k, st.n_bins))  # sum of each batch of N / k consecutive rays
+    done = np.zeros(nb, np.int64)  # rays traced so far (N)
+    target = np.full(nb, ad.min_rays, np.int64)
+    noise = ad.noise[index]
+    active = np.arange(nb)
+    while active.size:
+        for n0, n1 in sorted({(int(done[i]), int(target[i])) for i in active}):
+            pulses = active[(done[active] == n0) & (target[active] == n1)]
+            size = (n1 - n0) // k  # each batch gains one block of consecutive new rays
+            per_wave = max(1, CHUNK_RAYS // (n1 - n0))
+            for w in range(0, pulses.size, per_wave):
+                p = pulses[w:w + per_wave]
+                v = np.repeat(p, k)
+                sub = BeamFrame(frame.sensor[v], frame.axis[v], frame.t0_ns[v], frame.key[v])
+                start = n0 + size * np.tile(np.arange(k), p.size)
+                acc, drop, tot, fh = _wave(prepared, sub, beams.footprint_m[v], beams.range_m[v], plane[v], st,
+                                           size, start, threads)
+                acc *= size
+                per = acc.reshape(p.size, k, st.layers, st.n_bins)
+                total[p] += per.sum(axis=1)
+                dropped[p] += (drop * size).reshape(p.size, k).sum(axis=1)
+                totals[p] += (tot * size).reshape(p.size, k, st.max_order).sum(axis=1)
+                first[p] += fh.reshape(p.size, k, MISS_KIND + 1).sum(axis=1)
+                batches[p] += per.sum(axis=2)
+        done[active] = target[active]
+        err = waveform_error(batches[active] / (done[active] // k)[:, None, None], ad.kernel, noise[active],
+                             st.bin_ns)
+        stop = (err <= ad.tolerance) | (done[active] >= ad.max_rays)
+        go = active[~stop]
+        target[go] = next_budget(done[go], err[~stop] / ad.tolerance, ad.max_rays)
+        active = go
+    scale = 1.0 / done
+    return (total * scale[:, None, None], dropped * scale, totals * scale[:, None], first, frame.t0_ns, done)
+
+
+def next_budget(done: np.ndarray, ratio: np.ndarray, max_rays: int) -> np.ndarray:
+    """The rays a round of the adaptive budget extends each pulse to.
+
+    ``done`` (n,) rays so far (multiples of :data:`BATCHES`, >= 2 x BATCHES); ``ratio`` (n,) the
+    estimated error over the tolerance (> 1). The estimate scales as 1 / sqrt(N): the target is
+    ``done x ratio^2``, at least one step and at most :data:`GROWTH` x ``done``, rounded up to a
+    multiple of 2^(floor(log2 N) - log2 :data:`STEPS_PER_OCTAVE`) (overshoot <= 1 / STEPS_PER_OCTAVE
+    of an octave's start), capped at ``max_rays``.
+    """
+    done = np.asarray(done, np.int64)
+    need = np.minimum(done * np.asarray(ratio, np.float64) ** 2, GROWTH * done)
+    need = np.maximum(need, done + 1)
+    step = np.maximum(2 ** (np.floor(np.log2(need)).astype(np.int64) - int(math.log2(STEPS_PER_OCTAVE))), BATCHES)
+    step = step // BATCHES * BATCHES
+    return np.minimum(-(-need.astype(np.int64) // step) * step, max_rays).astype(np.int64)
+
+
+def waveform_error(replicates: np.ndarray, kernel: np.ndarray, noise, bin_ns: float) -> np.ndarray:
+    """Standard error of each pulse's recorded waveform, in noise SDs, from k estimates.
+
+    Parameters
+    ----------
+    replicates : (n, k, n_bins) float64
+        k unbiased estimates of each pulse's sigma(t) (k >= 2), independent or (batches of one
+        scrambled Sobol' sequence) negatively correlated: the error of their mean is then overestimated.
+    kernel : (n_k,) float64
+        The system pulse on the sigma grid (``bin_ns``): the recorded waveform is kernel (x) sigma.
+    noise : (n,) float64
+        The digitiser's noise SD of each pulse, in the units of kernel (x) sigma.
+    bin_ns : float
+
+    Returns
+    -------
+    (n,) float64
+        sqrt(mean over the samples of the support of Var(mean of the replicates)) / noise, the
+        waveform sampled every :data:`ERROR_STEP_NS` ns (sigma summed over each step, the kernel
+        point-sampled); the support: samples where the mean waveform reaches
+        :data:`SUPPORT_SD` noise SDs (none: 0).
+    """
+    n, k, n_bins = replicates.shape
+    step = max(1, int(round(ERROR_STEP_NS / bin_ns)))
+    nc = n_bins // step
+    coarse = replicates[:, :, :nc * step].reshape(n, k, nc, step).sum(axis=3)
+    kc = np.asarray(kernel, np.float64)[::step]
+    size = nc + kc.size - 1
+    nfft = 1 << int(np.ceil(np.log2(size)))
+    z = np.fft.irfft(np.fft.rfft(coarse, nfft, axis=2) * np.fft.rfft(kc, nfft)[None, None, :], nfft, axis=2)[..., :size]
+    mean = z.mean(axis=1)
+    var = z.var(axis=1, ddof=1) / k
+    noise = np.asarray(noise, np.float64)
+    support = mean >= SUPPORT_SD * noise[:, None]
+    m = support.sum(axis=1)
+    rms = np.sqrt(np.where(support, var, 0.0).sum(axis=1) / np.maximum(m, 1))
+    return np.where(m > 0, rms / noise, 0.0)
 
 
 def _first_hits(prepared: PreparedScene, rays, prim: np.ndarray, nb: int) -> np.ndarray:
@@ -337,8 +546,19 @@ def trace(scene: Scene | PreparedScene, beams: Beams, n_rays: int, max_order: in
           bin_ns: float = BIN_NS, viewed_diameter_m: float = 5.0, seed=0, *, sampler: str, roulette: float,
           specular: float = 0.0, hotspot: float = 1.0, window_ns: float = DEFAULT_WINDOW_NS,
           by_order: bool = False, chunk_rays: int = CHUNK_RAYS, threads: int | None = None,
-          parallel: str = "pulses", progress: bool = False, survival=1.0) -> TraceResult:
+          parallel: str = "pulses", progress: bool = False, survival=1.0, tolerance: float | None = None,
+          min_rays: int = 1024, max_rays: int = 32768, kernel: np.ndarray | None = None,
+          noise=None, dark_survival: float = 1.0) -> TraceResult:
     """Forward Monte Carlo ray tracing of LiDAR pulses through a scene (docs/method.md §(d), Eq. 2).
+
+    The ray budget: ``n_rays`` rays per pulse; or, with ``tolerance`` set, an adaptive budget
+    per pulse between ``min_rays`` and ``max_rays`` that stops once the Monte Carlo standard
+    error of the pulse's recorded waveform ``kernel (x) sigma`` falls to ``tolerance`` times its
+    digitiser noise SD ``noise`` (RMS over the samples that carry signal, :func:`waveform_error`;
+    docs/method.md §(d), "Ray budget"). ``n_rays`` is then unused. A caller that knows its sensor
+    passes its system pulse S(t) on the sigma grid as ``kernel`` and, per pulse, the noise SD in
+    the same units: for V = g S (x) sigma / R^2 + noise of SD s, ``noise = s R^2 / g``
+    (:meth:`waveforest.model.forward.MCRTSetup.budget` computes both).
 
     Parameters
     ----------
@@ -390,6 +610,19 @@ def trace(scene: Scene | PreparedScene, beams: Beams, n_rays: int, max_order: in
         Russian roulette: probability in (0, 1] that a ray scattered at order n continues to
         order n + 1 (power divided by it); a sequence gives orders 1, 2, ... and its last
         value holds for the higher orders. 1 = every ray continues (docs/method.md §(d)).
+    tolerance : float, optional
+        The adaptive budget's target: the recorded waveform's Monte Carlo SD as a fraction of
+        the digitiser noise SD; None = ``n_rays`` rays per pulse.
+    min_rays, max_rays : int
+        Bounds of the adaptive budget, rays per pulse (each rounded down to a power of two).
+    kernel : (n_k,) float64, optional
+        The system pulse on the sigma grid (``bin_ns``), any units (adaptive budget only).
+    noise : float or (n,) float64, optional
+        Digitiser noise SD of each pulse in the units of ``kernel (x) sigma`` (adaptive budget only).
+    dark_survival : float
+        Roulette keyed to the receiver: a ray leaving a vertex whose contribution the receiver
+        does not see continues with this probability (power / it); 1 = off (docs/validation.md,
+        "MCRT ray budget").
 
     Returns
     -------
@@ -398,17 +631,22 @@ def trace(scene: Scene | PreparedScene, beams: Beams, n_rays: int, max_order: in
     if not isinstance(beams, Beams):
         raise TypeError(f"beams: expected waveforest.mcrt.Beams, got {type(beams).__name__}")
     _check(n_rays, max_order, bin_ns, viewed_diameter_m, window_ns, specular, hotspot, sampler, roulette)
+    adaptive = _adaptive(tolerance, min_rays, max_rays, kernel, noise, len(beams))
+    if not 0 < dark_survival <= 1:
+        raise ValueError(f"dark_survival: expected a probability in (0, 1], got {dark_survival!r}")
     st = _ChunkSettings(
         key=master_key(seed), n_rays=int(n_rays), max_order=int(max_order), bin_ns=float(bin_ns),
         n_bins=int(math.ceil(window_ns / bin_ns - 1e-9)), viewed_diameter_m=float(viewed_diameter_m),
         specular=float(specular), hotspot=float(hotspot), by_order=by_order, sampler=sampler,
-        survive=survival_by_order(survival, max_order), roulette=float(roulette))
+        survive=survival_by_order(survival, max_order), roulette=float(roulette), adaptive=adaptive,
+        dark_survival=float(dark_survival))
+    planned = st.n_rays if adaptive is None else max(adaptive.min_rays, int(chunk_rays) // ADAPTIVE_CHUNK_PULSES)
     if isinstance(scene, PreparedScene):
         prepared = scene
     else:  # a HIGH-quality BVH pays for its longer build only over enough rays
-        prepared = prepare(scene, quality=bvh_quality(len(beams), n_rays))
+        prepared = prepare(scene, quality=bvh_quality(len(beams), n_rays if adaptive is None else adaptive.min_rays))
     threads = default_threads() if threads is None else max(1, int(threads))
-    chunks, by_pulses = _chunk_plan(len(beams), st.n_rays, int(chunk_rays), threads, parallel)
+    chunks, by_pulses = _chunk_plan(len(beams), planned, int(chunk_rays), threads, parallel)
     return _trace_chunks(prepared, beams, st, chunks, by_pulses, threads, progress)
 
 
@@ -421,6 +659,7 @@ def _trace_chunks(prepared: PreparedScene, beams: Beams, st: _ChunkSettings, chu
     totals = np.zeros((n, st.max_order))
     first = np.zeros((n, MISS_KIND + 1), np.int64)
     t0 = np.zeros(n)
+    rays = np.zeros(n, np.int64)
 
     def run_chunk(ab, embree_threads):
         a, b = ab
@@ -435,9 +674,9 @@ def _trace_chunks(prepared: PreparedScene, beams: Beams, st: _ChunkSettings, chu
 
         results = tqdm(results, total=len(chunks), desc="trace", unit="chunk", leave=False)
     with NumbaThreads(None if by_pulses else threads):  # the kernels' prange threads
-        for i, (acc, drop, tot, fh, t0c) in results:
+        for i, (acc, drop, tot, fh, t0c, nr) in results:
             a, b = chunks[i]
-            sigma[a:b], dropped[a:b], totals[a:b], first[a:b], t0[a:b] = acc, drop, tot, fh, t0c
+            sigma[a:b], dropped[a:b], totals[a:b], first[a:b], t0[a:b], rays[a:b] = acc, drop, tot, fh, t0c, nr
     return TraceResult(
         sigma=sigma.sum(axis=1),
         t0_ns=t0,
@@ -445,6 +684,7 @@ def _trace_chunks(prepared: PreparedScene, beams: Beams, st: _ChunkSettings, chu
         order_totals=totals,
         first_hit_counts=first,
         sigma_dropped=dropped,
-        n_rays=st.n_rays,
+        n_rays=st.n_rays if st.adaptive is None else int(rays.max(initial=0)),
         sigma_by_order=sigma if st.by_order else None,
+        rays=rays,
     )

@@ -180,7 +180,15 @@ class SensorSettings:
 
 @dataclass(frozen=True)
 class MCRTSetup:
-    """Keyword arguments of ``waveforest.mcrt.trace`` (config section ``mcrt`` plus mcrt effects)."""
+    """Keyword arguments of ``waveforest.mcrt.trace`` (config section ``mcrt`` plus mcrt effects).
+
+    The ray budget: with ``tolerance`` None, ``n_rays`` rays per pulse; else, wherever the
+    sensor is known (:meth:`budget`), an adaptive budget per pulse between ``min_rays`` and
+    ``max_rays`` that stops once the Monte Carlo SD of the recorded waveform is ``tolerance``
+    times the digitiser noise SD (docs/method.md §(d), "Ray budget"). Usage::
+
+        res = trace(scene, beams, seed=s, **mcrt.kwargs(), **mcrt.budget(system, noise_sd, range_m, gain))
+    """
 
     n_rays: int
     max_order: int
@@ -188,13 +196,36 @@ class MCRTSetup:
     viewed_diameter_m: float
     sampler: str
     roulette: float
+    tolerance: float | None
+    min_rays: int
+    max_rays: int
     effects: dict = field(default_factory=dict)
 
     def kwargs(self) -> dict:
-        """The keyword arguments of ``trace`` (effects included)."""
+        """The keyword arguments of ``trace`` with the fixed budget (``n_rays``; effects included)."""
         return dict(n_rays=self.n_rays, max_order=self.max_order, bin_ns=self.bin_ns,
                     viewed_diameter_m=self.viewed_diameter_m, sampler=self.sampler, roulette=self.roulette,
                     **self.effects)
+
+    def budget(self, system, noise_sd: float, range_m, gain=None) -> dict:
+        """The ``trace`` keywords of the adaptive budget for pulses recorded as
+        V = g S (x) sigma / R^2 + noise of SD ``noise_sd`` (Eq. 7): ``{}`` when ``tolerance`` is None.
+
+        Parameters
+        ----------
+        system : waveforest.sensor.SystemWaveform
+            S(t) on the sigma grid, DN m^2 per unit sigma.
+        noise_sd : float, DN
+        range_m : float or (n,) float64, R of Eq. 7, m
+        gain : (n,) float64, optional
+            Signal gains g (the AGC gains of twinned real pulses); None = 1.
+        """
+        if self.tolerance is None:
+            return {}
+        g = 1.0 if gain is None else np.asarray(gain, dtype=np.float64)
+        noise = float(noise_sd) * np.asarray(range_m, dtype=np.float64) ** 2 / g
+        return dict(tolerance=self.tolerance, min_rays=self.min_rays, max_rays=self.max_rays,
+                    kernel=np.asarray(system.s, dtype=np.float64), noise=noise)
 
 
 @dataclass
@@ -212,6 +243,7 @@ class SimPulses:
     n_echoes : (n,) int16
     sigma_total : (n,) float64, total sigma of the pulse (all orders)
     first_hit_counts : (n, 5) int64 (rays first hitting ground, leaf, wood, other; misses)
+    rays : (n,) int64 or None, MCRT rays each pulse used (``TraceResult.rays``)
     """
 
     samples: np.ndarray
@@ -223,6 +255,7 @@ class SimPulses:
     n_echoes: np.ndarray
     sigma_total: np.ndarray
     first_hit_counts: np.ndarray
+    rays: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.lengths)
@@ -301,14 +334,18 @@ def trace_and_render(scene, beams, range_m: np.ndarray, mcrt: MCRTSetup, setup: 
                      trace_seed: int, rng: np.random.Generator, threads: int | None = None,
                      gain: np.ndarray | None = None):
     """MCRT of ``beams`` through ``scene`` (a Scene or PreparedScene), then :func:`render_sigma`
-    (``gain``: the AGC gains of the real pulses twinned, see there).
+    (``gain``: the AGC gains of the real pulses twinned, see there). The ray budget is
+    ``mcrt``'s: adaptive to ``setup``'s S(t) and noise at each pulse's R and gain (:meth:`MCRTSetup.budget`)
+    unless its tolerance is None.
 
     Returns
     -------
     (SimPulses, TraceResult)
     """
 
-    res = trace(scene, beams, seed=int(trace_seed), threads=threads, **mcrt.kwargs())
+    res = trace(scene, beams, seed=int(trace_seed), threads=threads, **mcrt.kwargs(),
+                **mcrt.budget(setup.system, setup.noise_sd, range_m, gain))
     sim = render_sigma(res.sigma, res.t0_ns, np.asarray(range_m, dtype=float), setup, rng,
                        sigma_total=res.total, first_hit_counts=res.first_hit_counts, gain=gain)
+    sim.rays = res.rays
     return sim, res

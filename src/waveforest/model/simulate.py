@@ -8,7 +8,8 @@ MCRT (config ``mcrt``); the sensor model with the dataset's calibrated S(t) and 
 dataset's sampling; the CFD. The result is a pulse table (``source = sim``) with the real
 pulse's ``pulse_id``, geometry and sample columns, the simulated waveform, its CFD echoes
 (times from the first sample; positions on the recorded beam line), and ``sim_instance``,
-``sigma_total``.
+``sigma_total``, ``mcrt_rays`` (the rays the pulse was traced with: the adaptive budget of
+``mcrt.tolerance`` at the dataset's calibrated S(t), noise and the pulse's R and AGC gain).
 
 R of Eq. 7 is the pulse's range to the sample's ground plane along the beam (docs/method.md §(c)).
 
@@ -400,13 +401,16 @@ def _table(d: pd.DataFrame, sensor, direction, sim, keep, inst: int, carry: pa.S
         table = table.append_column(f, pa.array(d[f.name].to_list(), type=f.type))
     table = table.append_column("sim_instance", pa.array(np.full(n, inst, dtype=np.int64)))
     table = table.append_column("sigma_total", pa.array(sim.sigma_total[keep].astype(float)))
+    rays = np.zeros(len(keep), np.int64) if sim.rays is None else sim.rays
+    table = table.append_column("mcrt_rays", pa.array(rays[keep].astype(np.int64)))
     return table
 
 
 def _empty(carry: pa.Schema) -> pa.Table:
     """An empty sim table with the full set of columns."""
     fields = list(PULSE_SCHEMA) + list(carry)
-    fields += [pa.field("sim_instance", pa.int64()), pa.field("sigma_total", pa.float64())]
+    fields += [pa.field("sim_instance", pa.int64()), pa.field("sigma_total", pa.float64()),
+               pa.field("mcrt_rays", pa.int64())]
     return pa.Table.from_pylist([], schema=pa.schema(fields))
 
 

@@ -29,7 +29,8 @@ from waveforest.mcrt.tracer import trace as trace_pulses
 from waveforest.model.forward import MCRTSetup
 from waveforest.plotting import pyplot, save_png
 from waveforest.scene import Scene, read_ply
-from waveforest.settings import mcrt_setup
+from waveforest.sensor.reference import reference_sensor
+from waveforest.settings import mcrt_setup, reference_system
 
 TABLE_SUFFIXES = (".parquet", ".csv")
 
@@ -122,7 +123,7 @@ def plot_sigma(result: TraceResult, path: str | Path, i: int = 0, title: str = "
 
 
 def run(scene: SceneSpec, beam: BeamSpec, mcrt: MCRTSetup, out: str | Path, *, seed: int, window_ns: float,
-        plot: str | Path | None = None) -> TraceResult:
+        plot: str | Path | None = None, sensor=None) -> TraceResult:
     """Trace one pulse through one scene and write its sigma(t) (and a plot).
 
     Parameters
@@ -140,6 +141,8 @@ def run(scene: SceneSpec, beam: BeamSpec, mcrt: MCRTSetup, out: str | Path, *, s
         Length of the sigma(t) window, ns of two-way time.
     plot : path, optional
         PNG of sigma(t) by order.
+    sensor : waveforest.sensor.reference.ReferenceSensor, optional
+        The sensor of the adaptive ray budget (``mcrt.tolerance``); None = ``mcrt.n_rays`` rays.
 
     Returns
     -------
@@ -154,7 +157,8 @@ def run(scene: SceneSpec, beam: BeamSpec, mcrt: MCRTSetup, out: str | Path, *, s
     loaded = scene.load(seed)
     try:
         beams = beam.beams()
-        result = trace_pulses(loaded, beams, seed=seed, window_ns=window_ns, by_order=True, **mcrt.kwargs())
+        budget = {} if sensor is None else mcrt.budget(sensor.system, sensor.noise_sd, beam.range_m)
+        result = trace_pulses(loaded, beams, seed=seed, window_ns=window_ns, by_order=True, **mcrt.kwargs(), **budget)
     except ValueError as exc:
         if isinstance(exc, WaveforestError):
             raise
@@ -163,7 +167,8 @@ def run(scene: SceneSpec, beam: BeamSpec, mcrt: MCRTSetup, out: str | Path, *, s
         "scene": scene.describe(),
         "sensor_xyz": beams.origin[0].tolist(), "dir_xyz": beams.direction[0].tolist(),
         "footprint_m": float(beams.footprint_m[0]), "range_m": float(beam.range_m),
-        "t0_ns": float(result.t0_ns[0]), "bin_ns": result.bin_ns, "n_rays": mcrt.n_rays,
+        "t0_ns": float(result.t0_ns[0]), "bin_ns": result.bin_ns, "n_rays": int(result.rays[0]),
+        "tolerance": mcrt.tolerance if budget else None,
         "max_order": mcrt.max_order, "seed": seed, "sampler": mcrt.sampler, "roulette": mcrt.roulette,
         "effects": dict(mcrt.effects),
         "order_totals": result.order_totals[0].tolist(), "sigma_dropped": float(result.sigma_dropped[0]),
@@ -192,26 +197,37 @@ def run(scene: SceneSpec, beam: BeamSpec, mcrt: MCRTSetup, out: str | Path, *, s
 @click.option("--target-x", type=float, default=0.0, show_default=True, help="Target point x, m (scene coordinates).")
 @click.option("--target-y", type=float, default=0.0, show_default=True, help="Target point y, m.")
 @click.option("--target-z", type=float, default=0.0, show_default=True, help="Target point z, m.")
-@click.option("--rays", type=click.IntRange(min=1), default=None, help="Rays per pulse (default: config mcrt.n_rays).")
+@click.option("--rays", type=click.IntRange(min=1), default=None,
+              help="A fixed number of rays per pulse (default: the adaptive budget of config mcrt.tolerance, "
+                   "or mcrt.n_rays if it is null).")
+@click.option("--tolerance", type=click.FloatRange(min=0, min_open=True), default=None,
+              help="Adaptive ray budget: trace until the recorded waveform's Monte Carlo SD is this fraction of "
+                   "the noise SD of the reference sensor (config sensitivity.reference_system) "
+                   "(default: config mcrt.tolerance).")
 @click.option("--orders", type=click.IntRange(min=1), default=None, help="Highest scattering order (default: config mcrt.max_order).")
 @click.option("--effect", "effects", multiple=True, metavar="NAME=VALUE",
               help="MCRT effect: specular=FRACTION or hotspot=FACTOR (repeatable).")
 @click.option("--plot", type=click.Path(dir_okay=False), default=None, help="PNG of sigma(t) by scattering order.")
 @stage_options
 def trace(scene, out, species, height, range_m, scan_zenith, azimuth, footprint, divergence,
-          target_x, target_y, target_z, rays, orders, effects, plot, cfg):
+          target_x, target_y, target_z, rays, tolerance, orders, effects, plot, cfg):
     """Trace one LiDAR pulse through SCENE (a PLY whose faces carry rho, tau, kind) -> sigma(t).
 
     Writes sigma(t) on the fine time grid (config mcrt.bin_ns) with its per-order split,
-    and optionally a plot. Example:
+    and optionally a plot. Rays: the adaptive budget of --tolerance (config mcrt.tolerance)
+    against the reference sensor, or --rays per pulse. Example:
 
       waveforest trace canopy.ply --out sigma.parquet --range 1200 --scan-zenith 10 --plot sigma.png
     """
 
     veg = cfg["vegetation"]
     mcrt = mcrt_setup(cfg, effects=mcrt_effects(list(effects)))
+    if rays is not None and tolerance is not None:
+        raise click.UsageError("give --rays or --tolerance, not both")
     if rays is not None:
-        mcrt = replace(mcrt, n_rays=rays)
+        mcrt = replace(mcrt, n_rays=rays, tolerance=None)
+    if tolerance is not None:
+        mcrt = replace(mcrt, tolerance=tolerance)
     if orders is not None:
         mcrt = replace(mcrt, max_order=orders)
     spec = SceneSpec(path=scene, species=species, height_m=height, ground_rho=veg["ground_rho"],
@@ -219,7 +235,8 @@ def trace(scene, out, species, height, range_m, scan_zenith, azimuth, footprint,
     beam = BeamSpec(target=(target_x, target_y, target_z), range_m=range_m, scan_zenith_deg=scan_zenith,
                     azimuth_deg=azimuth, footprint_m=footprint, divergence_mrad=divergence)
     t = time.perf_counter()
-    res = run(spec, beam, mcrt, out, seed=cfg["seed"], window_ns=cfg["mcrt"]["window_ns"], plot=plot)
+    sensor = None if mcrt.tolerance is None else reference_sensor(reference_system(cfg), range_m=range_m)
+    res = run(spec, beam, mcrt, out, seed=cfg["seed"], window_ns=cfg["mcrt"]["window_ns"], plot=plot, sensor=sensor)
     dt = time.perf_counter() - t
     o = res.order_totals[0]
     click.echo(
