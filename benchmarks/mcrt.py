@@ -172,8 +172,6 @@ METHODS = {
     "adaptive_0.33": dict(n_rays=16384, sampler="sobol", roulette=0.5, quality="medium", tolerance=1 / 3),
     "adaptive_0.25": dict(n_rays=16384, sampler="sobol", roulette=0.5, quality="medium", tolerance=0.25),
     "adaptive_0.2": dict(n_rays=16384, sampler="sobol", roulette=0.5, quality="medium", tolerance=0.2),
-    "sobol_rr_dark0.5_16k": dict(n_rays=16384, sampler="sobol", roulette=0.5, quality="medium", dark_survival=0.5),
-    "sobol_rr_dark0.25_16k": dict(n_rays=16384, sampler="sobol", roulette=0.5, quality="medium", dark_survival=0.25),
 }
 """Estimators of the error section: ``trace`` keywords, and the BVH quality a one-pulse
 instance gets (``quality``). ``random_30k`` was the default before ``sobol_rr_16k``;

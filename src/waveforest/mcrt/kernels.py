@@ -43,9 +43,8 @@ _TWO_M53 = 1.0 / 9007199254740992.0
 DRAWS_PER_ORDER = 8
 """Uniforms reserved per ray and scattering order (counter stride)."""
 
-SLOT_BRANCH, SLOT_LOBE, SLOT_DIR1, SLOT_DIR2, SLOT_DARK = 0, 1, 2, 3, 4
-"""Which uniform of a ray's order decides what: reflect/transmit, specular lobe, direction,
-the roulette of a ray from a vertex the receiver does not see (:func:`dark_roulette`)."""
+SLOT_BRANCH, SLOT_LOBE, SLOT_DIR1, SLOT_DIR2 = 0, 1, 2, 3
+"""Which uniform of a ray's order decides what: reflect/transmit, specular lobe, direction."""
 
 MISS_KIND = 4
 """Code of a miss in ``first_hit_counts`` (after the element kinds 0..3)."""
@@ -746,29 +745,6 @@ def _scatter(order, last, rays, tfar, prim, tri, frame, n_bins, bin_ns, viewed_d
                     o.value, o.bin, o.shadow_origin, o.shadow_direction, o.shadow_tmax,
                     o.origin, o.direction, o.power, o.path_m, o.alive, sampler, SOBOL_V, survive,
                     float(floor_power))
-
-
-@njit(cache=True, nogil=True)
-def _dark_roulette_kernel(order, alive, power, seen, beam, ray, key, q):
-    for i in range(alive.size):
-        if alive[i] and not seen[i]:
-            u = _uniform(_stream(key[beam[i]], ray[i]), order, SLOT_DARK)
-            if u >= q:
-                alive[i] = False
-            else:
-                power[i] = power[i] / q
-
-
-def dark_roulette(order: int, scattered: Scattered, rays: Rays, seen: np.ndarray, frame: BeamFrame,
-                  q: float) -> None:
-    """Russian roulette keyed to the receiver (in place): a next ray leaving a vertex whose
-    contribution the receiver does not see (outside the viewed cylinder, zero, or occluded;
-    ``seen`` False) continues with probability ``q`` and power / q (unbiased); ``q = 1`` = off.
-    Its uniform is the pseudo-random slot :data:`SLOT_DARK` of the ray's order."""
-    if q >= 1.0:
-        return
-    _dark_roulette_kernel(int(order), scattered.alive, scattered.power, np.ascontiguousarray(seen, np.bool_),
-                          rays.beam, rays.ray, np.ascontiguousarray(frame.key, np.uint64), float(q))
 
 
 @njit(cache=True, nogil=True)

@@ -59,7 +59,6 @@ from waveforest.mcrt.kernels import (
     accumulate,
     beam_keys,
     compact,
-    dark_roulette,
     emit_rays,
     scatter,
     take_rays,
@@ -321,8 +320,6 @@ class _ChunkSettings:
     roulette: float
     adaptive: _Adaptive | None = None
     """The adaptive budget (None: ``n_rays`` rays per pulse)."""
-    dark_survival: float = 1.0
-    """Continuation probability of a ray from a vertex the receiver does not see (:func:`.kernels.dark_roulette`)."""
 
     @property
     def layers(self) -> int:
@@ -370,10 +367,6 @@ def _wave(prepared: PreparedScene, frame: BeamFrame, footprint_m, range_m, plane
             counted = _visible(isect, out, counted, threads)
         accumulate(counted, rays.beam, out.value, out.bin, order, acc, dropped, totals, st.by_order)
         if order < st.max_order:
-            if st.dark_survival < 1.0:
-                seen = np.zeros(len(rays), np.bool_)
-                seen[counted] = True
-                dark_roulette(order, out, rays, seen, frame, st.dark_survival)
             rays = compact(out, rays, buffers)
     if first is None:
         first = np.zeros((nb, MISS_KIND + 1), np.int64)
@@ -548,7 +541,7 @@ def trace(scene: Scene | PreparedScene, beams: Beams, n_rays: int, max_order: in
           by_order: bool = False, chunk_rays: int = CHUNK_RAYS, threads: int | None = None,
           parallel: str = "pulses", progress: bool = False, survival=1.0, tolerance: float | None = None,
           min_rays: int = 1024, max_rays: int = 32768, kernel: np.ndarray | None = None,
-          noise=None, dark_survival: float = 1.0) -> TraceResult:
+          noise=None) -> TraceResult:
     """Forward Monte Carlo ray tracing of LiDAR pulses through a scene (docs/method.md §(d), Eq. 2).
 
     The ray budget: ``n_rays`` rays per pulse; or, with ``tolerance`` set, an adaptive budget
@@ -619,10 +612,6 @@ def trace(scene: Scene | PreparedScene, beams: Beams, n_rays: int, max_order: in
         The system pulse on the sigma grid (``bin_ns``), any units (adaptive budget only).
     noise : float or (n,) float64, optional
         Digitiser noise SD of each pulse in the units of ``kernel (x) sigma`` (adaptive budget only).
-    dark_survival : float
-        Roulette keyed to the receiver: a ray leaving a vertex whose contribution the receiver
-        does not see continues with this probability (power / it); 1 = off (docs/validation.md,
-        "MCRT ray budget").
 
     Returns
     -------
@@ -632,14 +621,11 @@ def trace(scene: Scene | PreparedScene, beams: Beams, n_rays: int, max_order: in
         raise TypeError(f"beams: expected waveforest.mcrt.Beams, got {type(beams).__name__}")
     _check(n_rays, max_order, bin_ns, viewed_diameter_m, window_ns, specular, hotspot, sampler, roulette)
     adaptive = _adaptive(tolerance, min_rays, max_rays, kernel, noise, len(beams))
-    if not 0 < dark_survival <= 1:
-        raise ValueError(f"dark_survival: expected a probability in (0, 1], got {dark_survival!r}")
     st = _ChunkSettings(
         key=master_key(seed), n_rays=int(n_rays), max_order=int(max_order), bin_ns=float(bin_ns),
         n_bins=int(math.ceil(window_ns / bin_ns - 1e-9)), viewed_diameter_m=float(viewed_diameter_m),
         specular=float(specular), hotspot=float(hotspot), by_order=by_order, sampler=sampler,
-        survive=survival_by_order(survival, max_order), roulette=float(roulette), adaptive=adaptive,
-        dark_survival=float(dark_survival))
+        survive=survival_by_order(survival, max_order), roulette=float(roulette), adaptive=adaptive)
     planned = st.n_rays if adaptive is None else max(adaptive.min_rays, int(chunk_rays) // ADAPTIVE_CHUNK_PULSES)
     if isinstance(scene, PreparedScene):
         prepared = scene
