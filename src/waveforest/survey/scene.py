@@ -1,0 +1,245 @@
+"""The survey's scene: meshes (PLY, OBJ + MTL), plants as instances of prototypes, ground.
+
+A plant ``(species, x, y, z, height, seed, rotation)`` is a copy of the prototype built by
+:func:`waveforest.vegetation.build` (no ground) at the height rounded to ``height_step_m``
+and the seed ``seed % prototype_seeds``: a bounded set of prototypes, each built and given
+its BVH once (:func:`waveforest.mcrt.prepare_prototypes`), copied by transform only.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from waveforest.constants import KIND_GROUND
+from waveforest.errors import WaveforestError
+from waveforest.scene import Scene, SceneError, read_ply
+from waveforest.survey.spec import SCENE_SCHEMA, SurveyError, read_document
+from waveforest.vegetation import build
+
+KINDS = {"ground": 0, "leaf": 1, "wood": 2, "other": 3}
+
+
+@dataclass(frozen=True)
+class Plants:
+    """Plant copies: ``prototypes[which[j]]`` rotated by ``rotation[j]`` and moved by ``translation[j]``."""
+
+    prototypes: tuple[Scene, ...]
+    labels: tuple[str, ...]
+    which: np.ndarray          # (k,) int64
+    rotation: np.ndarray       # (k, 3, 3)
+    translation: np.ndarray    # (k, 3) m
+    box: np.ndarray            # (k, 2, 3) world bounding box of each copy
+
+    def __len__(self) -> int:
+        return len(self.which)
+
+
+@dataclass(frozen=True)
+class SurveyScene:
+    """Static triangles (meshes and ground) and plant instances."""
+
+    static: Scene | None
+    plants: Plants | None
+    bounds: np.ndarray         # (2, 3) m, everything
+
+    @property
+    def n_triangles(self) -> int:
+        n = 0 if self.static is None else len(self.static)
+        if self.plants is not None:
+            n += int(sum(len(self.plants.prototypes[w]) for w in self.plants.which))
+        return n
+
+
+def rotation_z(deg) -> np.ndarray:
+    """(k, 3, 3) rotations about z by ``deg`` degrees (counter-clockwise)."""
+    a = np.radians(np.atleast_1d(np.asarray(deg, np.float64)))
+    c, s = np.cos(a), np.sin(a)
+    r = np.zeros((len(a), 3, 3))
+    r[:, 0, 0], r[:, 0, 1], r[:, 1, 0], r[:, 1, 1], r[:, 2, 2] = c, -s, s, c, 1.0
+    return r
+
+
+def read_obj(path: Path, materials: dict, source: str) -> Scene:
+    """Triangles of an OBJ (polygons fanned) with each face's material's rho, tau, kind.
+
+    ``materials`` (SCENE.yaml) override the MTL; an MTL material gives rho by
+    ``helios_reflectance`` (HELIOS++'s key). A face whose material has neither is an error.
+    """
+    try:
+        text = path.read_text(errors="replace")
+    except OSError as exc:
+        raise SurveyError(f"{source}: {path}: cannot read ({exc.strerror or exc})") from None
+    mtl: dict[str, float] = {}
+    verts, faces, face_mat = [], [], []
+    current = None
+    for line in text.splitlines():
+        head, _, rest = line.strip().partition(" ")
+        if head == "v":
+            verts.append(rest.split()[:3])
+        elif head == "f":
+            idx = [int(tok.split("/")[0]) for tok in rest.split()]
+            for k in range(1, len(idx) - 1):
+                faces.append((idx[0], idx[k], idx[k + 1]))
+                face_mat.append(current)
+        elif head == "usemtl":
+            current = rest.strip()
+        elif head == "mtllib":
+            mtl.update(_read_mtl(path.parent / rest.strip()))
+    if not faces:
+        raise SurveyError(f"{source}: {path}: no faces (expected an OBJ with f lines)")
+    try:
+        xyz = np.asarray(verts, dtype=np.float64)
+    except ValueError:
+        raise SurveyError(f"{source}: {path}: a vertex line is not three numbers") from None
+    if not np.all(np.isfinite(xyz)):
+        raise SurveyError(f"{source}: {path}: non-finite vertex coordinates")
+    idx = np.asarray(faces, dtype=np.int64)
+    idx = np.where(idx < 0, len(xyz) + idx, idx - 1)
+    if idx.min() < 0 or idx.max() >= len(xyz):
+        raise SurveyError(f"{source}: {path}: face vertex index out of range (1..{len(xyz)})")
+    names = sorted({m for m in face_mat}, key=str)
+    props = {}
+    for m in names:
+        if m in materials:
+            p = materials[m]
+            rho, tau = float(p["rho"]), float(p.get("tau", 0.0))
+            if rho + tau > 1.0 + 1e-9:
+                raise SurveyError(f"{source}: materials/{m}: expected rho + tau <= 1, got {rho + tau:g}")
+            props[m] = (rho, tau, KINDS[p.get("kind", "other")])
+        elif m in mtl:
+            props[m] = (mtl[m], 0.0, KINDS["other"])
+        else:
+            raise SurveyError(f"{source}: {path}: material {m!r} has no optical properties (expected "
+                              f"objects/materials/{m}/rho in the scene file or helios_reflectance in its MTL)")
+    table = np.array([props[m] for m in face_mat], dtype=np.float64)
+    return Scene(xyz[idx].astype(np.float32), table[:, 0], table[:, 1], table[:, 2].astype(np.uint8))
+
+
+def _read_mtl(path: Path) -> dict[str, float]:
+    """name -> helios_reflectance of an MTL file (materials without it are left out)."""
+    out, name = {}, None
+    if not path.exists():
+        return out
+    for line in path.read_text(errors="replace").splitlines():
+        head, _, rest = line.strip().partition(" ")
+        if head == "newmtl":
+            name = rest.strip()
+        elif head == "helios_reflectance" and name is not None:
+            out[name] = float(rest.split()[0])
+    return out
+
+
+def read_mesh(path: Path, materials: dict, source: str) -> Scene:
+    """A PLY (rho, tau, kind per face) or OBJ + MTL mesh; SurveyError naming the file."""
+    if not path.exists():
+        raise SurveyError(f"{source}: {path}: no such file")
+    if path.suffix.lower() == ".obj":
+        return read_obj(path, materials, source)
+    try:
+        return read_ply(path)
+    except SceneError as exc:
+        raise SurveyError(f"{source}: {exc}") from None
+
+
+def _place(scene: Scene, scale: float, rotate_deg: float, translate) -> Scene:
+    r = rotation_z(rotate_deg)[0]
+    tri = (scene.triangles.astype(np.float64) * scale) @ r.T + np.asarray(translate, np.float64)
+    return Scene(tri.astype(np.float32), scene.rho, scene.tau, scene.kind)
+
+
+def plant_table(path: Path, source: str) -> pd.DataFrame:
+    """The plant CSV: species, x, y, height, seed (+ z, rotation_deg, default 0)."""
+    if not path.exists():
+        raise SurveyError(f"{source}: plants/table: {path}: no such file")
+    try:
+        df = pd.read_csv(path)
+    except Exception as exc:  # pandas raises several types on malformed CSV
+        raise SurveyError(f"{source}: plants/table: {path}: not a readable CSV ({exc})") from None
+    missing = [c for c in ("species", "x", "y", "height", "seed") if c not in df.columns]
+    if missing:
+        raise SurveyError(f"{path}: missing column(s) {', '.join(missing)} (expected species, x, y, height, seed)")
+    for c in ("z", "rotation_deg"):
+        if c not in df.columns:
+            df[c] = 0.0
+    for c in ("x", "y", "z", "height", "rotation_deg"):
+        v = pd.to_numeric(df[c], errors="coerce").to_numpy(np.float64)
+        if not np.all(np.isfinite(v)):
+            raise SurveyError(f"{path}: column {c}, row {int(np.flatnonzero(~np.isfinite(v))[0]) + 2}: "
+                              "expected a finite number")
+        df[c] = v
+    return df
+
+
+def _plants(df: pd.DataFrame, seeds: int, step: float, source: str) -> Plants:
+    h = np.maximum(step, np.round(df["height"].to_numpy() / step) * step)
+    s = df["seed"].to_numpy(np.int64) % seeds
+    keys = list(zip(df["species"].astype(str), h.round(6), s))
+    uniq = sorted(set(keys))
+    index = {k: i for i, k in enumerate(uniq)}
+    protos = []
+    for sp, hh, ss in uniq:
+        try:
+            protos.append(build(sp, float(hh), int(ss), ground=False).scene)
+        except WaveforestError as exc:
+            raise SurveyError(f"{source}: plants/table: {exc}") from None
+    which = np.array([index[k] for k in keys], np.int64)
+    rot = rotation_z(df["rotation_deg"].to_numpy())
+    t = df[["x", "y", "z"]].to_numpy(np.float64)
+    pb = np.stack([p.bounds for p in protos])[which]                    # (k, 2, 3) local
+    corners = np.stack([pb[:, [i, j, c], [0, 1, 2]] for i in (0, 1) for j in (0, 1) for c in (0, 1)], axis=1)
+    placed = np.einsum("kab,kcb->kca", rot, corners) + t[:, None, :]
+    box = np.stack([placed.min(axis=1), placed.max(axis=1)], axis=1)
+    return Plants(tuple(protos), tuple(f"{a} {b:g} m seed {c}" for a, b, c in uniq), which, rot, t, box)
+
+
+def load_scene(path: str | Path) -> SurveyScene:
+    """Read SCENE.yaml and everything it names (SurveyError: file, field, what was expected)."""
+    path = Path(path)
+    doc = read_document(path, SCENE_SCHEMA)
+    base, src = path.parent, str(path)
+    parts = []
+    for i, o in enumerate(doc["objects"]):
+        mesh = read_mesh(base / o["file"], o["materials"], f"{src}: objects/{i}")
+        parts.append(_place(mesh, float(o["scale"]), float(o["rotate_deg"]), o["translate"]))
+    pl = doc["plants"]
+    plants = None
+    if pl["table"] is not None:
+        df = plant_table(base / pl["table"], src)
+        if len(df):
+            plants = _plants(df, int(pl["prototype_seeds"]), float(pl["height_step_m"]), src)
+    g = doc["ground"]
+    if g["type"] == "mesh":
+        if g["file"] is None:
+            raise SurveyError(f"{src}: ground/file: expected a mesh file for ground type mesh")
+        parts.append(read_mesh(base / g["file"], {}, f"{src}: ground"))
+    plant_box = [] if plants is None else [np.stack([plants.box[:, 0].min(axis=0), plants.box[:, 1].max(axis=0)])]
+    boxes = [p.bounds for p in parts] + plant_box
+    if g["type"] == "plane":
+        if g["extent"] is not None:
+            x0, y0, x1, y1 = map(float, g["extent"])
+        elif boxes:
+            lo = np.min([b[0] for b in boxes], axis=0)
+            hi = np.max([b[1] for b in boxes], axis=0)
+            m = float(g["margin_m"])
+            x0, y0, x1, y1 = lo[0] - m, lo[1] - m, hi[0] + m, hi[1] + m
+        else:
+            raise SurveyError(f"{src}: ground/extent: expected an extent for a ground plane with no objects or plants")
+        if not (x1 > x0 and y1 > y0):
+            raise SurveyError(f"{src}: ground/extent: expected xmin < xmax and ymin < ymax")
+        parts.append(ground_plane(x0, y0, x1, y1, float(g["z"]), float(g["rho"])))
+    static = Scene.concat(parts) if parts else None
+    if static is None and plants is None:
+        raise SurveyError(f"{src}: the scene is empty (expected objects, plants or a ground)")
+    allb = ([static.bounds] if static is not None else []) + plant_box
+    bounds = np.stack([np.min([b[0] for b in allb], axis=0), np.max([b[1] for b in allb], axis=0)])
+    return SurveyScene(static, plants, bounds)
+
+
+def ground_plane(x0: float, y0: float, x1: float, y1: float, z: float, rho: float) -> Scene:
+    """Two upward-facing triangles covering [x0, x1] x [y0, y1] at height z."""
+    a, b, c, d = (x0, y0, z), (x1, y0, z), (x1, y1, z), (x0, y1, z)
+    return Scene(np.array([[a, b, c], [a, c, d]], np.float32), rho, 0.0, KIND_GROUND)
