@@ -34,7 +34,6 @@ from waveforest.mcrt import Beams, Prototypes, prepare, prepare_instances, prepa
 from waveforest.mcrt.tracer import T0_LEAD_NS, bvh_quality
 from waveforest.model.forward import MCRTSetup, SensorSettings, SensorSetup, SimPulses, render_sigma
 from waveforest.rng import named_generator
-from waveforest.scene import Scene
 from waveforest.sensor import CFDParams, gaussian_system_waveform, load_system_waveform
 from waveforest.survey.scan import Pulses, axis_hits_box, fly, leg_tracks
 from waveforest.survey.scene import SurveyScene
