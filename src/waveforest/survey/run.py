@@ -62,7 +62,9 @@ def run_tiles(scene: SurveyScene, scene_path: Path, survey: Survey, mcrt: MCRTSe
 
         bar = tqdm(total=int(counts[todo].sum()), initial=int(counts[todo].sum() - counts[missing].sum()),
                    unit="pulse", desc="survey", smoothing=0.1)
+    cpu = time.process_time()
     scenes = TileScenes(scene, survey, mcrt.viewed_diameter_m) if missing else None
+    prepare_s = time.process_time() - cpu
     try:
         for k in missing:
             res = run_tile(k, pl, scenes, survey, mcrt, setup, cache / f"tile_{k:06d}.parquet", threads, bar)
@@ -71,10 +73,13 @@ def run_tiles(scene: SurveyScene, scene_path: Path, survey: Survey, mcrt: MCRTSe
     finally:
         if bar is not None:
             bar.close()
+    if missing:  # the prototypes' build and BVHs of this run (a resumed run builds them anew)
+        with atomic_path(cache / f"build_{part[0]}_{part[1]}.json") as tmp:
+            tmp.write_text(json.dumps({"prototype_build_s": scene.build_s + prepare_s}))
     return pl, cache
 
 
-def merge(pl: Plan, cache: Path, survey: Survey, out_dir: Path, *, force: bool = False,
+def merge(pl: Plan, cache: Path, scene: SurveyScene, survey: Survey, out_dir: Path, *, force: bool = False,
           wall_s: float = 0.0, mcrt: MCRTSetup) -> dict:
     """Write DIR from the cached tiles (all must be there); return the summary."""
     folder = OutputFolder(out_dir, COMMAND, force=force)
@@ -111,7 +116,10 @@ def merge(pl: Plan, cache: Path, survey: Survey, out_dir: Path, *, force: bool =
             finally:
                 if writer is not None:
                     writer.close()
+        builds = [json.loads(f.read_text())["prototype_build_s"] for f in sorted(cache.glob("build_*.json"))]
         out = summary(pl, results, wall_s, peak_memory_mb(), mcrt)
+        out["prototypes"] = 0 if scene.plants is None else len(scene.plants.prototypes)
+        out["prototype_build_s"] = float(sum(builds))
         write_summary(out, tmp / "summary.json")
     shutil.rmtree(cache, ignore_errors=True)
     return out
@@ -127,4 +135,4 @@ def run_survey(scene: SurveyScene, scene_path: Path, survey: Survey, mcrt: MCRTS
                           threads=threads, progress=progress)
     if part is not None:
         return None
-    return merge(pl, cache, survey, out_dir, force=force, wall_s=time.perf_counter() - t0, mcrt=mcrt)
+    return merge(pl, cache, scene, survey, out_dir, force=force, wall_s=time.perf_counter() - t0, mcrt=mcrt)

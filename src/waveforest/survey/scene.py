@@ -8,6 +8,7 @@ its BVH once (:func:`waveforest.mcrt.prepare_prototypes`), copied by transform o
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -45,6 +46,7 @@ class SurveyScene:
     static: Scene | None
     plants: Plants | None
     bounds: np.ndarray         # (2, 3) m, everything
+    build_s: float = 0.0       # CPU time spent building the plant prototypes, s
 
     @property
     def n_triangles(self) -> int:
@@ -206,11 +208,13 @@ def load_scene(path: str | Path) -> SurveyScene:
         mesh = read_mesh(base / o["file"], o["materials"], f"{src}: objects/{i}")
         parts.append(_place(mesh, float(o["scale"]), float(o["rotate_deg"]), o["translate"]))
     pl = doc["plants"]
-    plants = None
+    plants, build_s = None, 0.0
     if pl["table"] is not None:
         df = plant_table(base / pl["table"], src)
         if len(df):
+            cpu = time.process_time()
             plants = _plants(df, int(pl["prototype_seeds"]), float(pl["height_step_m"]), src)
+            build_s = time.process_time() - cpu
     g = doc["ground"]
     if g["type"] == "mesh":
         if g["file"] is None:
@@ -236,7 +240,7 @@ def load_scene(path: str | Path) -> SurveyScene:
         raise SurveyError(f"{src}: the scene is empty (expected objects, plants or a ground)")
     allb = ([static.bounds] if static is not None else []) + plant_box
     bounds = np.stack([np.min([b[0] for b in allb], axis=0), np.max([b[1] for b in allb], axis=0)])
-    return SurveyScene(static, plants, bounds)
+    return SurveyScene(static, plants, bounds, build_s)
 
 
 def ground_plane(x0: float, y0: float, x1: float, y1: float, z: float, rho: float) -> Scene:
