@@ -10,6 +10,10 @@ back from the LAS; ``name: value unit``):
 * ``step_upper_share_error_pct``, ``step_echo_range_error_cm``: the plateau's share of sigma
   against Phi(x0 / sd); both discrete returns against the plateau and the ground.
 
+Memory of the 1-ha stand (``--memory-only``): the whole scene (every prototype built and
+given its BVH) and the tile in the middle of the stand given its BVH, without tracing:
+``memory_prototypes``, ``memory_tile_triangles``, ``memory_peak_mb``.
+
 Stand (``--area-ha``, default 0.01 ha; ``--full`` = 1 ha): mixed birch, raspberry and fireweed
 (birches 4-12 m one per 25 m^2, raspberry and fireweed plots of 6 m on a 6-m grid), flat
 ground; one leg with the als60 preset slowed to 5 pulses/m^2; default quality (the config's
@@ -18,7 +22,7 @@ mcrt section) unless ``--rays``/``--orders``. Figures: ``stand_pulses``,
 ``stand_1ha_minutes_2_cores`` (CPU per pulse x 50,000 pulses / 2 cores, plus the prototype
 build), ``stand_pulses_per_s``.
 
-    python benchmarks/survey.py [--area-ha 0.01] [--rays N] [--orders K] [--full] [--no-physics]
+    python benchmarks/survey.py [--area-ha 0.01] [--rays N] [--orders K] [--full] [--no-physics] [--memory-only]
 """
 
 from __future__ import annotations
@@ -35,7 +39,7 @@ import numpy as np
 import pyarrow.parquet as pq
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # the test fixtures live in tests/fixtures
-from fixtures.survey import (  # noqa: E402
+from fixtures.survey import (
     FWHM_PER_SD,
     fly,
     gaussian_energy,
@@ -44,9 +48,14 @@ from fixtures.survey import (  # noqa: E402
     waveform_energy,
     write_obj,
 )
-from scipy.special import erf  # noqa: E402
+from scipy.special import erf
 
-from waveforest.constants import C_M_PER_NS, RANGE_PER_NS  # noqa: E402
+from waveforest import config
+from waveforest.constants import C_M_PER_NS, RANGE_PER_NS
+from waveforest.settings import mcrt_setup, reference_system, sensor_settings
+from waveforest.survey import load_scene, load_survey, survey_mcrt
+from waveforest.survey.engine import TileScenes
+from waveforest.survey.run import peak_memory_mb
 
 QUIET = {"pulse_rate_hz": 50.0, "scan_frequency_hz": 1.7, "bits": 16, "noise_sd": 0.01}
 
@@ -157,6 +166,35 @@ def stand(tmp: Path, area_ha: float, rays, orders) -> None:
     print(f"stand_1ha_minutes_2_cores: {minutes:.1f} min")
 
 
+def stand_memory(tmp: Path, area_ha: float) -> None:
+    """Peak memory of a stand's scene without tracing: every prototype built and prepared, and
+    the tile with the most plant copies given its BVH (the survey holds one tile at a time)."""
+    side = math.sqrt(area_ha * 1e4)
+    stand_files(tmp, side)
+    (tmp / "SCENE.yaml").write_text(
+        "plants: {table: plants.csv}\nground: {type: plane, z: 0.0, rho: 0.3, margin_m: 0.0}\n")
+    cfg = config.load(None)
+    t = time.process_time()
+    scene = load_scene(tmp / "SCENE.yaml")
+    (tmp / "SURVEY.yaml").write_text(f"platform: {{legs: [{{start: [0, {-side / 2}], end: [0, {side / 2}]}}]}}\n")
+    sv = load_survey(tmp / "SURVEY.yaml", sensor_settings(cfg), reference_system(cfg))
+    mcrt = survey_mcrt(mcrt_setup(cfg), sv)
+    tiles = TileScenes(scene, sv, mcrt.viewed_diameter_m)
+    build_s = time.process_time() - t
+    lo = scene.bounds[0, :2]
+    centre = lo + sv.tile_m * np.floor((np.array([0.0, 0.0]) - lo) / sv.tile_m)
+    t = time.process_time()
+    prepared = tiles.build(centre, 1000, mcrt.n_rays)
+    print(f"memory_area_ha: {area_ha:g} ha")
+    print(f"memory_plants: {len(scene.plants)} plants")
+    print(f"memory_prototypes: {len(scene.plants.prototypes)} prototypes")
+    print(f"memory_prototype_triangles: {sum(len(p) for p in scene.plants.prototypes)} triangles")
+    print(f"memory_prototype_build_s: {build_s:.1f} s")
+    print(f"memory_tile_triangles: {len(prepared)} triangles")
+    print(f"memory_tile_build_s: {time.process_time() - t:.1f} s")
+    print(f"memory_peak_mb: {peak_memory_mb():.0f} MB")
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--area-ha", type=float, default=0.01, help="stand area, ha (default 0.01)")
@@ -165,9 +203,15 @@ def main(argv=None) -> None:
     ap.add_argument("--orders", type=int, default=None, help="highest order (default: the config's)")
     ap.add_argument("--no-physics", action="store_true", help="only the stand")
     ap.add_argument("--no-stand", action="store_true", help="only the physics")
+    ap.add_argument("--memory-only", action="store_true",
+                    help="only the scene of a 1-ha stand (--area-ha to change): prototypes and the largest tile, "
+                         "no tracing; peak memory")
     a = ap.parse_args(argv)
     with tempfile.TemporaryDirectory(prefix="survey_bench_") as tmp:
         tmp = Path(tmp)
+        if a.memory_only:
+            stand_memory(tmp, 1.0 if a.area_ha == 0.01 else a.area_ha)
+            return
         if not a.no_stand:  # first: the process's peak memory is the stand's
             (tmp / "stand").mkdir()
             stand(tmp / "stand", 1.0 if a.full else a.area_ha, a.rays, a.orders)
