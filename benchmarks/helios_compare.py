@@ -170,7 +170,7 @@ def run_waveforest(d: Path, obj: Path, rays: int, orders: int, length: float):
     sc = load_scene(d / "SCENE.yaml")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        res = run_survey(sc, d / "SCENE.yaml", sv, survey_mcrt(mcrt_setup(cfg), sv), sensor_setup(sv, sensor),
+        res = run_survey(sc, sv, survey_mcrt(mcrt_setup(cfg), sv), sensor_setup(sv, sensor),
                          d / f"out{orders}", threads=1)
     pulses = plan(sc, sv).pulses
     origins, energy, centroid = [], [], []

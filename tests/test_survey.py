@@ -13,8 +13,11 @@ import pytest
 import yaml
 from fixtures.survey import fly, tilted_plane, write_obj
 
+from waveforest import config
 from waveforest.cli import main
-from waveforest.survey import SurveyError, load_scene
+from waveforest.settings import mcrt_setup, reference_system, sensor_settings
+from waveforest.survey import SurveyError, load_scene, load_survey, survey_mcrt
+from waveforest.survey.engine import run_key
 from waveforest.survey.run import cache_folder
 
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
@@ -147,3 +150,18 @@ def test_plants_are_instances_of_a_bounded_set_of_prototypes(tmp_path):
     (tmp_path / "plants.csv").write_text("species,x,y,height,seed\nbirch,0,0,nan,1\n")
     with pytest.raises(SurveyError, match="column height, row 2: expected a finite number"):
         load_scene(tmp_path / "SCENE.yaml")
+
+
+def test_the_cache_key_follows_the_scene_content(tmp_path):
+    """Tiles of an earlier run are reused only for the same triangles, properties and plants."""
+    sc, sv_path = _files(tmp_path)
+    cfg = config.load(None)
+    sv = load_survey(sv_path, sensor_settings(cfg), reference_system(cfg))
+    mcrt = survey_mcrt(mcrt_setup(cfg), sv)
+    key = run_key(load_scene(sc), sv, mcrt, "")
+    assert run_key(load_scene(sc), sv, mcrt, "") == key
+    _files(tmp_path, scene={**PLANE, "objects": [{"file": "plane.obj", "materials": {"m": {"rho": 0.5}}}]})
+    assert run_key(load_scene(sc), sv, mcrt, "") != key
+    _files(tmp_path)
+    write_obj(tmp_path / "plane.obj", tilted_plane(20.0, 2.0))
+    assert run_key(load_scene(sc), sv, mcrt, "") != key

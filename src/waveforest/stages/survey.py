@@ -48,7 +48,7 @@ def survey(scene_file, survey_file, out, part, progress, force, cfg):
     scene = load_scene(scene_file)
     mcrt = survey_mcrt(mcrt_setup(cfg), sv)
     setup = sensor_setup(sv, sensor)
-    result = run_survey(scene, scene_file, sv, mcrt, setup, out, force=force, progress=progress,
+    result = run_survey(scene, sv, mcrt, setup, out, force=force, progress=progress,
                         part=_part(part))
     if result is None:
         click.echo(f"part {part}: tiles traced (run without --part to merge into {out})")

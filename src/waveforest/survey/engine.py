@@ -269,11 +269,20 @@ def _empty_sim() -> SimPulses:
                      np.zeros((0, 4)), np.zeros(0, np.int16), z, np.zeros((0, 5), np.int64))
 
 
-def run_key(survey: Survey, scene_path: Path, mcrt: MCRTSetup, setup_text: str) -> str:
-    """A hash of everything the tile files depend on (inputs' bytes and the settings)."""
+def run_key(scene: SurveyScene, survey: Survey, mcrt: MCRTSetup, setup_text: str) -> str:
+    """A hash of everything the tile files depend on: the scene's triangles and plant copies,
+    the survey (its trajectory and S(t) files' bytes) and the settings."""
     h = hashlib.sha256()
-    for path in (scene_path, survey.source):
-        h.update(Path(path).read_bytes())
+    if scene.static is not None:
+        for a in (scene.static.triangles, scene.static.rho, scene.static.tau, scene.static.kind):
+            h.update(np.ascontiguousarray(a).tobytes())
+    if scene.plants is not None:
+        h.update(repr(scene.plants.labels).encode())
+        for a in (scene.plants.which, scene.plants.rotation, scene.plants.translation):
+            h.update(np.ascontiguousarray(a).tobytes())
+    for path in (survey.trajectory, survey.scanner.system_waveform):
+        if path is not None:
+            h.update(Path(path).read_bytes())
     h.update(repr((replace(survey, source=Path(survey.source).name), mcrt, setup_text)).encode())
     return h.hexdigest()[:16]
 

@@ -46,12 +46,12 @@ def peak_memory_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def run_tiles(scene: SurveyScene, scene_path: Path, survey: Survey, mcrt: MCRTSetup, setup: SensorSetup,
+def run_tiles(scene: SurveyScene, survey: Survey, mcrt: MCRTSetup, setup: SensorSetup,
               out_dir: Path, *, part: tuple[int, int] = (0, 1), threads: int | None = None,
               progress: bool = False) -> tuple[Plan, Path]:
     """Trace every tile of part ``part = (i, n)`` (tiles ``k`` with ``k % n == i``) not yet in the cache."""
     pl = plan(scene, survey)
-    cache = cache_folder(out_dir, run_key(survey, scene_path, mcrt, repr(setup)))
+    cache = cache_folder(out_dir, run_key(scene, survey, mcrt, repr(setup)))
     cache.mkdir(parents=True, exist_ok=True)
     todo = [k for k in range(len(pl.tiles)) if k % part[1] == part[0]]
     counts = np.bincount(np.searchsorted(pl.tiles, pl.tile), minlength=len(pl.tiles))
@@ -125,13 +125,13 @@ def merge(pl: Plan, cache: Path, scene: SurveyScene, survey: Survey, out_dir: Pa
     return out
 
 
-def run_survey(scene: SurveyScene, scene_path: Path, survey: Survey, mcrt: MCRTSetup, setup: SensorSetup,
+def run_survey(scene: SurveyScene, survey: Survey, mcrt: MCRTSetup, setup: SensorSetup,
                out_dir: Path, *, force: bool = False, threads: int | None = None, progress: bool = False,
                part: tuple[int, int] | None = None) -> dict | None:
     """Trace (resuming) and merge; with ``part`` only that part's tiles are traced (no merge, None)."""
     OutputFolder(out_dir, COMMAND, force=force)  # refuse a foreign folder before any work
     t0 = time.perf_counter()
-    pl, cache = run_tiles(scene, scene_path, survey, mcrt, setup, out_dir, part=part or (0, 1),
+    pl, cache = run_tiles(scene, survey, mcrt, setup, out_dir, part=part or (0, 1),
                           threads=threads, progress=progress)
     if part is not None:
         return None
