@@ -165,3 +165,20 @@ def test_the_cache_key_follows_the_scene_content(tmp_path):
     _files(tmp_path)
     write_obj(tmp_path / "plane.obj", tilted_plane(20.0, 2.0))
     assert run_key(load_scene(sc), sv, mcrt, "") != key
+
+
+def test_a_full_disk_is_one_line_and_keeps_no_output(tmp_path, capsys, monkeypatch):
+    """An OSError while writing (ENOSPC here) ends in one line; no output folder is left."""
+    import errno
+
+    import pyarrow.parquet as pq
+
+    def full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device", str(tmp_path / "x.parquet"))
+
+    monkeypatch.setattr(pq, "write_table", full)
+    sc, sv = _files(tmp_path)
+    code, lines = _run(["survey", sc, sv, "--out", tmp_path / "out", "--no-progress"], capsys)
+    assert code == 1 and len(lines) == 1 and "No space left on device" in lines[0], lines
+    assert "tiles completed so far are kept" in lines[0]
+    assert not (tmp_path / "out").exists()

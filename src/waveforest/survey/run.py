@@ -131,8 +131,16 @@ def run_survey(scene: SurveyScene, survey: Survey, mcrt: MCRTSetup, setup: Senso
     """Trace (resuming) and merge; with ``part`` only that part's tiles are traced (no merge, None)."""
     OutputFolder(out_dir, COMMAND, force=force)  # refuse a foreign folder before any work
     t0 = time.perf_counter()
-    pl, cache = run_tiles(scene, survey, mcrt, setup, out_dir, part=part or (0, 1),
-                          threads=threads, progress=progress)
+    try:
+        pl, cache = run_tiles(scene, survey, mcrt, setup, out_dir, part=part or (0, 1),
+                              threads=threads, progress=progress)
+    except OSError as exc:  # e.g. a full disk: the completed tiles stay for the next run
+        raise SurveyError(f"{exc.filename or out_dir}: cannot write a tile ({exc.strerror or exc}); "
+                          "the tiles completed so far are kept for a rerun") from None
     if part is not None:
         return None
-    return merge(pl, cache, scene, survey, out_dir, force=force, wall_s=time.perf_counter() - t0, mcrt=mcrt)
+    try:
+        return merge(pl, cache, scene, survey, out_dir, force=force, wall_s=time.perf_counter() - t0, mcrt=mcrt)
+    except OSError as exc:
+        raise SurveyError(f"{exc.filename or out_dir}: cannot write the survey ({exc.strerror or exc}); "
+                          "nothing was written to the output folder") from None
