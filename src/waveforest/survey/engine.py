@@ -30,6 +30,7 @@ import pyarrow.parquet as pq
 
 from waveforest.atomic import atomic_path
 from waveforest.constants import C_M_PER_NS, RANGE_PER_NS
+from waveforest.io.pulses import padded_to_list
 from waveforest.mcrt import Beams, Prototypes, prepare, prepare_instances, prepare_prototypes, trace
 from waveforest.mcrt.tracer import T0_LEAD_NS, bvh_quality
 from waveforest.model.forward import MCRTSetup, SensorSettings, SensorSetup, SimPulses, render_sigma
@@ -164,12 +165,6 @@ def window_ns(prepared, origin: np.ndarray, direction: np.ndarray) -> float:
     return 2.0 * span / C_M_PER_NS + T0_LEAD_NS + MULTIPLE_SCATTERING_NS
 
 
-def _lists(values: list[np.ndarray], typ) -> pa.Array:
-    offsets = np.concatenate([[0], np.cumsum([len(v) for v in values])]).astype(np.int32)
-    flat = np.concatenate(values) if values else np.zeros(0)
-    return pa.ListArray.from_arrays(pa.array(offsets), pa.array(flat, type=typ))
-
-
 def pulse_table(p: Pulses, pulse_id: np.ndarray, sim, range_m: np.ndarray) -> pa.Table:
     """The pulses with at least one discrete return as a pulse table (io/pulses.py schema)."""
     keep = np.flatnonzero(sim.n_echoes > 0)
@@ -177,45 +172,47 @@ def pulse_table(p: Pulses, pulse_id: np.ndarray, sim, range_m: np.ndarray) -> pa
     first = sim.first_sample_ns[keep]
     anchor = o + d * (first * RANGE_PER_NS)[:, None]
     n_e = sim.n_echoes[keep].astype(np.int64)
-    et = [sim.echo_times_ns[i, :k] for i, k in zip(keep, n_e)]
-    amp = [sim.echo_amplitudes[i, :k].astype(np.float32) for i, k in zip(keep, n_e)]
-    exyz = [anchor[j][None, :] + d[j][None, :] * (et[j] * RANGE_PER_NS)[:, None] for j in range(len(keep))]
-    samples = [sim.samples[i, :sim.lengths[i]] for i in keep]
-    first_range = np.array([e[0] for e in et]) if len(keep) else np.zeros(0)
+    et = np.nan_to_num(sim.echo_times_ns[keep])
+    exyz = anchor[:, None, :] + d[:, None, :] * (et * RANGE_PER_NS)[:, :, None]  # (k, 4, 3)
+    n = len(keep)
     cols = {
-        "dataset": pa.array([DATASET] * len(keep)), "pulse_id": pa.array(pulse_id[keep], pa.int64()),
-        "source": pa.array(["sim"] * len(keep)), "gps_time": pa.array(p.gps_time[keep]),
+        "dataset": pa.array([DATASET] * n), "pulse_id": pa.array(pulse_id[keep], pa.int64()),
+        "source": pa.array(["sim"] * n), "gps_time": pa.array(p.gps_time[keep]),
         "sensor_x": pa.array(o[:, 0]), "sensor_y": pa.array(o[:, 1]), "sensor_z": pa.array(o[:, 2]),
         "dir_x": pa.array(d[:, 0]), "dir_y": pa.array(d[:, 1]), "dir_z": pa.array(d[:, 2]),
         "anchor_x": pa.array(anchor[:, 0]), "anchor_y": pa.array(anchor[:, 1]), "anchor_z": pa.array(anchor[:, 2]),
-        "range_m": pa.array((first + first_range) * RANGE_PER_NS),
-        "scan_angle_deg": pa.array(p.scan_angle_deg[keep]), "agc": pa.array(np.full(len(keep), np.nan)),
-        "sampling_ns": pa.array(np.full(len(keep), sim.sampling_ns)),
-        "digitizer_gain": pa.array(np.ones(len(keep))), "digitizer_offset": pa.array(np.zeros(len(keep))),
-        "samples": _lists(samples, pa.float32()), "n_echoes": pa.array(n_e.astype(np.int16)),
-        "echo_x": _lists([e[:, 0] for e in exyz], pa.float64()),
-        "echo_y": _lists([e[:, 1] for e in exyz], pa.float64()),
-        "echo_z": _lists([e[:, 2] for e in exyz], pa.float64()),
-        "echo_time_ns": _lists(et, pa.float64()), "echo_intensity": _lists(amp, pa.float32()),
+        "range_m": pa.array((first + et[:, 0]) * RANGE_PER_NS),
+        "scan_angle_deg": pa.array(p.scan_angle_deg[keep]), "agc": pa.array(np.full(n, np.nan)),
+        "sampling_ns": pa.array(np.full(n, sim.sampling_ns)),
+        "digitizer_gain": pa.array(np.ones(n)), "digitizer_offset": pa.array(np.zeros(n)),
+        "samples": padded_to_list(sim.samples[keep], sim.lengths[keep], pa.float32()),
+        "n_echoes": pa.array(n_e.astype(np.int16)),
+        "echo_x": padded_to_list(exyz[:, :, 0], n_e, pa.float64()),
+        "echo_y": padded_to_list(exyz[:, :, 1], n_e, pa.float64()),
+        "echo_z": padded_to_list(exyz[:, :, 2], n_e, pa.float64()),
+        "echo_time_ns": padded_to_list(et, n_e, pa.float64()),
+        "echo_intensity": padded_to_list(np.nan_to_num(sim.echo_amplitudes[keep]), n_e, pa.float32()),
     }
     return pa.table(cols)
 
 
 def truth_table(pulse_id: np.ndarray, res) -> pa.Table:
-    """Per pulse sigma(t) by scattering order, trimmed to its non-zero bins (t0_ns of the first kept bin)."""
-    rows = {"pulse_id": pulse_id, "t0_ns": [], "bin_ns": np.full(len(pulse_id), res.bin_ns)}
-    by = res.sigma_by_order
-    orders = [[] for _ in range(by.shape[1])]
-    for i in range(len(pulse_id)):
-        nz = np.flatnonzero(by[i].sum(axis=0))
-        a, b = (nz[0], nz[-1] + 1) if nz.size else (0, 0)
-        rows["t0_ns"].append(res.t0_ns[i] + a * res.bin_ns)
-        for k in range(by.shape[1]):
-            orders[k].append(by[i, k, a:b])
-    table = {"pulse_id": pa.array(pulse_id, pa.int64()), "t0_ns": pa.array(rows["t0_ns"]),
-             "bin_ns": pa.array(rows["bin_ns"])}
-    for k, v in enumerate(orders):
-        table[f"sigma_order_{k + 1}"] = _lists(v, pa.float64())
+    """Per pulse sigma(t) by scattering order, trimmed to the bins between its first and last
+    non-zero bin of any order (``t0_ns`` that of the first kept bin)."""
+    by = res.sigma_by_order                                   # (n, orders, bins)
+    nz = by.sum(axis=1) != 0                                  # (n, bins)
+    any_ = nz.any(axis=1)
+    a = np.where(any_, nz.argmax(axis=1), 0)
+    b = np.where(any_, by.shape[2] - nz[:, ::-1].argmax(axis=1), 0)
+    shifted = np.zeros_like(by)                               # each pulse's kept bins moved to the start
+    j = np.arange(by.shape[2])
+    src = np.minimum(a[:, None] + j[None, :], by.shape[2] - 1)
+    for k in range(by.shape[1]):
+        shifted[:, k] = np.take_along_axis(by[:, k], src, axis=1)
+    table = {"pulse_id": pa.array(pulse_id, pa.int64()), "t0_ns": pa.array(res.t0_ns + a * res.bin_ns),
+             "bin_ns": pa.array(np.full(len(pulse_id), res.bin_ns))}
+    for k in range(by.shape[1]):
+        table[f"sigma_order_{k + 1}"] = padded_to_list(shifted[:, k], b - a, pa.float64())
     return pa.table(table)
 
 
