@@ -181,3 +181,10 @@ def test_a_full_disk_is_one_line_and_keeps_no_output(tmp_path, capsys, monkeypat
     code, lines = _run(["survey", sc, sv, "--out", tmp_path / "out", "--no-progress"], capsys)
     assert code == 1 and len(lines) == 1 and "No space left on device" in lines[0], lines
     assert not (tmp_path / "out").exists()
+
+
+def test_a_bad_part_is_a_usage_error(tmp_path, capsys):
+    sc, sv = _files(tmp_path)
+    code, lines = _run(["survey", sc, sv, "--out", tmp_path / "out", "--part", "2/2"], capsys)
+    assert code == 2 and "'--part'" in lines[0] and "expected I/N with 0 <= I < N" in lines[0], lines
+    assert not (tmp_path / "out").exists()
