@@ -9,6 +9,7 @@ import warnings
 
 import laspy
 import numpy as np
+import pandas as pd
 import pytest
 import yaml
 from fixtures.survey import fly, tilted_plane, write_obj
@@ -114,6 +115,15 @@ def test_the_outputs_read_back(tmp_path, capsys):
     capsys.readouterr()
     main(["info", str(out / "survey.las")])
     assert f"points:                {summary['returns']:,}" in capsys.readouterr().out
+    main(["ingest", str(out / "survey.las"), "--trajectory", str(out / "trajectory.csv"),
+          "--out", str(tmp_path / "pulses.parquet"), "--no-progress"])
+    pulses = pd.read_parquet(tmp_path / "pulses.parquet")
+    assert len(pulses) == summary["pulses_traced"]
+    assert np.allclose(pulses["sensor_z"], 300.0) and np.allclose(pulses["sensor_x"], 0.0, atol=1e-6)
+    # the range along the beam from the trajectory's sensor lands on the first discrete return
+    for c in "xyz":
+        first = np.array([v[0] for v in pulses[f"echo_{c}"]])
+        assert np.allclose(pulses[f"sensor_{c}"] + pulses["range_m"] * pulses[f"dir_{c}"], first, atol=2e-3)
 
 
 def test_resume_keeps_completed_tiles_and_parts_merge(tmp_path):
