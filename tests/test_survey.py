@@ -198,3 +198,14 @@ def test_a_bad_part_is_a_usage_error(tmp_path, capsys):
     code, lines = _run(["survey", sc, sv, "--out", tmp_path / "out", "--part", "2/2"], capsys)
     assert code == 2 and "'--part'" in lines[0] and "expected I/N with 0 <= I < N" in lines[0], lines
     assert not (tmp_path / "out").exists()
+
+
+def test_a_merge_removes_stale_caches_of_its_folder(tmp_path, capsys):
+    sc, sv = _files(tmp_path)
+    stale = tmp_path / ".out.survey-0123456789abcdef"
+    stale.mkdir()
+    (stale / "tile_000000.json").write_text("{}")
+    other = tmp_path / ".other.survey-0123456789abcdef"
+    other.mkdir()
+    code, _ = _run(["survey", sc, sv, "--out", tmp_path / "out", "--no-progress"], capsys)
+    assert code == 0 and not stale.exists() and other.exists()

@@ -1,9 +1,10 @@
 """Run a survey end to end: tiles (resumable, optionally one part of N), then the merge into DIR.
 
 Tile files live in a hidden cache folder beside DIR, ``.DIR.survey-<key>`` (key: a hash of
-the scene and survey files and the settings), so an interrupted run, or N jobs each running
-one part, leave only completed tiles there; :func:`merge` writes DIR whole or not at all
-(:class:`waveforest.atomic.OutputFolder`) and then removes the cache.
+the scene's triangles and plants, the survey and the settings), so an interrupted run, or N
+jobs each running one part, leave only completed tiles there; :func:`merge` writes DIR whole
+or not at all (:class:`waveforest.atomic.OutputFolder`) and then removes DIR's caches (this
+run's and those of earlier runs with other inputs).
 
 DIR holds ``survey.las`` (or ``survey.laz``) with ``survey.wdp`` (external packets),
 ``trajectory.csv``, ``summary.json`` and, on request, ``truth.parquet``.
@@ -121,7 +122,8 @@ def merge(pl: Plan, cache: Path, scene: SurveyScene, survey: Survey, out_dir: Pa
         out["prototypes"] = 0 if scene.plants is None else len(scene.plants.prototypes)
         out["prototype_build_s"] = float(sum(builds))
         write_summary(out, tmp / "summary.json")
-    shutil.rmtree(cache, ignore_errors=True)
+    for old in Path(out_dir).parent.glob(f".{Path(out_dir).name}.survey-*"):  # this run's and stale ones
+        shutil.rmtree(old, ignore_errors=True)
     return out
 
 
