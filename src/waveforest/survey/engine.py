@@ -46,6 +46,10 @@ REFERENCE_RANGE_M = 1200.0
 MULTIPLE_SCATTERING_NS = 40.0
 """sigma window beyond the tile box's depth along the beam, ns (late multiple scattering)."""
 
+FIRST_ORDER_MARGIN_NS = 2.0
+"""sigma window beyond the box's depth along the beam at first order only, ns (the tracer's
+start-plane margin and the footprint's spread)."""
+
 DATASET = "survey"
 
 
@@ -156,13 +160,15 @@ class TileScenes:
         return prepare_instances(protos, which, rot, t)
 
 
-def window_ns(prepared, origin: np.ndarray, direction: np.ndarray) -> float:
-    """sigma window covering the prepared scene's box along every beam, plus :data:`MULTIPLE_SCATTERING_NS`."""
+def window_ns(prepared, origin: np.ndarray, direction: np.ndarray, max_order: int = 10) -> float:
+    """sigma window covering the prepared scene's box along every beam (the tracer starts it
+    at the box's nearest corner), plus :data:`MULTIPLE_SCATTERING_NS` when orders above the
+    first are traced, else :data:`FIRST_ORDER_MARGIN_NS` (a first-order path ends inside the box)."""
     b = prepared.bounds + prepared.shift
     corners = np.array([[b[i, 0], b[j, 1], b[k, 2]] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
     depth = np.einsum("nck,nk->nc", corners[None] - origin[:, None], direction)
     span = float((depth.max(axis=1) - depth.min(axis=1)).max())
-    return 2.0 * span / C_M_PER_NS + T0_LEAD_NS + MULTIPLE_SCATTERING_NS
+    return 2.0 * span / C_M_PER_NS + T0_LEAD_NS + (MULTIPLE_SCATTERING_NS if max_order > 1 else FIRST_ORDER_MARGIN_NS)
 
 
 def pulse_table(p: Pulses, pulse_id: np.ndarray, sim, range_m: np.ndarray) -> pa.Table:
@@ -235,7 +241,7 @@ def run_tile(k: int, plan_: Plan, scenes: TileScenes, survey: Survey, mcrt: MCRT
     tables, truths = [], []
     s = (plan_.ground_z - p.origin[:, 2]) / p.direction[:, 2]
     if prepared is not None:
-        win = window_ns(prepared, p.origin, p.direction)
+        win = window_ns(prepared, p.origin, p.direction, mcrt.max_order)
         for a in range(0, len(rows), survey.chunk_pulses):
             sl = slice(a, a + survey.chunk_pulses)
             beams = Beams.from_divergence(p.origin[sl], p.direction[sl], survey.scanner.divergence_mrad, s[sl])
