@@ -15,7 +15,7 @@ from fixtures.survey import tilted_plane, write_obj
 from waveforest import config
 from waveforest.settings import reference_system, sensor_settings
 from waveforest.survey import SurveyError, load_survey
-from waveforest.survey.scan import fly, leg_tracks
+from waveforest.survey.scan import concat, fly, fly_blocks, leg_tracks
 
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
 
@@ -49,6 +49,8 @@ def test_scan_patterns(tmp_path, pattern):
         assert np.allclose(across, want, atol=1e-9)
         assert np.allclose(p.scan_angle_deg, want, atol=1e-9)
     assert np.allclose(p.origin[:, 2], 1000.0) and np.allclose(p.origin[:, 1], 62.0 * np.arange(len(p)) * 1e-3)
+    blocks = concat(list(fly_blocks(sv, leg_tracks(sv), block=97)))  # blocks give the same pulses
+    assert np.array_equal(blocks.direction, p.direction) and np.array_equal(blocks.gps_time, p.gps_time)
 
 
 def test_legs_follow_each_other_and_a_trajectory_turns_the_beam(tmp_path):

@@ -36,7 +36,7 @@ from waveforest.mcrt.tracer import T0_LEAD_NS, bvh_quality
 from waveforest.model.forward import MCRTSetup, SensorSettings, SensorSetup, SimPulses, render_sigma
 from waveforest.rng import named_generator
 from waveforest.sensor import CFDParams, gaussian_system_waveform, load_system_waveform
-from waveforest.survey.scan import Pulses, axis_hits_box, fly, leg_tracks
+from waveforest.survey.scan import Pulses, axis_hits_box, concat, fly_blocks, leg_tracks
 from waveforest.survey.scene import SurveyScene
 from waveforest.survey.spec import Survey, SurveyError
 
@@ -67,21 +67,25 @@ class Plan:
 
 
 def plan(scene: SurveyScene, survey: Survey) -> Plan:
-    """Fly the survey; keep the pulses whose axis passes through the scene's box; tile them.
+    """Fly the survey block by block; keep the pulses whose axis passes through the scene's box;
+    tile them (memory: the kept pulses, about 80 bytes each).
 
     A leg none of whose pulses sees the scene is an error naming the leg.
     """
     tracks = leg_tracks(survey)
-    p = fly(survey, tracks)
     box = scene.bounds.copy()
-    hit = axis_hits_box(p.origin, p.direction, box)
-    for leg in range(len(tracks)):
-        if not hit[p.leg == leg].any():
-            where = "platform/trajectory" if survey.trajectory is not None else f"platform/legs/{leg}"
-            lo, hi = box[0], box[1]
-            raise SurveyError(f"{survey.source}: {where}: the leg sees no part of the scene (scene x {lo[0]:.1f}.."
-                              f"{hi[0]:.1f}, y {lo[1]:.1f}..{hi[1]:.1f} m)")
-    kept = p.take(np.flatnonzero(hit))
+    kept, seen, n_flown = [], np.zeros(len(tracks), bool), 0
+    for block in fly_blocks(survey, tracks):
+        n_flown += len(block)
+        hit = axis_hits_box(block.origin, block.direction, box)
+        seen[np.unique(block.leg[hit])] = True
+        kept.append(block.take(np.flatnonzero(hit)))
+    for leg in np.flatnonzero(~seen):
+        where = "platform/trajectory" if survey.trajectory is not None else f"platform/legs/{leg}"
+        lo, hi = box[0], box[1]
+        raise SurveyError(f"{survey.source}: {where}: the leg sees no part of the scene (scene x {lo[0]:.1f}.."
+                          f"{hi[0]:.1f}, y {lo[1]:.1f}..{hi[1]:.1f} m)")
+    kept = concat(kept)
     zg = float(box[0, 2])
     s = (zg - kept.origin[:, 2]) / kept.direction[:, 2]
     ground = kept.origin + s[:, None] * kept.direction
@@ -90,7 +94,7 @@ def plan(scene: SurveyScene, survey: Survey) -> Plan:
     tiles = np.unique(tile)
     tile_xy = box[0, :2] + survey.tile_m * np.stack([tiles // 1_000_003, tiles % 1_000_003], axis=1)
     order = np.lexsort((kept.gps_time, tile))
-    return Plan(kept.take(order), tile[order], tiles, tile_xy, zg, len(p), tracks)
+    return Plan(kept.take(order), tile[order], tiles, tile_xy, zg, n_flown, tracks)
 
 
 def system_waveform(survey: Survey, cfd: CFDParams):

@@ -102,24 +102,34 @@ def world_directions(body: np.ndarray, attitude: np.ndarray) -> np.ndarray:
     return d / np.linalg.norm(d, axis=1, keepdims=True)
 
 
-def fly(survey: Survey, tracks: list[Track]) -> Pulses:
-    """Every pulse of every track (pulse k of a track at ``t0 + k / pulse_rate``)."""
+def fly_blocks(survey: Survey, tracks: list[Track], block: int = 1_000_000):
+    """Every pulse of every track in blocks of at most ``block`` pulses, in time order (pulse k
+    of a track at ``t0 + k / pulse_rate``), so that a long flight never sits in memory whole."""
     sc = survey.scanner
-    parts = []
     for i, tr in enumerate(tracks):
         n = int(np.floor((tr.gps_time[-1] - tr.gps_time[0]) * sc.pulse_rate_hz)) + 1
-        dt = np.arange(n) / sc.pulse_rate_hz
-        t = tr.gps_time[0] + dt
-        xyz = np.stack([np.interp(t, tr.gps_time, tr.xyz[:, k]) for k in range(3)], axis=1)
-        att = np.stack([np.interp(t, tr.gps_time, tr.attitude[:, k]) for k in range(3)], axis=1)
-        body = body_directions(sc, np.mod(dt * sc.scan_frequency_hz, 1.0))
-        d = world_directions(body, att)
-        h = np.radians(att[:, 2])
-        across = d[:, 0] * np.cos(h) - d[:, 1] * np.sin(h)
-        scan = np.degrees(np.arctan2(across, -d[:, 2]))
-        parts.append(Pulses(np.full(n, i, np.int64), t, xyz, d, scan))
+        for a in range(0, n, block):
+            dt = np.arange(a, min(n, a + block)) / sc.pulse_rate_hz
+            t = tr.gps_time[0] + dt
+            xyz = np.stack([np.interp(t, tr.gps_time, tr.xyz[:, k]) for k in range(3)], axis=1)
+            att = np.stack([np.interp(t, tr.gps_time, tr.attitude[:, k]) for k in range(3)], axis=1)
+            body = body_directions(sc, np.mod(dt * sc.scan_frequency_hz, 1.0))
+            d = world_directions(body, att)
+            h = np.radians(att[:, 2])
+            across = d[:, 0] * np.cos(h) - d[:, 1] * np.sin(h)
+            scan = np.degrees(np.arctan2(across, -d[:, 2]))
+            yield Pulses(np.full(len(t), i, np.int64), t, xyz, d, scan)
+
+
+def concat(parts: list[Pulses]) -> Pulses:
+    """The pulses of ``parts`` one after the other."""
     return Pulses(*(np.concatenate([getattr(p, f) for p in parts])
                     for f in ("leg", "gps_time", "origin", "direction", "scan_angle_deg")))
+
+
+def fly(survey: Survey, tracks: list[Track]) -> Pulses:
+    """Every pulse of every track (:func:`fly_blocks` in one piece)."""
+    return concat(list(fly_blocks(survey, tracks)))
 
 
 def trajectory_table(tracks: list[Track], hz: float) -> pd.DataFrame:
