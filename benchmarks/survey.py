@@ -179,7 +179,7 @@ def stand_memory(tmp: Path, area_ha: float) -> None:
     (tmp / "SURVEY.yaml").write_text(f"platform: {{legs: [{{start: [0, {-side / 2}], end: [0, {side / 2}]}}]}}\n")
     sv = load_survey(tmp / "SURVEY.yaml", sensor_settings(cfg), reference_system(cfg))
     mcrt = survey_mcrt(mcrt_setup(cfg), sv)
-    tiles = TileScenes(scene, sv, mcrt.viewed_diameter_m)
+    tiles = TileScenes(scene, sv, mcrt.viewed_diameter_m, math.tan(math.radians(sv.scanner.scan_angle_deg)))
     build_s = time.process_time() - t
     lo = scene.bounds[0, :2]
     centre = lo + sv.tile_m * np.floor((np.array([0.0, 0.0]) - lo) / sv.tile_m)

@@ -3,7 +3,7 @@
 Pulses are grouped in square tiles (``quality.tile_m``) by where their axis crosses the
 scene's lowest level. One tile is one unit of work (a chunk): its scene is the static
 triangles and plant copies whose boxes overlap the tile plus a margin (half the viewed
-diameter, the horizontal reach of an off-nadir beam through the scene's height, 1 m), one BVH
+diameter, the horizontal reach of the most oblique beam through the scene's height, 1 m), one BVH
 (plants as Embree instances of their prototypes), all its pulses traced in batched calls of
 ``output.chunk_pulses`` and then freed, so memory does not grow with the survey. Each tile's
 pulse table is kept as a Parquet file in a cache folder beside the output; an interrupted run
@@ -122,14 +122,21 @@ def sensor_setup(survey: Survey, sensor: SensorSettings) -> SensorSetup:
     return settings.setup(system_waveform(survey, cfd), sc.noise_mean, sc.noise_sd, sc.sampling_ns)
 
 
+def max_zenith_tan(pulses: Pulses) -> float:
+    """The largest tangent of the beams' zenith angles (scan angle, roll and pitch together)."""
+    d = pulses.direction
+    return float((np.hypot(d[:, 0], d[:, 1]) / np.maximum(-d[:, 2], 1e-9)).max(initial=0.0))
+
+
 class TileScenes:
     """Builds the scene of one tile (static triangles and plant copies overlapping its box)."""
 
-    def __init__(self, scene: SurveyScene, survey: Survey, viewed_diameter_m: float):
+    def __init__(self, scene: SurveyScene, survey: Survey, viewed_diameter_m: float, max_tan: float):
+        """``max_tan``: the largest tangent of a pulse's zenith (:func:`max_zenith_tan`)."""
         self.scene = scene
         self.survey = survey
         dz = float(scene.bounds[1, 2] - scene.bounds[0, 2])
-        self.margin = viewed_diameter_m / 2 + dz * math.tan(math.radians(survey.scanner.scan_angle_deg)) + 1.0
+        self.margin = viewed_diameter_m / 2 + dz * float(max_tan) + 1.0
         if scene.static is not None:
             t = scene.static.triangles
             self.static_box = np.stack([t.min(axis=1), t.max(axis=1)], axis=1)

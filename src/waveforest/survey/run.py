@@ -25,7 +25,17 @@ import pyarrow.parquet as pq
 from waveforest.atomic import OutputFolder, atomic_path
 from waveforest.io.las.write import WaveformLasWriter
 from waveforest.model.forward import MCRTSetup, SensorSetup
-from waveforest.survey.engine import Plan, TileResult, TileScenes, plan, run_key, run_tile, summary, write_summary
+from waveforest.survey.engine import (
+    Plan,
+    TileResult,
+    TileScenes,
+    max_zenith_tan,
+    plan,
+    run_key,
+    run_tile,
+    summary,
+    write_summary,
+)
 from waveforest.survey.scan import trajectory_table
 from waveforest.survey.scene import SurveyScene
 from waveforest.survey.spec import Survey, SurveyError
@@ -64,7 +74,7 @@ def run_tiles(scene: SurveyScene, survey: Survey, mcrt: MCRTSetup, setup: Sensor
         bar = tqdm(total=int(counts[todo].sum()), initial=int(counts[todo].sum() - counts[missing].sum()),
                    unit="pulse", desc="survey", smoothing=0.1)
     cpu = time.process_time()
-    scenes = TileScenes(scene, survey, mcrt.viewed_diameter_m) if missing else None
+    scenes = TileScenes(scene, survey, mcrt.viewed_diameter_m, max_zenith_tan(pl.pulses)) if missing else None
     prepare_s = time.process_time() - cpu
     try:
         for k in missing:
