@@ -93,3 +93,11 @@ def test_las13_internal_packets_and_laz(tmp_path):
     assert laz.header.point_format.id == 9 and len(laz.points) == rz["returns"]
     assert not (tmp_path / "vz" / "survey.las").exists() and (tmp_path / "vz" / "survey.wdp").exists()
     assert tz.num_rows == rz["pulses_traced"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        fly_survey(tmp_path, scene, scanner, altitude=300.0, quality=q, out="v14")
+    ref = laspy.read(tmp_path / "v14" / "survey.las")  # the same flight as LAS: the same points and records
+    assert np.array_equal(laz.points.array, ref.points.array)
+    assert [v.record_id for v in laz.header.vlrs if v.user_id != "laszip encoded"] == [
+        v.record_id for v in ref.header.vlrs]
+    assert (tmp_path / "vz" / "survey.wdp").read_bytes() == (tmp_path / "v14" / "survey.wdp").read_bytes()

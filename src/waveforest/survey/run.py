@@ -46,6 +46,9 @@ LOCAL_WKT = ('LOCAL_CS["waveforest survey frame (local metric)",LOCAL_DATUM["sce
 
 COMMAND = "survey"
 
+LAZ_CHUNK_POINTS = 1_000_000
+"""Points compressed per chunk when the survey writes LAZ."""
+
 
 def cache_folder(out_dir: Path, key: str) -> Path:
     out_dir = Path(out_dir)
@@ -110,9 +113,11 @@ def merge(pl: Plan, cache: Path, scene: SurveyScene, survey: Survey, out_dir: Pa
                     w.write(t)
             if w.n_pulses == 0:
                 raise SurveyError(f"{survey.source}: no pulse returned an echo (expected a scene the beams reach)")
-        if survey.laz:
-            data = laspy.read(las)
-            data.write(tmp / "survey.laz", laz_backend=laspy.LazBackend.Lazrs)
+        if survey.laz:  # points compressed chunk by chunk; header, VLRs and EVLRs as written
+            with laspy.open(las) as reader, laspy.open(tmp / "survey.laz", mode="w", header=reader.header,
+                                                       do_compress=True, laz_backend=laspy.LazBackend.Lazrs) as out:
+                for points in reader.chunk_iterator(LAZ_CHUNK_POINTS):
+                    out.write_points(points)
             las.unlink()
         trajectory_table(pl.tracks, survey.trajectory_hz).to_csv(tmp / "trajectory.csv", index=False,
                                                                  float_format="%.6f")
