@@ -209,3 +209,35 @@ def test_a_merge_removes_stale_caches_of_its_folder(tmp_path, capsys):
     other.mkdir()
     code, _ = _run(["survey", sc, sv, "--out", tmp_path / "out", "--no-progress"], capsys)
     assert code == 0 and not stale.exists() and other.exists()
+
+
+def test_ctrl_c_leaves_no_output_and_the_rerun_resumes(tmp_path, capsys, monkeypatch):
+    """Interrupted after its first tile: exit 130, no DIR, that tile kept; the rerun traces only
+    the other tiles and writes what an uninterrupted run writes."""
+    import waveforest.survey.run as run_module
+
+    sc, sv = _files(tmp_path)
+    real, calls = run_module.run_tile, []
+
+    def first_then_interrupt(k, *args, **kwargs):
+        if calls:
+            raise KeyboardInterrupt
+        calls.append(k)
+        return real(k, *args, **kwargs)
+
+    monkeypatch.setattr(run_module, "run_tile", first_then_interrupt)
+    code, lines = _run(["survey", sc, sv, "--out", tmp_path / "out", "--no-progress"], capsys)
+    assert code == 130 and not (tmp_path / "out").exists(), lines
+    cache = next(tmp_path.glob(".out.survey-*"))
+    assert [p.name for p in cache.glob("tile_*.json")] == [f"tile_{calls[0]:06d}.json"]
+
+    def counting(k, *args, **kwargs):
+        calls.append(k)
+        return real(k, *args, **kwargs)
+
+    monkeypatch.setattr(run_module, "run_tile", counting)
+    code, _ = _run(["survey", sc, sv, "--out", tmp_path / "out", "--no-progress"], capsys)
+    assert code == 0 and calls[0] not in calls[1:] and len(calls) == json.loads(
+        (tmp_path / "out" / "summary.json").read_text())["tiles"]
+    code, _ = _run(["survey", sc, sv, "--out", tmp_path / "again", "--no-progress"], capsys)
+    assert (tmp_path / "out" / "survey.wdp").read_bytes() == (tmp_path / "again" / "survey.wdp").read_bytes()
