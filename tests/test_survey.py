@@ -241,3 +241,26 @@ def test_ctrl_c_leaves_no_output_and_the_rerun_resumes(tmp_path, capsys, monkeyp
         (tmp_path / "out" / "summary.json").read_text())["tiles"]
     code, _ = _run(["survey", sc, sv, "--out", tmp_path / "again", "--no-progress"], capsys)
     assert (tmp_path / "out" / "survey.wdp").read_bytes() == (tmp_path / "again" / "survey.wdp").read_bytes()
+
+
+def test_obj_faces_materials_and_indices(tmp_path):
+    """Triangles and a quad (fanned, file order), v/vt/vn corners, relative indices, materials from
+    the MTL (helios_reflectance) and from SCENE.yaml, and a face before any usemtl."""
+    from waveforest.survey.scene import read_obj
+
+    (tmp_path / "a.mtl").write_text("newmtl bark\nhelios_reflectance 0.25\nnewmtl leaf\nKd 1 1 1\n")
+    (tmp_path / "a.obj").write_text(
+        "mtllib a.mtl\nv 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\n"
+        "f 1 2 3\n"                              # no usemtl yet: material "default"
+        "usemtl bark\nf 1/1/1 2/2/2 3/3/3 4/4/4\n"  # a quad: (1 2 3), (1 3 4)
+        "usemtl leaf\nv 0 0 5\nv 1 0 5\nv 0 1 5\nf -3 -2 -1\n")
+    props = {"leaf": {"rho": 0.4, "tau": 0.5, "kind": "leaf"}, "default": {"rho": 0.1}}
+    sc = read_obj(tmp_path / "a.obj", props, "S")
+    v = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 5], [1, 0, 5], [0, 1, 5]], float)
+    want = v[[[0, 1, 2], [0, 1, 2], [0, 2, 3], [4, 5, 6]]]
+    assert np.array_equal(sc.triangles, want.astype(np.float32))
+    assert np.allclose(np.asarray(sc.rho) * np.ones(4), [0.1, 0.25, 0.25, 0.4])
+    assert np.allclose(np.asarray(sc.tau) * np.ones(4), [0, 0, 0, 0.5])
+    assert list(np.asarray(sc.kind) * np.ones(4, int)) == [3, 3, 3, 1]
+    with pytest.raises(SurveyError, match="material 'leaf' has no optical properties"):
+        read_obj(tmp_path / "a.obj", {"default": {"rho": 0.1}}, "S")

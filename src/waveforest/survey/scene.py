@@ -8,7 +8,9 @@ its BVH once (:func:`waveforest.mcrt.prepare_prototypes`), copied by transform o
 
 from __future__ import annotations
 
+import re
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -65,59 +67,87 @@ def rotation_z(deg) -> np.ndarray:
     return r
 
 
+DEFAULT_MATERIAL = "default"
+"""Material name of OBJ faces before any ``usemtl``."""
+
+_V = re.compile(r"^[ \t]*v[ \t]+([^\r\n]*)", re.M)
+_F = re.compile(r"^[ \t]*f[ \t]+([^\r\n]*)", re.M)
+_USEMTL = re.compile(r"^[ \t]*usemtl[ \t]+([^\r\n]*?)[ \t]*$", re.M)
+_MTLLIB = re.compile(r"^[ \t]*mtllib[ \t]+([^\r\n]*?)[ \t]*$", re.M)
+
+
+def _starts(pattern: re.Pattern, text: str) -> np.ndarray:
+    return np.fromiter((m.start() for m in pattern.finditer(text)), np.int64)
+
+
 def read_obj(path: Path, materials: dict, source: str) -> Scene:
-    """Triangles of an OBJ (polygons fanned) with each face's material's rho, tau, kind.
+    """Triangles of an OBJ (polygons fanned, in file order) with each face's material's rho, tau, kind.
 
     ``materials`` (SCENE.yaml) override the MTL; an MTL material gives rho by
     ``helios_reflectance`` (HELIOS++'s key). A face whose material has neither is an error.
+    Parsed with regular expressions over the whole text (no loop over lines in Python).
     """
     try:
         text = path.read_text(errors="replace")
     except OSError as exc:
         raise SurveyError(f"{source}: {path}: cannot read ({exc.strerror or exc})") from None
-    mtl: dict[str, float] = {}
-    verts, faces, face_mat = [], [], []
-    current = None
-    for line in text.splitlines():
-        head, _, rest = line.strip().partition(" ")
-        if head == "v":
-            verts.append(rest.split()[:3])
-        elif head == "f":
-            idx = [int(tok.split("/")[0]) for tok in rest.split()]
-            for k in range(1, len(idx) - 1):
-                faces.append((idx[0], idx[k], idx[k + 1]))
-                face_mat.append(current)
-        elif head == "usemtl":
-            current = rest.strip()
-        elif head == "mtllib":
-            mtl.update(_read_mtl(path.parent / rest.strip()))
+    parts = _USEMTL.split(text)                  # [before, name 1, body 1, name 2, body 2, ...]
+    used, bodies = parts[1::2], parts[0::2]
+    per_body = [_F.findall(b) for b in bodies]
+    faces = [f for fs in per_body for f in fs]
     if not faces:
         raise SurveyError(f"{source}: {path}: no faces (expected an OBJ with f lines)")
+    vlines = _V.findall(text)
     try:
-        xyz = np.asarray(verts, dtype=np.float64)
+        with warnings.catch_warnings():  # a bad number ends the parse early (a DeprecationWarning)
+            warnings.simplefilter("ignore", DeprecationWarning)
+            values = np.fromstring(" ".join(vlines), sep=" ") if vlines else np.zeros(0)
+        if len(values) == 3 * len(vlines):
+            xyz = values.reshape(-1, 3)
+        else:  # w or colours after x y z, or a bad number (fromstring stops there)
+            xyz = np.array([v.split()[:3] for v in vlines], dtype=np.float64).reshape(-1, 3)
     except ValueError:
         raise SurveyError(f"{source}: {path}: a vertex line is not three numbers") from None
     if not np.all(np.isfinite(xyz)):
         raise SurveyError(f"{source}: {path}: non-finite vertex coordinates")
-    idx = np.asarray(faces, dtype=np.int64)
-    idx = np.where(idx < 0, len(xyz) + idx, idx - 1)
-    if idx.min() < 0 or idx.max() >= len(xyz):
+    corners = re.sub(r"/[^ \t\n]*", "", "\n".join(faces)).split("\n")
+    n = np.fromiter((len(c.split()) for c in corners), np.int64, len(corners))
+    try:
+        flat = np.array(" ".join(corners).split(), dtype=np.int64)
+    except ValueError:
+        raise SurveyError(f"{source}: {path}: a face line is not vertex indices") from None
+    if n.min() < 3:
+        raise SurveyError(f"{source}: {path}: a face with fewer than 3 vertices")
+    if np.any(flat < 0):  # relative indices count back from the vertices defined so far
+        before = np.repeat(np.searchsorted(_starts(_V, text), _starts(_F, text)), n)
+        flat = np.where(flat < 0, before + flat, flat - 1)
+    else:
+        flat = flat - 1
+    if flat.min() < 0 or flat.max() >= len(xyz):
         raise SurveyError(f"{source}: {path}: face vertex index out of range (1..{len(xyz)})")
-    names = sorted({m for m in face_mat}, key=str)
-    props = {}
-    for m in names:
+    starts = np.concatenate([[0], np.cumsum(n)[:-1]])
+    face = np.repeat(np.arange(len(n)), n - 2)                        # fan: (v0, vk, vk+1)
+    k = np.arange(len(face)) - np.repeat(np.cumsum(n - 2) - (n - 2), n - 2)
+    idx = np.stack([flat[starts[face]], flat[starts[face] + k + 1], flat[starts[face] + k + 2]], axis=1)
+    which = np.repeat(np.arange(len(bodies)) - 1, [len(fs) for fs in per_body])  # -1: before any usemtl
+    names = [DEFAULT_MATERIAL if w < 0 else used[w] for w in np.unique(which)]
+    mtl: dict[str, float] = {}
+    for lib in _MTLLIB.findall(text):
+        mtl.update(_read_mtl(path.parent / lib))
+    props = np.zeros((len(used) + 1, 3))
+    for w, m in zip(np.unique(which), names):
         if m in materials:
             p = materials[m]
             rho, tau = float(p["rho"]), float(p.get("tau", 0.0))
             if rho + tau > 1.0 + 1e-9:
                 raise SurveyError(f"{source}: materials/{m}: expected rho + tau <= 1, got {rho + tau:g}")
-            props[m] = (rho, tau, KINDS[p.get("kind", "other")])
+            props[w + 1] = (rho, tau, KINDS[p.get("kind", "other")])
         elif m in mtl:
-            props[m] = (mtl[m], 0.0, KINDS["other"])
+            props[w + 1] = (mtl[m], 0.0, KINDS["other"])
         else:
             raise SurveyError(f"{source}: {path}: material {m!r} has no optical properties (expected "
                               f"objects/materials/{m}/rho in the scene file or helios_reflectance in its MTL)")
-    table = np.array([props[m] for m in face_mat], dtype=np.float64)
+    table = props[which[face] + 1]
     return Scene(xyz[idx].astype(np.float32), table[:, 0], table[:, 1], table[:, 2].astype(np.uint8))
 
 
