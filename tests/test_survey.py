@@ -144,7 +144,8 @@ def test_resume_keeps_completed_tiles_and_parts_merge(tmp_path):
         assert not cache[0].exists()
         b, _, _, _ = fly(tmp_path, PLANE, scanner, out="again", **kw)
     assert a["tiles"] > 2 and a["pulses_traced"] == b["pulses_traced"]
-    assert (tmp_path / "out" / "survey.las").read_bytes()[250:] == (tmp_path / "again" / "survey.las").read_bytes()[250:]
+    las = [(tmp_path / d / "survey.las").read_bytes() for d in ("out", "again")]
+    assert las[0] == las[1]
     assert (tmp_path / "out" / "survey.wdp").read_bytes() == (tmp_path / "again" / "survey.wdp").read_bytes()
     assert cache_folder(tmp_path / "out", "k").parent == tmp_path
 

@@ -30,8 +30,9 @@ def _part(ctx, param, value: str | None) -> tuple[int, int] | None:
 @click.argument("scene_file", type=EXISTING_FILE)
 @click.argument("survey_file", type=EXISTING_FILE)
 @click.option("--out", "out", required=True, type=OUT_DIR, help="Output folder (LAS, .wdp, trajectory, summary).")
-@click.option("--part", default=None, callback=_part, help="Trace only tiles k with k mod N = I (I/N, e.g. 0/4) and stop "
-                                           "before the merge; a run without --part merges.")
+@click.option("--part", default=None, callback=_part,
+              help="Trace only tiles k with k mod N = I (I/N, e.g. 0/4) and stop before the merge; "
+                   "a run without --part merges.")
 @click.option("--progress/--no-progress", default=True, help="Progress bar (pulses/s, ETA) on stderr.")
 @force_option
 @stage_options

@@ -272,7 +272,8 @@ def run_tile(k: int, plan_: Plan, scenes: TileScenes, survey: Survey, mcrt: MCRT
     if survey.truth:
         tpath = out.with_suffix(".truth.parquet")
         with atomic_path(tpath) as tmp:
-            pq.write_table(pa.concat_tables(truths) if truths else pa.table({"pulse_id": pa.array([], pa.int64())}), tmp)
+            empty = pa.table({"pulse_id": pa.array([], pa.int64())})
+            pq.write_table(pa.concat_tables(truths) if truths else empty, tmp)
     returns = int(table.column("n_echoes").to_numpy().astype(np.int64).sum())
     return TileResult(len(rows), returns, len(rows) * mcrt.n_rays, time.process_time() - cpu)
 
