@@ -166,13 +166,13 @@ def stand(tmp: Path, area_ha: float, rays, orders) -> None:
     print(f"stand_1ha_minutes_2_cores: {minutes:.1f} min")
 
 
-def stand_memory(tmp: Path, area_ha: float) -> None:
+def stand_memory(tmp: Path, area_ha: float, seeds: int) -> None:
     """Peak memory of a stand's scene without tracing: every prototype built and prepared, and
     the tile with the most plant copies given its BVH (the survey holds one tile at a time)."""
     side = math.sqrt(area_ha * 1e4)
     stand_files(tmp, side)
-    (tmp / "SCENE.yaml").write_text(
-        "plants: {table: plants.csv}\nground: {type: plane, z: 0.0, rho: 0.3, margin_m: 0.0}\n")
+    (tmp / "SCENE.yaml").write_text(f"plants: {{table: plants.csv, prototype_seeds: {seeds}}}\n"
+                                    "ground: {type: plane, z: 0.0, rho: 0.3, margin_m: 0.0}\n")
     cfg = config.load(None)
     t = time.process_time()
     scene = load_scene(tmp / "SCENE.yaml")
@@ -203,6 +203,7 @@ def main(argv=None) -> None:
     ap.add_argument("--orders", type=int, default=None, help="highest order (default: the config's)")
     ap.add_argument("--no-physics", action="store_true", help="only the stand")
     ap.add_argument("--no-stand", action="store_true", help="only the physics")
+    ap.add_argument("--prototype-seeds", type=int, default=3, help="SCENE.yaml plants/prototype_seeds (--memory-only)")
     ap.add_argument("--memory-only", action="store_true",
                     help="only the scene of a 1-ha stand (--area-ha to change): prototypes and the largest tile, "
                          "no tracing; peak memory")
@@ -210,7 +211,7 @@ def main(argv=None) -> None:
     with tempfile.TemporaryDirectory(prefix="survey_bench_") as tmp:
         tmp = Path(tmp)
         if a.memory_only:
-            stand_memory(tmp, 1.0 if a.area_ha == 0.01 else a.area_ha)
+            stand_memory(tmp, 1.0 if a.area_ha == 0.01 else a.area_ha, a.prototype_seeds)
             return
         if not a.no_stand:  # first: the process's peak memory is the stand's
             (tmp / "stand").mkdir()
