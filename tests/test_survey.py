@@ -265,3 +265,10 @@ def test_obj_faces_materials_and_indices(tmp_path):
     assert list(np.asarray(sc.kind) * np.ones(4, int)) == [3, 3, 3, 1]
     with pytest.raises(SurveyError, match="material 'leaf' has no optical properties"):
         read_obj(tmp_path / "a.obj", {"default": {"rho": 0.1}}, "S")
+
+
+def test_a_scanner_without_preset_needs_every_value(tmp_path, capsys):
+    survey = {**SURVEY, "scanner": {"preset": None, "pulse_rate_hz": 40.0}}
+    _fails(tmp_path, capsys, survey=survey, expect="SURVEY.yaml: scanner/pattern: expected a value")
+    survey = {**SURVEY, "scanner": {**SURVEY["scanner"], "bits": 12}}
+    _fails(tmp_path, capsys, survey=survey, expect="scanner/bits:")
