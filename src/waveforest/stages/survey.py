@@ -50,7 +50,7 @@ def survey(scene_file, survey_file, out, part, progress, force, cfg):
     """
     sensor = sensor_settings(cfg)
     sv = load_survey(survey_file, sensor, reference_system(cfg))
-    scene = load_scene(scene_file)
+    scene = load_scene(scene_file, progress=progress)
     mcrt = survey_mcrt(mcrt_setup(cfg), sv)
     setup = sensor_setup(sv, sensor)
     result = run_survey(scene, sv, mcrt, setup, out, force=force, progress=progress,

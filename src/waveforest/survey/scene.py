@@ -206,14 +206,19 @@ def plant_table(path: Path, source: str) -> pd.DataFrame:
     return df
 
 
-def _plants(df: pd.DataFrame, seeds: int, step: float, source: str) -> Plants:
+def _plants(df: pd.DataFrame, seeds: int, step: float, source: str, progress: bool = False) -> Plants:
     h = np.maximum(step, np.round(df["height"].to_numpy() / step) * step)
     s = df["seed"].to_numpy(np.int64) % seeds
     keys = list(zip(df["species"].astype(str), h.round(6), s))
     uniq = sorted(set(keys))
     index = {k: i for i, k in enumerate(uniq)}
     protos = []
-    for sp, hh, ss in uniq:
+    todo = uniq
+    if progress:
+        from tqdm import tqdm
+
+        todo = tqdm(uniq, desc="plant prototypes", unit="prototype")
+    for sp, hh, ss in todo:
         try:
             protos.append(build(sp, float(hh), int(ss), ground=False).scene)
         except WaveforestError as exc:
@@ -228,8 +233,9 @@ def _plants(df: pd.DataFrame, seeds: int, step: float, source: str) -> Plants:
     return Plants(tuple(protos), tuple(f"{a} {b:g} m seed {c}" for a, b, c in uniq), which, rot, t, box)
 
 
-def load_scene(path: str | Path) -> SurveyScene:
-    """Read SCENE.yaml and everything it names (SurveyError: file, field, what was expected)."""
+def load_scene(path: str | Path, progress: bool = False) -> SurveyScene:
+    """Read SCENE.yaml and everything it names (SurveyError: file, field, what was expected);
+    ``progress``: a bar over the plant prototypes built."""
     path = Path(path)
     doc = read_document(path, SCENE_SCHEMA)
     base, src = path.parent, str(path)
@@ -243,7 +249,7 @@ def load_scene(path: str | Path) -> SurveyScene:
         df = plant_table(base / pl["table"], src)
         if len(df):
             cpu = time.process_time()
-            plants = _plants(df, int(pl["prototype_seeds"]), float(pl["height_step_m"]), src)
+            plants = _plants(df, int(pl["prototype_seeds"]), float(pl["height_step_m"]), src, progress)
             build_s = time.process_time() - cpu
     g = doc["ground"]
     if g["type"] == "mesh":
