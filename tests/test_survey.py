@@ -272,3 +272,13 @@ def test_a_scanner_without_preset_needs_every_value(tmp_path, capsys):
     _fails(tmp_path, capsys, survey=survey, expect="SURVEY.yaml: scanner/pattern: expected a value")
     survey = {**SURVEY, "scanner": {**SURVEY["scanner"], "bits": 12}}
     _fails(tmp_path, capsys, survey=survey, expect="scanner/bits:")
+
+
+def test_a_ground_mesh_is_ground(tmp_path):
+    write_obj(tmp_path / "g.obj", tilted_plane(10.0, 5.0), material="soil")
+    (tmp_path / "g.mtl").write_text("newmtl soil\nhelios_reflectance 0.2\n")
+    text = (tmp_path / "g.obj").read_text()
+    (tmp_path / "g.obj").write_text("mtllib g.mtl\n" + text)
+    (tmp_path / "SCENE.yaml").write_text(yaml.safe_dump({"ground": {"type": "mesh", "file": "g.obj"}}))
+    scene = load_scene(tmp_path / "SCENE.yaml")
+    assert np.all(np.asarray(scene.static.kind) == 0) and np.allclose(scene.static.rho, 0.2)
