@@ -115,3 +115,19 @@ def test_step_edge_two_echoes_and_energy_split(tmp_path, x0):
         t = row["t0_ns"] + (np.arange(len(s)) + 0.5) * row["bin_ns"]
         top = s[t * RANGE_PER_NS < altitude - h / 2].sum() / s.sum()
         assert abs(top / expected - 1) < 0.01
+
+
+def test_truth_joins_the_las_points_by_gps_time(tmp_path):
+    """truth.parquet: one row per traced pulse, its GPS time that of the pulse's points, its
+    sigma totals rho cos(theta) / pi on a plane."""
+    import laspy
+
+    scene = {"ground": {"type": "plane", "z": 0.0, "rho": 0.3, "extent": [-600, -600, 600, 600]}}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        result, _, _, _ = fly(tmp_path, scene, {**RECEIVER, "scan_angle_deg": 0.0}, output={"truth": True})
+    truth = pq.read_table(tmp_path / "out" / "truth.parquet").to_pylist()
+    las = laspy.read(tmp_path / "out" / "survey.las")
+    assert len(truth) == result["pulses_traced"]
+    assert np.allclose(np.sort([r["gps_time"] for r in truth]), np.unique(las.gps_time))
+    assert np.allclose([sum(r["sigma_order_1"]) for r in truth], 0.3 / math.pi)

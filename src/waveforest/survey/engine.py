@@ -213,9 +213,10 @@ def pulse_table(p: Pulses, pulse_id: np.ndarray, sim, range_m: np.ndarray) -> pa
     return pa.table(cols)
 
 
-def truth_table(pulse_id: np.ndarray, res) -> pa.Table:
-    """Per pulse sigma(t) by scattering order, trimmed to the bins between its first and last
-    non-zero bin of any order (``t0_ns`` that of the first kept bin)."""
+def truth_table(pulse_id: np.ndarray, gps_time: np.ndarray, res) -> pa.Table:
+    """Per pulse (``gps_time`` joins it to the LAS points) sigma(t) by scattering order, trimmed
+    to the bins between its first and last non-zero bin of any order (``t0_ns``: two-way time
+    from emission of the first kept bin's left edge)."""
     by = res.sigma_by_order                                   # (n, orders, bins)
     nz = by.sum(axis=1) != 0                                  # (n, bins)
     any_ = nz.any(axis=1)
@@ -226,7 +227,8 @@ def truth_table(pulse_id: np.ndarray, res) -> pa.Table:
     src = np.minimum(a[:, None] + j[None, :], by.shape[2] - 1)
     for k in range(by.shape[1]):
         shifted[:, k] = np.take_along_axis(by[:, k], src, axis=1)
-    table = {"pulse_id": pa.array(pulse_id, pa.int64()), "t0_ns": pa.array(res.t0_ns + a * res.bin_ns),
+    table = {"pulse_id": pa.array(pulse_id, pa.int64()), "gps_time": pa.array(np.asarray(gps_time, np.float64)),
+             "t0_ns": pa.array(res.t0_ns + a * res.bin_ns),
              "bin_ns": pa.array(np.full(len(pulse_id), res.bin_ns))}
     for k in range(by.shape[1]):
         table[f"sigma_order_{k + 1}"] = padded_to_list(shifted[:, k], b - a, pa.float64())
@@ -261,7 +263,7 @@ def run_tile(k: int, plan_: Plan, scenes: TileScenes, survey: Survey, mcrt: MCRT
             sim = render_sigma(res.sigma, res.t0_ns, s[sl], setup, rng, sigma_total=res.total)
             tables.append(pulse_table(p.take(np.arange(len(rows))[sl]), rows[sl], sim, s[sl]))
             if survey.truth:
-                truths.append(truth_table(rows[sl], res))
+                truths.append(truth_table(rows[sl], p.gps_time[sl], res))
             if progress is not None:
                 progress.update(len(beams))
     elif progress is not None:
