@@ -20,6 +20,7 @@ include: "workflow/rules/features.smk"
 include: "workflow/rules/analyses.smk"
 include: "workflow/rules/diagnose.smk"
 include: "workflow/rules/report.smk"
+include: "workflow/rules/survey.smk"
 
 
 rule all:

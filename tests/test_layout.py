@@ -136,6 +136,7 @@ LAYERS = (
     ("waveforest.io",),
     ("waveforest.vegetation", "waveforest.mcrt", "waveforest.sensor"),
     ("waveforest.model",),
+    ("waveforest.survey",),
     ("waveforest.campaign",),
     ("waveforest.stats",),
     ("waveforest.analysis",),

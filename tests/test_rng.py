@@ -34,6 +34,7 @@ GENERATORS = {
     "search_split": lambda s: np.random.default_rng(s),
     "bootstrap": lambda s: np.random.default_rng(s),
     "las_summary_z": lambda s: np.random.default_rng(s),
+    "survey": lambda s: np.random.default_rng([int(s), 0x5EE]),
 }
 
 SEED_LISTS = {

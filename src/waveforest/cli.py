@@ -52,6 +52,7 @@ COMMANDS = {
     "diagnose": "waveforest.stages.diagnose:diagnose",
     "report": "waveforest.stages.report:report",
     "quicklook": "waveforest.stages.quicklook:quicklook",
+    "survey": "waveforest.stages.survey:survey",
     "decompose": "waveforest.stages.decompose:decompose",
 }
 

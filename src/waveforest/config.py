@@ -100,6 +100,35 @@ def _given(parts: list[str], overrides: dict | None) -> bool:
     return bool(parts)
 
 
+def _fill_all(sub_schema: dict, instance: Any) -> None:
+    """:func:`fill_defaults`, also into the items of arrays and the values of maps."""
+    fill_defaults(sub_schema, instance)
+    if isinstance(instance, dict):
+        for name, value in instance.items():
+            prop = sub_schema.get("properties", {}).get(name)
+            if prop is None and isinstance(sub_schema.get("additionalProperties"), dict):
+                prop = sub_schema["additionalProperties"]
+            if prop is not None:
+                _fill_all(prop, value)
+    elif isinstance(instance, list) and isinstance(sub_schema.get("items"), dict):
+        for value in instance:
+            _fill_all(sub_schema["items"], value)
+
+
+def validate_document(sch: dict, document: dict, source: str, error: type[Exception] = ConfigError) -> dict:
+    """Fill ``sch``'s defaults into ``document`` in place (also into array items and map values)
+    and validate it as :func:`validate` does the config (the closed schema of another YAML
+    file, e.g. a survey's).
+
+    Raises ``error`` ``source: key/path: what was expected`` for the first violation.
+    """
+    _fill_all(sch, document)
+    found = jsonschema.exceptions.best_match(jsonschema.Draft202012Validator(sch).iter_errors(document))
+    if found is not None:
+        raise error(f"{source}: {_message(found)[1]}")
+    return document
+
+
 def _check_names(config: dict, source: str, overrides: dict | None) -> None:
     """Species slugs and functional groups of the config are known ones."""
     known = species_slugs()

@@ -157,6 +157,7 @@ STREAMS: dict[str, NamedStream] = {
     "mcrt_key": NamedStream((), "tracer: the uint64 key of the counter-based generator"),
     "scene_build": NamedStream((), "vegetation scene, 3 spawned streams: plant, understory, LAI jitter"),
     "las_summary_z": NamedStream((), "LAS summary: the subsample of z that places the outlier bounds"),
+    "survey": NamedStream((0x5EE,), "survey: the tracer key and sensor draws of one tile (key: its number)"),
 }
 """Every named stream: name -> (tag, purpose). A tag is fixed forever once results depend on it."""
 

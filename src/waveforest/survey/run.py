@@ -1,0 +1,163 @@
+"""Run a survey end to end: tiles (resumable, optionally one part of N), then the merge into DIR.
+
+Tile files live in a hidden cache folder beside DIR, ``.DIR.survey-<key>`` (key: a hash of
+the scene's triangles and plants, the survey and the settings), so an interrupted run, or N
+jobs each running one part, leave only completed tiles there; :func:`merge` writes DIR whole
+or not at all (:class:`waveforest.atomic.OutputFolder`) and then removes DIR's caches (this
+run's and those of earlier runs with other inputs).
+
+DIR holds ``survey.las`` (or ``survey.laz``) with ``survey.wdp`` (external packets),
+``trajectory.csv``, ``summary.json`` and, on request, ``truth.parquet``.
+"""
+
+from __future__ import annotations
+
+import json
+import resource
+import shutil
+import time
+from pathlib import Path
+
+import laspy
+import numpy as np
+import pyarrow.parquet as pq
+
+from waveforest.atomic import OutputFolder, atomic_path
+from waveforest.io.las.write import WaveformLasWriter
+from waveforest.model.forward import MCRTSetup, SensorSetup
+from waveforest.survey.engine import (
+    Plan,
+    TileResult,
+    TileScenes,
+    max_zenith_tan,
+    plan,
+    run_key,
+    run_tile,
+    summary,
+    write_summary,
+)
+from waveforest.survey.scan import trajectory_table
+from waveforest.survey.scene import SurveyScene
+from waveforest.survey.spec import Survey, SurveyError
+
+LOCAL_WKT = ('LOCAL_CS["waveforest survey frame (local metric)",LOCAL_DATUM["scene",0],'
+             'UNIT["metre",1],AXIS["x",EAST],AXIS["y",NORTH]]')
+"""CRS written when the survey names none: the scene's local metric frame."""
+
+COMMAND = "survey"
+
+LAZ_CHUNK_POINTS = 1_000_000
+"""Points compressed per chunk when the survey writes LAZ."""
+
+
+def cache_folder(out_dir: Path, key: str) -> Path:
+    out_dir = Path(out_dir)
+    return out_dir.parent / f".{out_dir.name}.survey-{key}"
+
+
+def peak_memory_mb() -> float:
+    """Peak resident memory of this process, MB."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def run_tiles(scene: SurveyScene, survey: Survey, mcrt: MCRTSetup, setup: SensorSetup,
+              out_dir: Path, *, part: tuple[int, int] = (0, 1), threads: int | None = None,
+              progress: bool = False) -> tuple[Plan, Path]:
+    """Trace every tile of part ``part = (i, n)`` (tiles ``k`` with ``k % n == i``) not yet in the cache."""
+    pl = plan(scene, survey)
+    cache = cache_folder(out_dir, run_key(scene, survey, mcrt, repr(setup)))
+    cache.mkdir(parents=True, exist_ok=True)
+    todo = [k for k in range(len(pl.tiles)) if k % part[1] == part[0]]
+    counts = np.bincount(np.searchsorted(pl.tiles, pl.tile), minlength=len(pl.tiles))
+    missing = [k for k in todo if not (cache / f"tile_{k:06d}.json").exists()]
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=int(counts[todo].sum()), initial=int(counts[todo].sum() - counts[missing].sum()),
+                   unit="pulse", desc="survey", smoothing=0.1)
+    cpu = time.process_time()
+    scenes = TileScenes(scene, survey, mcrt.viewed_diameter_m, max_zenith_tan(pl.pulses)) if missing else None
+    prepare_s = time.process_time() - cpu
+    try:
+        for k in missing:
+            res = run_tile(k, pl, scenes, survey, mcrt, setup, cache / f"tile_{k:06d}.parquet", threads, bar)
+            with atomic_path(cache / f"tile_{k:06d}.json") as tmp:  # written last: the tile is complete
+                tmp.write_text(json.dumps(res.__dict__))
+    finally:
+        if bar is not None:
+            bar.close()
+    if missing:  # the prototypes' build and BVHs of this run (a resumed run builds them anew)
+        with atomic_path(cache / f"build_{part[0]}_{part[1]}.json") as tmp:
+            tmp.write_text(json.dumps({"prototype_build_s": scene.build_s + prepare_s}))
+    return pl, cache
+
+
+def merge(pl: Plan, cache: Path, scene: SurveyScene, survey: Survey, out_dir: Path, *, force: bool = False,
+          wall_s: float = 0.0, mcrt: MCRTSetup) -> dict:
+    """Write DIR from the cached tiles (all must be there); return the summary."""
+    folder = OutputFolder(out_dir, COMMAND, force=force)
+    missing = [k for k in range(len(pl.tiles)) if not (cache / f"tile_{k:06d}.json").exists()]
+    if missing:
+        raise SurveyError(f"{cache}: tiles {missing[0]} and {len(missing) - 1} more not traced yet "
+                          "(run every part first)")
+    results = [TileResult(**json.loads((cache / f"tile_{k:06d}.json").read_text())) for k in range(len(pl.tiles))]
+    with folder as tmp:
+        las = tmp / "survey.las"
+        with WaveformLasWriter(las, version=survey.las_version, bits=survey.scanner.bits,
+                               storage=survey.waveforms, agc_attribute=None, wkt=survey.crs_wkt or LOCAL_WKT,
+                               generating_software="waveforest survey") as w:
+            for k in range(len(pl.tiles)):
+                t = pq.read_table(cache / f"tile_{k:06d}.parquet")
+                if t.num_rows:
+                    w.write(t)
+            if w.n_pulses == 0:
+                raise SurveyError(f"{survey.source}: no pulse returned an echo (expected a scene the beams reach)")
+        if survey.laz:  # points compressed chunk by chunk; header, VLRs and EVLRs as written
+            with laspy.open(las) as reader, laspy.open(tmp / "survey.laz", mode="w", header=reader.header,
+                                                       do_compress=True, laz_backend=laspy.LazBackend.Lazrs) as out:
+                for points in reader.chunk_iterator(LAZ_CHUNK_POINTS):
+                    out.write_points(points)
+            las.unlink()
+        trajectory_table(pl.tracks, survey.trajectory_hz).to_csv(tmp / "trajectory.csv", index=False,
+                                                                 float_format="%.6f")
+        if survey.truth:
+            writer = None
+            try:
+                for k in range(len(pl.tiles)):
+                    t = pq.read_table(cache / f"tile_{k:06d}.truth.parquet")
+                    if t.num_rows:
+                        writer = writer or pq.ParquetWriter(tmp / "truth.parquet", t.schema)
+                        writer.write_table(t)
+            finally:
+                if writer is not None:
+                    writer.close()
+        builds = [json.loads(f.read_text())["prototype_build_s"] for f in sorted(cache.glob("build_*.json"))]
+        out = summary(pl, results, wall_s, peak_memory_mb(), mcrt)
+        out["prototypes"] = 0 if scene.plants is None else len(scene.plants.prototypes)
+        out["prototype_build_s"] = float(sum(builds))
+        write_summary(out, tmp / "summary.json")
+    for old in Path(out_dir).parent.glob(f".{Path(out_dir).name}.survey-*"):  # this run's and stale ones
+        shutil.rmtree(old, ignore_errors=True)
+    return out
+
+
+def run_survey(scene: SurveyScene, survey: Survey, mcrt: MCRTSetup, setup: SensorSetup,
+               out_dir: Path, *, force: bool = False, threads: int | None = None, progress: bool = False,
+               part: tuple[int, int] | None = None) -> dict | None:
+    """Trace (resuming) and merge; with ``part`` only that part's tiles are traced (no merge, None)."""
+    OutputFolder(out_dir, COMMAND, force=force)  # refuse a foreign folder before any work
+    t0 = time.perf_counter()
+    try:
+        pl, cache = run_tiles(scene, survey, mcrt, setup, out_dir, part=part or (0, 1),
+                              threads=threads, progress=progress)
+    except OSError as exc:  # e.g. a full disk: the completed tiles stay for the next run
+        raise SurveyError(f"{exc.filename or out_dir}: cannot write a tile ({exc.strerror or exc}); "
+                          "the tiles completed so far are kept for a rerun") from None
+    if part is not None:
+        return None
+    try:
+        return merge(pl, cache, scene, survey, out_dir, force=force, wall_s=time.perf_counter() - t0, mcrt=mcrt)
+    except OSError as exc:
+        raise SurveyError(f"{exc.filename or out_dir}: cannot write the survey ({exc.strerror or exc}); "
+                          "nothing was written to the output folder") from None

@@ -1,0 +1,158 @@
+"""The platform and the scanner: GPS time, sensor position and beam direction of every pulse.
+
+Body frame of the platform: ``fwd`` (heading), ``right``, ``up``. A pulse's body direction is,
+with ``p`` the phase (scan frequency x time since the start of its leg, fractional part) and
+``a`` the largest scan angle:
+
+- ``oscillating`` mirror: angle ``a (1 - 4 |p - 1/2|)`` across track (zig-zag lines, two per cycle);
+- ``polygon``: angle ``a (2 p - 1)`` across track (saw-tooth lines, one per facet);
+- ``conic`` (Palmer): zenith ``a`` at azimuth ``2 pi p`` from the heading.
+
+Roll turns the body about ``fwd`` (right wing down for positive roll), pitch about ``right``
+(nose up for positive pitch), heading is clockwise from +y (north). The LAS scan angle is the
+across-track angle of the beam from the vertical, positive to the right.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+
+from waveforest.io.csvfile import read_csv_file
+from waveforest.survey.spec import Scanner, Survey, SurveyError
+
+TRAJECTORY_ATTITUDE = ("gps_time", "x", "y", "z", "roll_deg", "pitch_deg", "heading_deg")
+
+
+@dataclass(frozen=True)
+class Track:
+    """Platform states at increasing times of one leg."""
+
+    gps_time: np.ndarray   # (n,) s
+    xyz: np.ndarray        # (n, 3) m
+    attitude: np.ndarray   # (n, 3) roll, pitch, heading, degrees
+
+
+@dataclass(frozen=True)
+class Pulses:
+    """Every pulse of a survey, in time order within each leg."""
+
+    leg: np.ndarray        # (n,) int64
+    gps_time: np.ndarray   # (n,) s
+    origin: np.ndarray     # (n, 3) m
+    direction: np.ndarray  # (n, 3) unit
+    scan_angle_deg: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.gps_time)
+
+    def take(self, idx) -> Pulses:
+        return Pulses(self.leg[idx], self.gps_time[idx], self.origin[idx], self.direction[idx],
+                      self.scan_angle_deg[idx])
+
+
+def leg_tracks(survey: Survey) -> list[Track]:
+    """The legs as tracks (two states each: straight, level, heading along the leg), or the trajectory table."""
+    if survey.trajectory is not None:
+        df = read_csv_file(survey.trajectory, SurveyError, what="trajectory file")
+        missing = [c for c in TRAJECTORY_ATTITUDE if c not in df.columns]
+        if missing:
+            raise SurveyError(f"{survey.trajectory}: missing column(s) {', '.join(missing)} "
+                              f"(expected {', '.join(TRAJECTORY_ATTITUDE)})")
+        t = df["gps_time"].to_numpy(np.float64)
+        if len(t) < 2 or np.any(np.diff(t) <= 0):
+            raise SurveyError(f"{survey.trajectory}: gps_time: expected at least 2 strictly increasing times")
+        return [Track(t, df[["x", "y", "z"]].to_numpy(np.float64),
+                      df[["roll_deg", "pitch_deg", "heading_deg"]].to_numpy(np.float64))]
+    out, t = [], survey.start_gps_time_s
+    for g in survey.legs:
+        a, b = np.array([*g.start, g.altitude_m]), np.array([*g.end, g.altitude_m])
+        duration = float(np.hypot(*(b - a)[:2])) / g.speed_m_s
+        heading = float(np.degrees(np.arctan2(b[0] - a[0], b[1] - a[1])))
+        out.append(Track(np.array([t, t + duration]), np.stack([a, b]), np.array([[0.0, 0.0, heading]] * 2)))
+        t = float(np.ceil(t + duration + survey.turn_s))
+    return out
+
+
+def body_directions(scanner: Scanner, phase: np.ndarray) -> np.ndarray:
+    """(n, 3) unit beam directions in (right, fwd, up) at scan phases ``phase`` in [0, 1)."""
+    a = np.radians(scanner.scan_angle_deg)
+    if scanner.pattern == "conic":
+        az = 2 * np.pi * phase
+        return np.stack([np.sin(a) * np.sin(az), np.sin(a) * np.cos(az), -np.full_like(phase, np.cos(a))], axis=1)
+    if scanner.pattern == "oscillating":
+        ang = a * (1.0 - 4.0 * np.abs(phase - 0.5))
+    else:  # polygon
+        ang = a * (2.0 * phase - 1.0)
+    return np.stack([np.sin(ang), np.zeros_like(ang), -np.cos(ang)], axis=1)
+
+
+def world_directions(body: np.ndarray, attitude: np.ndarray) -> np.ndarray:
+    """Body directions (right, fwd, up) turned by roll, pitch and heading (degrees, (n, 3))."""
+    r, p, h = (np.radians(attitude[:, k]) for k in range(3))
+    x, y, z = body[:, 0], body[:, 1], body[:, 2]
+    x, z = x * np.cos(r) + z * np.sin(r), -x * np.sin(r) + z * np.cos(r)   # roll about fwd
+    y, z = y * np.cos(p) + z * np.sin(p), -y * np.sin(p) + z * np.cos(p)   # pitch about right
+    fwd = np.stack([np.sin(h), np.cos(h)], axis=1)
+    right = np.stack([np.cos(h), -np.sin(h)], axis=1)
+    xy = x[:, None] * right + y[:, None] * fwd
+    d = np.column_stack([xy, z])
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def fly_blocks(survey: Survey, tracks: list[Track], block: int = 1_000_000):
+    """Every pulse of every track in blocks of at most ``block`` pulses, in time order (pulse k
+    of a track at ``t0 + k / pulse_rate``), so that a long flight never sits in memory whole."""
+    sc = survey.scanner
+    for i, tr in enumerate(tracks):
+        n = int(np.floor((tr.gps_time[-1] - tr.gps_time[0]) * sc.pulse_rate_hz)) + 1
+        for a in range(0, n, block):
+            dt = np.arange(a, min(n, a + block)) / sc.pulse_rate_hz
+            t = tr.gps_time[0] + dt
+            xyz = np.stack([np.interp(t, tr.gps_time, tr.xyz[:, k]) for k in range(3)], axis=1)
+            att = np.stack([np.interp(t, tr.gps_time, tr.attitude[:, k]) for k in range(3)], axis=1)
+            body = body_directions(sc, np.mod(dt * sc.scan_frequency_hz, 1.0))
+            d = world_directions(body, att)
+            h = np.radians(att[:, 2])
+            across = d[:, 0] * np.cos(h) - d[:, 1] * np.sin(h)
+            scan = np.degrees(np.arctan2(across, -d[:, 2]))
+            yield Pulses(np.full(len(t), i, np.int64), t, xyz, d, scan)
+
+
+def concat(parts: list[Pulses]) -> Pulses:
+    """The pulses of ``parts`` one after the other."""
+    return Pulses(*(np.concatenate([getattr(p, f) for p in parts])
+                    for f in ("leg", "gps_time", "origin", "direction", "scan_angle_deg")))
+
+
+def fly(survey: Survey, tracks: list[Track]) -> Pulses:
+    """Every pulse of every track (:func:`fly_blocks` in one piece)."""
+    return concat(list(fly_blocks(survey, tracks)))
+
+
+def trajectory_table(tracks: list[Track], hz: float) -> pd.DataFrame:
+    """The written trajectory: gps_time, x, y, z, roll_deg, pitch_deg, heading_deg, leg (``hz`` per s)."""
+    parts = []
+    for i, tr in enumerate(tracks):
+        n = int(np.ceil((tr.gps_time[-1] - tr.gps_time[0]) * hz - 1e-9)) + 1
+        t = np.minimum(tr.gps_time[0] + np.arange(n) / hz, tr.gps_time[-1])
+        cols = {"gps_time": t}
+        for k, c in enumerate("xyz"):
+            cols[c] = np.interp(t, tr.gps_time, tr.xyz[:, k])
+        for k, c in enumerate(("roll_deg", "pitch_deg", "heading_deg")):
+            cols[c] = np.interp(t, tr.gps_time, tr.attitude[:, k])
+        cols["leg"] = i
+        parts.append(pd.DataFrame(cols))
+    return pd.concat(parts, ignore_index=True)
+
+
+def axis_hits_box(origin: np.ndarray, direction: np.ndarray, box: np.ndarray) -> np.ndarray:
+    """(n,) bool: the beam axis (a ray) passes through the box [min, max] (slab test)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / direction
+        t1, t2 = (box[0] - origin) * inv, (box[1] - origin) * inv
+    lo = np.nanmax(np.minimum(t1, t2), axis=1)
+    hi = np.nanmin(np.maximum(t1, t2), axis=1)
+    return (hi >= np.maximum(lo, 0.0))

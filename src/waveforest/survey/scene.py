@@ -1,0 +1,286 @@
+"""The survey's scene: meshes (PLY, OBJ + MTL), plants as instances of prototypes, ground.
+
+A plant ``(species, x, y, z, height, seed, rotation)`` is a copy of the prototype built by
+:func:`waveforest.vegetation.build` (no ground) at the height rounded to ``height_step_m``
+and the seed ``seed % prototype_seeds``: a bounded set of prototypes, each built and given
+its BVH once (:func:`waveforest.mcrt.prepare_prototypes`), copied by transform only.
+"""
+
+from __future__ import annotations
+
+import re
+import time
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from waveforest.constants import KIND_GROUND
+from waveforest.errors import WaveforestError
+from waveforest.scene import Scene, SceneError, read_ply
+from waveforest.survey.spec import SCENE_SCHEMA, SurveyError, read_document
+from waveforest.vegetation import build
+
+KINDS = {"ground": 0, "leaf": 1, "wood": 2, "other": 3}
+
+
+@dataclass(frozen=True)
+class Plants:
+    """Plant copies: ``prototypes[which[j]]`` rotated by ``rotation[j]`` and moved by ``translation[j]``."""
+
+    prototypes: tuple[Scene, ...]
+    labels: tuple[str, ...]
+    which: np.ndarray          # (k,) int64
+    rotation: np.ndarray       # (k, 3, 3)
+    translation: np.ndarray    # (k, 3) m
+    box: np.ndarray            # (k, 2, 3) world bounding box of each copy
+
+    def __len__(self) -> int:
+        return len(self.which)
+
+
+@dataclass(frozen=True)
+class SurveyScene:
+    """Static triangles (meshes and ground) and plant instances."""
+
+    static: Scene | None
+    plants: Plants | None
+    bounds: np.ndarray         # (2, 3) m, everything
+    build_s: float = 0.0       # CPU time spent building the plant prototypes, s
+
+    @property
+    def n_triangles(self) -> int:
+        n = 0 if self.static is None else len(self.static)
+        if self.plants is not None:
+            n += int(sum(len(self.plants.prototypes[w]) for w in self.plants.which))
+        return n
+
+
+def rotation_z(deg) -> np.ndarray:
+    """(k, 3, 3) rotations about z by ``deg`` degrees (counter-clockwise)."""
+    a = np.radians(np.atleast_1d(np.asarray(deg, np.float64)))
+    c, s = np.cos(a), np.sin(a)
+    r = np.zeros((len(a), 3, 3))
+    r[:, 0, 0], r[:, 0, 1], r[:, 1, 0], r[:, 1, 1], r[:, 2, 2] = c, -s, s, c, 1.0
+    return r
+
+
+DEFAULT_MATERIAL = "default"
+"""Material name of OBJ faces before any ``usemtl``."""
+
+_V = re.compile(r"^[ \t]*v[ \t]+([^\r\n]*)", re.M)
+_F = re.compile(r"^[ \t]*f[ \t]+([^\r\n]*)", re.M)
+_USEMTL = re.compile(r"^[ \t]*usemtl[ \t]+([^\r\n]*?)[ \t]*$", re.M)
+_MTLLIB = re.compile(r"^[ \t]*mtllib[ \t]+([^\r\n]*?)[ \t]*$", re.M)
+
+
+def _starts(pattern: re.Pattern, text: str) -> np.ndarray:
+    return np.fromiter((m.start() for m in pattern.finditer(text)), np.int64)
+
+
+def read_obj(path: Path, materials: dict, source: str) -> Scene:
+    """Triangles of an OBJ (polygons fanned, in file order) with each face's material's rho, tau, kind.
+
+    ``materials`` (SCENE.yaml) override the MTL; an MTL material gives rho by
+    ``helios_reflectance`` (HELIOS++'s key). A face whose material has neither is an error.
+    Parsed with regular expressions over the whole text (no loop over lines in Python).
+    """
+    try:
+        text = path.read_text(errors="replace")
+    except OSError as exc:
+        raise SurveyError(f"{source}: {path}: cannot read ({exc.strerror or exc})") from None
+    parts = _USEMTL.split(text)                  # [before, name 1, body 1, name 2, body 2, ...]
+    used, bodies = parts[1::2], parts[0::2]
+    per_body = [_F.findall(b) for b in bodies]
+    faces = [f for fs in per_body for f in fs]
+    if not faces:
+        raise SurveyError(f"{source}: {path}: no faces (expected an OBJ with f lines)")
+    vlines = _V.findall(text)
+    try:
+        with warnings.catch_warnings():  # a bad number ends the parse early (a DeprecationWarning)
+            warnings.simplefilter("ignore", DeprecationWarning)
+            values = np.fromstring(" ".join(vlines), sep=" ") if vlines else np.zeros(0)
+        if len(values) == 3 * len(vlines):
+            xyz = values.reshape(-1, 3)
+        else:  # w or colours after x y z, or a bad number (fromstring stops there)
+            xyz = np.array([v.split()[:3] for v in vlines], dtype=np.float64).reshape(-1, 3)
+    except ValueError:
+        raise SurveyError(f"{source}: {path}: a vertex line is not three numbers") from None
+    if not np.all(np.isfinite(xyz)):
+        raise SurveyError(f"{source}: {path}: non-finite vertex coordinates")
+    corners = re.sub(r"/[^ \t\n]*", "", "\n".join(faces)).split("\n")
+    n = np.fromiter((len(c.split()) for c in corners), np.int64, len(corners))
+    try:
+        flat = np.array(" ".join(corners).split(), dtype=np.int64)
+    except ValueError:
+        raise SurveyError(f"{source}: {path}: a face line is not vertex indices") from None
+    if n.min() < 3:
+        raise SurveyError(f"{source}: {path}: a face with fewer than 3 vertices")
+    if np.any(flat < 0):  # relative indices count back from the vertices defined so far
+        before = np.repeat(np.searchsorted(_starts(_V, text), _starts(_F, text)), n)
+        flat = np.where(flat < 0, before + flat, flat - 1)
+    else:
+        flat = flat - 1
+    if flat.min() < 0 or flat.max() >= len(xyz):
+        raise SurveyError(f"{source}: {path}: face vertex index out of range (1..{len(xyz)})")
+    starts = np.concatenate([[0], np.cumsum(n)[:-1]])
+    face = np.repeat(np.arange(len(n)), n - 2)                        # fan: (v0, vk, vk+1)
+    k = np.arange(len(face)) - np.repeat(np.cumsum(n - 2) - (n - 2), n - 2)
+    idx = np.stack([flat[starts[face]], flat[starts[face] + k + 1], flat[starts[face] + k + 2]], axis=1)
+    which = np.repeat(np.arange(len(bodies)) - 1, [len(fs) for fs in per_body])  # -1: before any usemtl
+    names = [DEFAULT_MATERIAL if w < 0 else used[w] for w in np.unique(which)]
+    mtl: dict[str, float] = {}
+    for lib in _MTLLIB.findall(text):
+        mtl.update(_read_mtl(path.parent / lib))
+    props = np.zeros((len(used) + 1, 3))
+    for w, m in zip(np.unique(which), names):
+        if m in materials:
+            p = materials[m]
+            rho, tau = float(p["rho"]), float(p.get("tau", 0.0))
+            if rho + tau > 1.0 + 1e-9:
+                raise SurveyError(f"{source}: materials/{m}: expected rho + tau <= 1, got {rho + tau:g}")
+            props[w + 1] = (rho, tau, KINDS[p.get("kind", "other")])
+        elif m in mtl:
+            props[w + 1] = (mtl[m], 0.0, KINDS["other"])
+        else:
+            raise SurveyError(f"{source}: {path}: material {m!r} has no optical properties (expected "
+                              f"objects/materials/{m}/rho in the scene file or helios_reflectance in its MTL)")
+    table = props[which[face] + 1]
+    return Scene(xyz[idx].astype(np.float32), table[:, 0], table[:, 1], table[:, 2].astype(np.uint8))
+
+
+def _read_mtl(path: Path) -> dict[str, float]:
+    """name -> helios_reflectance of an MTL file (materials without it are left out)."""
+    out, name = {}, None
+    if not path.exists():
+        return out
+    for line in path.read_text(errors="replace").splitlines():
+        head, _, rest = line.strip().partition(" ")
+        if head == "newmtl":
+            name = rest.strip()
+        elif head == "helios_reflectance" and name is not None:
+            out[name] = float(rest.split()[0])
+    return out
+
+
+def read_mesh(path: Path, materials: dict, source: str) -> Scene:
+    """A PLY (rho, tau, kind per face) or OBJ + MTL mesh; SurveyError naming the file."""
+    if not path.exists():
+        raise SurveyError(f"{source}: {path}: no such file")
+    if path.suffix.lower() == ".obj":
+        return read_obj(path, materials, source)
+    try:
+        return read_ply(path)
+    except SceneError as exc:
+        raise SurveyError(f"{source}: {exc}") from None
+
+
+def _place(scene: Scene, scale: float, rotate_deg: float, translate) -> Scene:
+    r = rotation_z(rotate_deg)[0]
+    tri = (scene.triangles.astype(np.float64) * scale) @ r.T + np.asarray(translate, np.float64)
+    return Scene(tri.astype(np.float32), scene.rho, scene.tau, scene.kind)
+
+
+def plant_table(path: Path, source: str) -> pd.DataFrame:
+    """The plant CSV: species, x, y, height, seed (+ z, rotation_deg, default 0)."""
+    if not path.exists():
+        raise SurveyError(f"{source}: plants/table: {path}: no such file")
+    try:
+        df = pd.read_csv(path)
+    except Exception as exc:  # pandas raises several types on malformed CSV
+        raise SurveyError(f"{source}: plants/table: {path}: not a readable CSV ({exc})") from None
+    missing = [c for c in ("species", "x", "y", "height", "seed") if c not in df.columns]
+    if missing:
+        raise SurveyError(f"{path}: missing column(s) {', '.join(missing)} (expected species, x, y, height, seed)")
+    for c in ("z", "rotation_deg"):
+        if c not in df.columns:
+            df[c] = 0.0
+    for c in ("x", "y", "z", "height", "rotation_deg"):
+        v = pd.to_numeric(df[c], errors="coerce").to_numpy(np.float64)
+        if not np.all(np.isfinite(v)):
+            raise SurveyError(f"{path}: column {c}, row {int(np.flatnonzero(~np.isfinite(v))[0]) + 2}: "
+                              "expected a finite number")
+        df[c] = v
+    return df
+
+
+def _plants(df: pd.DataFrame, seeds: int, step: float, source: str, progress: bool = False) -> Plants:
+    h = np.maximum(step, np.round(df["height"].to_numpy() / step) * step)
+    s = df["seed"].to_numpy(np.int64) % seeds
+    keys = list(zip(df["species"].astype(str), h.round(6), s))
+    uniq = sorted(set(keys))
+    index = {k: i for i, k in enumerate(uniq)}
+    protos = []
+    todo = uniq
+    if progress:
+        from tqdm import tqdm
+
+        todo = tqdm(uniq, desc="plant prototypes", unit="prototype")
+    for sp, hh, ss in todo:
+        try:
+            protos.append(build(sp, float(hh), int(ss), ground=False).scene)
+        except WaveforestError as exc:
+            raise SurveyError(f"{source}: plants/table: {exc}") from None
+    which = np.array([index[k] for k in keys], np.int64)
+    rot = rotation_z(df["rotation_deg"].to_numpy())
+    t = df[["x", "y", "z"]].to_numpy(np.float64)
+    pb = np.stack([p.bounds for p in protos])[which]                    # (k, 2, 3) local
+    corners = np.stack([pb[:, [i, j, c], [0, 1, 2]] for i in (0, 1) for j in (0, 1) for c in (0, 1)], axis=1)
+    placed = np.einsum("kab,kcb->kca", rot, corners) + t[:, None, :]
+    box = np.stack([placed.min(axis=1), placed.max(axis=1)], axis=1)
+    return Plants(tuple(protos), tuple(f"{a} {b:g} m seed {c}" for a, b, c in uniq), which, rot, t, box)
+
+
+def load_scene(path: str | Path, progress: bool = False) -> SurveyScene:
+    """Read SCENE.yaml and everything it names (SurveyError: file, field, what was expected);
+    ``progress``: a bar over the plant prototypes built."""
+    path = Path(path)
+    doc = read_document(path, SCENE_SCHEMA)
+    base, src = path.parent, str(path)
+    parts = []
+    for i, o in enumerate(doc["objects"]):
+        mesh = read_mesh(base / o["file"], o["materials"], f"{src}: objects/{i}")
+        parts.append(_place(mesh, float(o["scale"]), float(o["rotate_deg"]), o["translate"]))
+    pl = doc["plants"]
+    plants, build_s = None, 0.0
+    if pl["table"] is not None:
+        df = plant_table(base / pl["table"], src)
+        if len(df):
+            cpu = time.process_time()
+            plants = _plants(df, int(pl["prototype_seeds"]), float(pl["height_step_m"]), src, progress)
+            build_s = time.process_time() - cpu
+    g = doc["ground"]
+    if g["type"] == "mesh":
+        if g["file"] is None:
+            raise SurveyError(f"{src}: ground/file: expected a mesh file for ground type mesh")
+        mesh = read_mesh(base / g["file"], {}, f"{src}: ground")
+        parts.append(Scene(mesh.triangles, mesh.rho, mesh.tau, KIND_GROUND))  # every face is ground
+    plant_box = [] if plants is None else [np.stack([plants.box[:, 0].min(axis=0), plants.box[:, 1].max(axis=0)])]
+    boxes = [p.bounds for p in parts] + plant_box
+    if g["type"] == "plane":
+        if g["extent"] is not None:
+            x0, y0, x1, y1 = map(float, g["extent"])
+        elif boxes:
+            lo = np.min([b[0] for b in boxes], axis=0)
+            hi = np.max([b[1] for b in boxes], axis=0)
+            m = float(g["margin_m"])
+            x0, y0, x1, y1 = lo[0] - m, lo[1] - m, hi[0] + m, hi[1] + m
+        else:
+            raise SurveyError(f"{src}: ground/extent: expected an extent for a ground plane with no objects or plants")
+        if not (x1 > x0 and y1 > y0):
+            raise SurveyError(f"{src}: ground/extent: expected xmin < xmax and ymin < ymax")
+        parts.append(ground_plane(x0, y0, x1, y1, float(g["z"]), float(g["rho"])))
+    static = Scene.concat(parts) if parts else None
+    if static is None and plants is None:
+        raise SurveyError(f"{src}: the scene is empty (expected objects, plants or a ground)")
+    allb = ([static.bounds] if static is not None else []) + plant_box
+    bounds = np.stack([np.min([b[0] for b in allb], axis=0), np.max([b[1] for b in allb], axis=0)])
+    return SurveyScene(static, plants, bounds, build_s)
+
+
+def ground_plane(x0: float, y0: float, x1: float, y1: float, z: float, rho: float) -> Scene:
+    """Two upward-facing triangles covering [x0, x1] x [y0, y1] at height z."""
+    a, b, c, d = (x0, y0, z), (x1, y0, z), (x1, y1, z), (x0, y1, z)
+    return Scene(np.array([[a, b, c], [a, c, d]], np.float32), rho, 0.0, KIND_GROUND)

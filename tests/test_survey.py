@@ -1,0 +1,284 @@
+"""`waveforest survey`: bad input (one line, exit 1, no output), outputs that read back
+(laspy, `info`, the pulse reader), resuming from completed tiles, parts, the same seed
+giving the same files, plants as instances of prototypes."""
+
+from __future__ import annotations
+
+import json
+import warnings
+
+import laspy
+import numpy as np
+import pandas as pd
+import pytest
+import yaml
+from fixtures.survey import fly, tilted_plane, write_obj
+
+from waveforest import config
+from waveforest.cli import main
+from waveforest.settings import mcrt_setup, reference_system, sensor_settings
+from waveforest.survey import SurveyError, load_scene, load_survey, survey_mcrt
+from waveforest.survey.engine import run_key
+from waveforest.survey.run import cache_folder
+
+pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
+
+PLANE = {"objects": [{"file": "plane.obj", "materials": {"m": {"rho": 0.4}}}], "ground": {"type": "none"}}
+SURVEY = {"platform": {"legs": [{"start": [0, -3], "end": [0, 3], "altitude_m": 300.0}]},
+          "scanner": {"pulse_rate_hz": 40.0, "scan_angle_deg": 2.0, "scan_frequency_hz": 3.0},
+          "quality": {"rays_per_pulse": 256, "max_order": 2, "tile_m": 2.0}}
+
+
+def _files(tmp_path, scene=None, survey=None):
+    write_obj(tmp_path / "plane.obj", tilted_plane(20.0, 1.0))
+    (tmp_path / "SCENE.yaml").write_text(yaml.safe_dump(PLANE if scene is None else scene))
+    (tmp_path / "SURVEY.yaml").write_text(yaml.safe_dump(SURVEY if survey is None else survey))
+    return tmp_path / "SCENE.yaml", tmp_path / "SURVEY.yaml"
+
+
+def _run(argv, capsys):
+    """``main(argv)``: its exit code (0 when it returns) and its non-empty stderr lines."""
+    try:
+        main([str(a) for a in argv])
+        code = 0
+    except SystemExit as exc:
+        code = exc.code
+    return code, [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+
+
+def _fails(tmp_path, capsys, scene=None, survey=None, expect=""):
+    sc, sv = _files(tmp_path, scene, survey)
+    out = tmp_path / "out"
+    code, lines = _run(["survey", sc, sv, "--out", out, "--no-progress"], capsys)
+    assert code == 1, lines
+    assert len(lines) == 1 and lines[0].startswith("waveforest: error: "), lines
+    assert expect in lines[0], lines[0]
+    assert not out.exists()
+    assert not any(p.name.startswith(".out.") for p in tmp_path.iterdir())
+    return lines[0]
+
+
+def test_unknown_keys_in_either_file(tmp_path, capsys):
+    line = _fails(tmp_path, capsys, scene={**PLANE, "grund": {}}, expect="SCENE.yaml: grund: unknown key")
+    assert "expected one of objects, plants, ground" in line
+    survey = {**SURVEY, "scanner": {**SURVEY["scanner"], "pulse_rate": 5}}
+    _fails(tmp_path, capsys, survey=survey, expect="SURVEY.yaml: scanner/pulse_rate: unknown key")
+    survey = {**SURVEY, "platform": {"legs": [{"start": [0, 0], "end": [0, 1], "speed": 3}]}}
+    _fails(tmp_path, capsys, survey=survey, expect="platform/legs/0/speed: unknown key")
+
+
+def test_a_mesh_that_cannot_be_read(tmp_path, capsys):
+    scene = {"objects": [{"file": "nowhere.obj"}]}
+    _fails(tmp_path, capsys, scene=scene, expect="objects/0: ")
+    (tmp_path / "junk.ply").write_bytes(b"\x00garbage" * 10)
+    _fails(tmp_path, capsys, scene={"objects": [{"file": "junk.ply"}]}, expect="junk.ply")
+
+
+def test_non_finite_vertices(tmp_path, capsys):
+    (tmp_path / "nan.obj").write_text("usemtl m\nv 0 0 0\nv 1 0 nan\nv 0 1 0\nf 1 2 3\n")
+    scene = {"objects": [{"file": "nan.obj", "materials": {"m": {"rho": 0.4}}}]}
+    _fails(tmp_path, capsys, scene=scene, expect="non-finite vertex")
+
+
+def test_an_empty_scene(tmp_path, capsys):
+    _fails(tmp_path, capsys, scene={"ground": {"type": "none"}}, expect="the scene is empty")
+
+
+def test_a_material_without_properties(tmp_path, capsys):
+    scene = {"objects": [{"file": "plane.obj"}], "ground": {"type": "none"}}
+    _fails(tmp_path, capsys, scene=scene, expect="material 'm' has no optical properties")
+
+
+def test_a_leg_that_sees_no_scene(tmp_path, capsys):
+    survey = {**SURVEY, "platform": {"legs": [SURVEY["platform"]["legs"][0],
+                                              {"start": [500, 0], "end": [500, 10], "altitude_m": 300.0}]}}
+    _fails(tmp_path, capsys, survey=survey, expect="platform/legs/1: the leg sees no part of the scene")
+
+
+def test_the_outputs_read_back(tmp_path, capsys):
+    """LAS 1.4 PF9 + .wdp: laspy, `info` and the pulse reader agree with the summary."""
+    sc, sv = _files(tmp_path)
+    out = tmp_path / "out"
+    code, _ = _run(["survey", sc, sv, "--out", out, "--no-progress"], capsys)
+    assert code == 0
+    summary = json.loads((out / "summary.json").read_text())
+    las = laspy.read(out / "survey.las")
+    assert las.header.version.major == 1 and las.header.version.minor == 4 and las.header.point_format.id == 9
+    assert len(las.points) == summary["returns"] > 0
+    assert len(np.unique(las.gps_time)) == summary["pulses_traced"]
+    assert np.all(np.asarray(las.return_number) <= np.asarray(las.number_of_returns))
+    assert np.abs(np.asarray(las.scan_angle) * 0.006).max() <= 2.0 + 1e-6
+    assert any(v.record_id == 2112 for v in las.header.vlrs)  # OGC WKT CRS
+    assert (out / "survey.wdp").stat().st_size > 0
+    traj = (out / "trajectory.csv").read_text().splitlines()
+    assert traj[0].startswith("gps_time,x,y,z,roll_deg,pitch_deg,heading_deg")
+    capsys.readouterr()
+    main(["info", str(out / "survey.las")])
+    assert f"points:                {summary['returns']:,}" in capsys.readouterr().out
+    main(["ingest", str(out / "survey.las"), "--trajectory", str(out / "trajectory.csv"),
+          "--out", str(tmp_path / "pulses.parquet"), "--no-progress"])
+    pulses = pd.read_parquet(tmp_path / "pulses.parquet")
+    assert len(pulses) == summary["pulses_traced"]
+    assert np.allclose(pulses["sensor_z"], 300.0) and np.allclose(pulses["sensor_x"], 0.0, atol=1e-6)
+    # the range along the beam from the trajectory's sensor lands on the first discrete return
+    for c in "xyz":
+        first = np.array([v[0] for v in pulses[f"echo_{c}"]])
+        assert np.allclose(pulses[f"sensor_{c}"] + pulses["range_m"] * pulses[f"dir_{c}"], first, atol=2e-3)
+
+
+def test_resume_keeps_completed_tiles_and_parts_merge(tmp_path):
+    """Part 0/2 leaves its tiles in the cache and no DIR; the full run then traces only the rest
+    and writes the same files as a run from scratch."""
+    write_obj(tmp_path / "plane.obj", tilted_plane(20.0, 1.0))
+    scanner = SURVEY["scanner"]
+    kw = dict(altitude=300.0, length=6.0, quality={"rays_per_pulse": 256, "max_order": 2, "tile_m": 2.0})
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        assert fly(tmp_path, PLANE, scanner, part=(0, 2), **kw)[0] is None
+        assert not (tmp_path / "out").exists()
+        cache = [p for p in tmp_path.iterdir() if p.name.startswith(".out.survey-")]
+        assert len(cache) == 1
+        done = sorted(p.name for p in cache[0].glob("tile_*.json"))
+        assert done and all(int(n[5:11]) % 2 == 0 for n in done)
+        a, _, _, _ = fly(tmp_path, PLANE, scanner, **kw)
+        assert not cache[0].exists()
+        b, _, _, _ = fly(tmp_path, PLANE, scanner, out="again", **kw)
+    assert a["tiles"] > 2 and a["pulses_traced"] == b["pulses_traced"]
+    las = [(tmp_path / d / "survey.las").read_bytes() for d in ("out", "again")]
+    assert las[0] == las[1]
+    assert (tmp_path / "out" / "survey.wdp").read_bytes() == (tmp_path / "again" / "survey.wdp").read_bytes()
+    assert cache_folder(tmp_path / "out", "k").parent == tmp_path
+
+
+def test_plants_are_instances_of_a_bounded_set_of_prototypes(tmp_path):
+    rows = ["species,x,y,height,seed"] + [f"fireweed,{i % 5},{i // 5},{0.5 + 0.1 * (i % 3)},{i}" for i in range(20)]
+    (tmp_path / "plants.csv").write_text("\n".join(rows) + "\n")
+    (tmp_path / "SCENE.yaml").write_text(yaml.safe_dump({"plants": {"table": "plants.csv", "prototype_seeds": 2,
+                                                                      "height_step_m": 0.5}}))
+    scene = load_scene(tmp_path / "SCENE.yaml")
+    assert len(scene.plants) == 20 and len(scene.plants.prototypes) == 2  # one height, two seeds
+    assert np.allclose(scene.plants.translation[:, :2], [[i % 5, i // 5] for i in range(20)])
+    (tmp_path / "plants.csv").write_text("species,x,y,height,seed\nbirch,0,0,nan,1\n")
+    with pytest.raises(SurveyError, match="column height, row 2: expected a finite number"):
+        load_scene(tmp_path / "SCENE.yaml")
+
+
+def test_the_cache_key_follows_the_scene_content(tmp_path):
+    """Tiles of an earlier run are reused only for the same triangles, properties and plants."""
+    sc, sv_path = _files(tmp_path)
+    cfg = config.load(None)
+    sv = load_survey(sv_path, sensor_settings(cfg), reference_system(cfg))
+    mcrt = survey_mcrt(mcrt_setup(cfg), sv)
+    key = run_key(load_scene(sc), sv, mcrt, "")
+    assert run_key(load_scene(sc), sv, mcrt, "") == key
+    _files(tmp_path, scene={**PLANE, "objects": [{"file": "plane.obj", "materials": {"m": {"rho": 0.5}}}]})
+    assert run_key(load_scene(sc), sv, mcrt, "") != key
+    _files(tmp_path)
+    write_obj(tmp_path / "plane.obj", tilted_plane(20.0, 2.0))
+    assert run_key(load_scene(sc), sv, mcrt, "") != key
+
+
+def test_a_full_disk_is_one_line_and_keeps_no_output(tmp_path, capsys, monkeypatch):
+    """An OSError while writing (ENOSPC here) ends in one line; no output folder is left."""
+    import errno
+
+    import pyarrow.parquet as pq
+
+    def full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device", str(tmp_path / "x.parquet"))
+
+    monkeypatch.setattr(pq, "write_table", full)
+    sc, sv = _files(tmp_path)
+    code, lines = _run(["survey", sc, sv, "--out", tmp_path / "out", "--no-progress"], capsys)
+    assert code == 1 and len(lines) == 1 and "No space left on device" in lines[0], lines
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_bad_part_is_a_usage_error(tmp_path, capsys):
+    sc, sv = _files(tmp_path)
+    code, lines = _run(["survey", sc, sv, "--out", tmp_path / "out", "--part", "2/2"], capsys)
+    assert code == 2 and "'--part'" in lines[0] and "expected I/N with 0 <= I < N" in lines[0], lines
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_merge_removes_stale_caches_of_its_folder(tmp_path, capsys):
+    sc, sv = _files(tmp_path)
+    stale = tmp_path / ".out.survey-0123456789abcdef"
+    stale.mkdir()
+    (stale / "tile_000000.json").write_text("{}")
+    other = tmp_path / ".other.survey-0123456789abcdef"
+    other.mkdir()
+    code, _ = _run(["survey", sc, sv, "--out", tmp_path / "out", "--no-progress"], capsys)
+    assert code == 0 and not stale.exists() and other.exists()
+
+
+def test_ctrl_c_leaves_no_output_and_the_rerun_resumes(tmp_path, capsys, monkeypatch):
+    """Interrupted after its first tile: exit 130, no DIR, that tile kept; the rerun traces only
+    the other tiles and writes what an uninterrupted run writes."""
+    import waveforest.survey.run as run_module
+
+    sc, sv = _files(tmp_path)
+    real, calls = run_module.run_tile, []
+
+    def first_then_interrupt(k, *args, **kwargs):
+        if calls:
+            raise KeyboardInterrupt
+        calls.append(k)
+        return real(k, *args, **kwargs)
+
+    monkeypatch.setattr(run_module, "run_tile", first_then_interrupt)
+    code, lines = _run(["survey", sc, sv, "--out", tmp_path / "out", "--no-progress"], capsys)
+    assert code == 130 and not (tmp_path / "out").exists(), lines
+    cache = next(tmp_path.glob(".out.survey-*"))
+    assert [p.name for p in cache.glob("tile_*.json")] == [f"tile_{calls[0]:06d}.json"]
+
+    def counting(k, *args, **kwargs):
+        calls.append(k)
+        return real(k, *args, **kwargs)
+
+    monkeypatch.setattr(run_module, "run_tile", counting)
+    code, _ = _run(["survey", sc, sv, "--out", tmp_path / "out", "--no-progress"], capsys)
+    assert code == 0 and calls[0] not in calls[1:] and len(calls) == json.loads(
+        (tmp_path / "out" / "summary.json").read_text())["tiles"]
+    code, _ = _run(["survey", sc, sv, "--out", tmp_path / "again", "--no-progress"], capsys)
+    assert (tmp_path / "out" / "survey.wdp").read_bytes() == (tmp_path / "again" / "survey.wdp").read_bytes()
+
+
+def test_obj_faces_materials_and_indices(tmp_path):
+    """Triangles and a quad (fanned, file order), v/vt/vn corners, relative indices, materials from
+    the MTL (helios_reflectance) and from SCENE.yaml, and a face before any usemtl."""
+    from waveforest.survey.scene import read_obj
+
+    (tmp_path / "a.mtl").write_text("newmtl bark\nhelios_reflectance 0.25\nnewmtl leaf\nKd 1 1 1\n")
+    (tmp_path / "a.obj").write_text(
+        "mtllib a.mtl\nv 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\n"
+        "f 1 2 3\n"                              # no usemtl yet: material "default"
+        "usemtl bark\nf 1/1/1 2/2/2 3/3/3 4/4/4\n"  # a quad: (1 2 3), (1 3 4)
+        "usemtl leaf\nv 0 0 5\nv 1 0 5\nv 0 1 5\nf -3 -2 -1\n")
+    props = {"leaf": {"rho": 0.4, "tau": 0.5, "kind": "leaf"}, "default": {"rho": 0.1}}
+    sc = read_obj(tmp_path / "a.obj", props, "S")
+    v = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 5], [1, 0, 5], [0, 1, 5]], float)
+    want = v[[[0, 1, 2], [0, 1, 2], [0, 2, 3], [4, 5, 6]]]
+    assert np.array_equal(sc.triangles, want.astype(np.float32))
+    assert np.allclose(np.asarray(sc.rho) * np.ones(4), [0.1, 0.25, 0.25, 0.4])
+    assert np.allclose(np.asarray(sc.tau) * np.ones(4), [0, 0, 0, 0.5])
+    assert list(np.asarray(sc.kind) * np.ones(4, int)) == [3, 3, 3, 1]
+    with pytest.raises(SurveyError, match="material 'leaf' has no optical properties"):
+        read_obj(tmp_path / "a.obj", {"default": {"rho": 0.1}}, "S")
+
+
+def test_a_scanner_without_preset_needs_every_value(tmp_path, capsys):
+    survey = {**SURVEY, "scanner": {"preset": None, "pulse_rate_hz": 40.0}}
+    _fails(tmp_path, capsys, survey=survey, expect="SURVEY.yaml: scanner/pattern: expected a value")
+    survey = {**SURVEY, "scanner": {**SURVEY["scanner"], "bits": 12}}
+    _fails(tmp_path, capsys, survey=survey, expect="scanner/bits:")
+
+
+def test_a_ground_mesh_is_ground(tmp_path):
+    write_obj(tmp_path / "g.obj", tilted_plane(10.0, 5.0), material="soil")
+    (tmp_path / "g.mtl").write_text("newmtl soil\nhelios_reflectance 0.2\n")
+    text = (tmp_path / "g.obj").read_text()
+    (tmp_path / "g.obj").write_text("mtllib g.mtl\n" + text)
+    (tmp_path / "SCENE.yaml").write_text(yaml.safe_dump({"ground": {"type": "mesh", "file": "g.obj"}}))
+    scene = load_scene(tmp_path / "SCENE.yaml")
+    assert np.all(np.asarray(scene.static.kind) == 0) and np.allclose(scene.static.rho, 0.2)

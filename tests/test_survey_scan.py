@@ -1,0 +1,103 @@
+"""Survey flight and scan geometry (no tracing): the three scan patterns, legs, a trajectory
+with attitude; and the LAS 1.3 / internal-packet / LAZ outputs read back."""
+
+from __future__ import annotations
+
+import warnings
+
+import laspy
+import numpy as np
+import pytest
+import yaml
+from fixtures.survey import fly as fly_survey
+from fixtures.survey import tilted_plane, write_obj
+
+from waveforest import config
+from waveforest.settings import reference_system, sensor_settings
+from waveforest.survey import SurveyError, load_survey
+from waveforest.survey.scan import concat, fly, fly_blocks, leg_tracks
+
+pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
+
+
+def _survey(tmp_path, doc):
+    (tmp_path / "SURVEY.yaml").write_text(yaml.safe_dump(doc))
+    cfg = config.load(None)
+    return load_survey(tmp_path / "SURVEY.yaml", sensor_settings(cfg), reference_system(cfg))
+
+
+LEG = {"legs": [{"start": [0, 0], "end": [0, 62], "altitude_m": 1000.0, "speed_m_s": 62.0}]}
+
+
+@pytest.mark.parametrize("pattern", ["oscillating", "polygon", "conic"])
+def test_scan_patterns(tmp_path, pattern):
+    sv = _survey(tmp_path, {"platform": LEG, "scanner": {"pattern": pattern, "scan_angle_deg": 10.0,
+                                                         "pulse_rate_hz": 1000.0, "scan_frequency_hz": 5.0}})
+    p = fly(sv, leg_tracks(sv))
+    assert len(p) == 1001 and np.allclose(np.diff(p.gps_time), 1e-3)
+    assert np.allclose(np.linalg.norm(p.direction, axis=1), 1.0)
+    zenith = np.degrees(np.arccos(-p.direction[:, 2]))
+    phase = np.mod(np.arange(len(p)) * 1e-3 * 5.0, 1.0)
+    if pattern == "conic":  # constant zenith, azimuth turning with the phase (heading north: az 0 = +y)
+        assert np.allclose(zenith, 10.0)
+        az = np.mod(np.degrees(np.arctan2(p.direction[:, 0], p.direction[:, 1])), 360)
+        assert np.allclose(np.mod(az - 360 * phase + 180, 360) - 180, 0, atol=1e-6)
+    else:  # across track only (x), zig-zag or saw-tooth in the phase
+        assert np.allclose(p.direction[:, 1], 0, atol=1e-12)
+        across = np.degrees(np.arctan2(p.direction[:, 0], -p.direction[:, 2]))
+        want = 10 * (1 - 4 * np.abs(phase - 0.5)) if pattern == "oscillating" else 10 * (2 * phase - 1)
+        assert np.allclose(across, want, atol=1e-9)
+        assert np.allclose(p.scan_angle_deg, want, atol=1e-9)
+    assert np.allclose(p.origin[:, 2], 1000.0) and np.allclose(p.origin[:, 1], 62.0 * np.arange(len(p)) * 1e-3)
+    blocks = concat(list(fly_blocks(sv, leg_tracks(sv), block=97)))  # blocks give the same pulses
+    assert np.array_equal(blocks.direction, p.direction) and np.array_equal(blocks.gps_time, p.gps_time)
+
+
+def test_legs_follow_each_other_and_a_trajectory_turns_the_beam(tmp_path):
+    two = {"legs": [LEG["legs"][0], {"start": [100, 62], "end": [100, 0], "altitude_m": 900.0}], "turn_s": 10.0}
+    sv = _survey(tmp_path, {"platform": two, "scanner": {"pulse_rate_hz": 100.0, "scan_angle_deg": 0.0}})
+    tracks = leg_tracks(sv)
+    assert tracks[1].gps_time[0] >= tracks[0].gps_time[-1] + 10.0
+    assert tracks[1].attitude[0, 2] == pytest.approx(180.0)
+    (tmp_path / "traj.csv").write_text("gps_time,x,y,z,roll_deg,pitch_deg,heading_deg\n"
+                                       "0,0,0,500,5,0,90\n1,10,0,500,5,0,90\n")
+    sv = _survey(tmp_path, {"platform": {"trajectory": "traj.csv"},
+                            "scanner": {"pulse_rate_hz": 10.0, "scan_angle_deg": 0.0}})
+    p = fly(sv, leg_tracks(sv))
+    assert len(p) == 11 and np.allclose(p.origin[:, 0], np.arange(11))
+    # heading east, roll 5 deg (right wing down): the body's down axis, the nadir beam, leans
+    # 5 deg to the left of the track (north, +y)
+    assert np.allclose(np.degrees(np.arccos(-p.direction[:, 2])), 5.0)
+    assert np.all(p.direction[:, 1] > 0) and np.allclose(p.direction[:, 0], 0, atol=1e-12)
+    (tmp_path / "traj.csv").write_text("gps_time,x,y,z\n0,0,0,500\n")
+    with pytest.raises(SurveyError, match="missing column"):
+        fly(sv, leg_tracks(sv))
+
+
+def test_las13_internal_packets_and_laz(tmp_path):
+    write_obj(tmp_path / "plane.obj", tilted_plane(20.0, 1.0))
+    scene = {"objects": [{"file": "plane.obj", "materials": {"m": {"rho": 0.4}}}], "ground": {"type": "none"}}
+    scanner = {"pulse_rate_hz": 40.0, "scan_angle_deg": 2.0, "scan_frequency_hz": 3.0}
+    q = {"rays_per_pulse": 128, "max_order": 1}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        r13, t13, _, _ = fly_survey(tmp_path, scene, scanner, altitude=300.0, quality=q, out="v13",
+                                    output={"las_version": "1.3", "waveforms": "internal"})
+        rz, tz, _, _ = fly_survey(tmp_path, scene, scanner, altitude=300.0, quality=q, out="vz",
+                                  output={"laz": True})
+    las = laspy.read(tmp_path / "v13" / "survey.las")
+    assert (las.header.version.major, las.header.version.minor, las.header.point_format.id) == (1, 3, 4)
+    assert not (tmp_path / "v13" / "survey.wdp").exists()
+    assert t13.num_rows == r13["pulses_traced"] > 0
+    laz = laspy.read(tmp_path / "vz" / "survey.laz")
+    assert laz.header.point_format.id == 9 and len(laz.points) == rz["returns"]
+    assert not (tmp_path / "vz" / "survey.las").exists() and (tmp_path / "vz" / "survey.wdp").exists()
+    assert tz.num_rows == rz["pulses_traced"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        fly_survey(tmp_path, scene, scanner, altitude=300.0, quality=q, out="v14")
+    ref = laspy.read(tmp_path / "v14" / "survey.las")  # the same flight as LAS: the same points and records
+    assert np.array_equal(laz.points.array, ref.points.array)
+    assert [v.record_id for v in laz.header.vlrs if v.user_id != "laszip encoded"] == [
+        v.record_id for v in ref.header.vlrs]
+    assert (tmp_path / "vz" / "survey.wdp").read_bytes() == (tmp_path / "v14" / "survey.wdp").read_bytes()
