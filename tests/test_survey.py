@@ -282,3 +282,24 @@ def test_a_ground_mesh_is_ground(tmp_path):
     (tmp_path / "SCENE.yaml").write_text(yaml.safe_dump({"ground": {"type": "mesh", "file": "g.obj"}}))
     scene = load_scene(tmp_path / "SCENE.yaml")
     assert np.all(np.asarray(scene.static.kind) == 0) and np.allclose(scene.static.rho, 0.2)
+
+
+def test_the_ray_budget_is_the_config_s_unless_the_survey_fixes_it(tmp_path):
+    """quality.rays_per_pulse fixes the rays; else quality.tolerance or the config's mcrt.tolerance
+    sets the adaptive budget, and the summary counts the rays each pulse used."""
+    cfg = config.load(None)
+    sc, sv_path = _files(tmp_path, survey={**SURVEY, "quality": {"max_order": 2, "tile_m": 2.0}})
+    sv = load_survey(sv_path, sensor_settings(cfg), reference_system(cfg))
+    assert survey_mcrt(mcrt_setup(cfg), sv).tolerance == cfg["mcrt"]["tolerance"]
+    _files(tmp_path, survey={**SURVEY, "quality": {"tolerance": 0.5, "tile_m": 2.0}})
+    assert survey_mcrt(mcrt_setup(cfg), load_survey(sv_path, sensor_settings(cfg), reference_system(cfg))).tolerance == 0.5
+    fixed = survey_mcrt(mcrt_setup(cfg), load_survey(_files(tmp_path)[1], sensor_settings(cfg), reference_system(cfg)))
+    assert fixed.tolerance is None and fixed.n_rays == 256
+
+    result, _, _, _ = fly(tmp_path, {"objects": [{"file": "plane.obj", "materials": {"m": {"rho": 0.4}}}],
+                                     "ground": {"type": "none"}}, {"pulse_rate_hz": 200.0, "scan_angle_deg": 1.0},
+                          altitude=300.0, length=1.0, quality={"rays_per_pulse": None, "tolerance": 0.5})
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert summary["tolerance"] == 0.5 and summary["rays_per_pulse"] is None
+    n = summary["pulses_traced"]
+    assert n > 0 and cfg["mcrt"]["min_rays"] * n <= summary["rays"] <= cfg["mcrt"]["max_rays"] * n

@@ -107,9 +107,13 @@ def system_waveform(survey: Survey, cfd: CFDParams):
 
 
 def survey_mcrt(mcrt: MCRTSetup, survey: Survey) -> MCRTSetup:
-    """The config's tracer settings with the survey's ``quality`` (rays per pulse, highest order) where given."""
-    return replace(mcrt, n_rays=int(survey.rays_per_pulse or mcrt.n_rays),
-                   max_order=int(survey.max_order or mcrt.max_order))
+    """The config's tracer settings with the survey's ``quality`` where given: a fixed
+    ``rays_per_pulse`` (no adaptive budget), else its ``tolerance`` or the config's; the highest order."""
+    if survey.rays_per_pulse:
+        mcrt = replace(mcrt, n_rays=int(survey.rays_per_pulse), tolerance=None)
+    elif survey.tolerance is not None:
+        mcrt = replace(mcrt, tolerance=float(survey.tolerance))
+    return replace(mcrt, max_order=int(survey.max_order or mcrt.max_order))
 
 
 def sensor_setup(survey: Survey, sensor: SensorSettings) -> SensorSetup:
@@ -251,7 +255,7 @@ def run_tile(k: int, plan_: Plan, scenes: TileScenes, survey: Survey, mcrt: MCRT
     p = plan_.pulses.take(rows)
     prepared = scenes.build(plan_.tile_xy[k], len(rows), mcrt.n_rays)
     rng = named_generator("survey", survey.seed, int(k))
-    tables, truths = [], []
+    tables, truths, rays = [], [], 0
     s = (plan_.ground_z - p.origin[:, 2]) / p.direction[:, 2]
     if prepared is not None:
         win = window_ns(prepared, p.origin, p.direction, mcrt.max_order)
@@ -259,7 +263,8 @@ def run_tile(k: int, plan_: Plan, scenes: TileScenes, survey: Survey, mcrt: MCRT
             sl = slice(a, a + survey.chunk_pulses)
             beams = Beams.from_divergence(p.origin[sl], p.direction[sl], survey.scanner.divergence_mrad, s[sl])
             res = trace(prepared, beams, seed=rng, threads=threads, window_ns=win, by_order=survey.truth,
-                        **mcrt.kwargs())
+                        **mcrt.kwargs(), **mcrt.budget(setup.system, setup.noise_sd, s[sl]))
+            rays += int(res.rays.sum())
             sim = render_sigma(res.sigma, res.t0_ns, s[sl], setup, rng, sigma_total=res.total)
             tables.append(pulse_table(p.take(np.arange(len(rows))[sl]), rows[sl], sim, s[sl]))
             if survey.truth:
@@ -277,7 +282,7 @@ def run_tile(k: int, plan_: Plan, scenes: TileScenes, survey: Survey, mcrt: MCRT
             empty = pa.table({"pulse_id": pa.array([], pa.int64())})
             pq.write_table(pa.concat_tables(truths) if truths else empty, tmp)
     returns = int(table.column("n_echoes").to_numpy().astype(np.int64).sum())
-    return TileResult(len(rows), returns, len(rows) * mcrt.n_rays, time.process_time() - cpu)
+    return TileResult(len(rows), returns, rays, time.process_time() - cpu)
 
 
 def _empty_sim() -> SimPulses:
@@ -309,7 +314,8 @@ def summary(plan_: Plan, results: list[TileResult], wall_s: float, peak_mb: floa
     cpu = sum(r.cpu_s for r in results)
     n = sum(r.pulses for r in results)
     return {"pulses_flown": plan_.n_flown, "pulses_traced": n, "returns": sum(r.returns for r in results),
-            "tiles": len(plan_.tiles), "rays_per_pulse": mcrt.n_rays, "max_order": mcrt.max_order,
+            "tiles": len(plan_.tiles), "rays_per_pulse": mcrt.n_rays if mcrt.tolerance is None else None,
+            "tolerance": mcrt.tolerance, "max_order": mcrt.max_order,
             "rays": sum(r.rays for r in results), "cpu_s": cpu, "wall_s": wall_s,
             "cpu_ms_per_pulse": 1000 * cpu / max(n, 1), "peak_memory_mb": peak_mb}
 

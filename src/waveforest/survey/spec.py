@@ -116,6 +116,7 @@ class Survey:
     turn_s: float
     trajectory_hz: float
     scanner: Scanner
+    tolerance: float | None
     rays_per_pulse: int | None
     max_order: int | None
     tile_m: float
@@ -190,6 +191,6 @@ def load_survey(path: str | Path, sensor: SensorSettings, reference: ReferenceSy
         source=path, seed=int(doc["seed"]), legs=legs, trajectory=trajectory,
         start_gps_time_s=float(p["start_gps_time_s"]), turn_s=float(p["turn_s"]),
         trajectory_hz=float(p["trajectory_hz"]), scanner=Scanner(**values),
-        rays_per_pulse=q["rays_per_pulse"], max_order=q["max_order"], tile_m=float(q["tile_m"]),
+        tolerance=q["tolerance"], rays_per_pulse=q["rays_per_pulse"], max_order=q["max_order"], tile_m=float(q["tile_m"]),
         las_version=str(o["las_version"]), waveforms=str(o["waveforms"]), laz=bool(o["laz"]),
         truth=bool(o["truth"]), crs_wkt=o["crs_wkt"], chunk_pulses=int(o["chunk_pulses"]))
