@@ -18,12 +18,12 @@ import time
 import numpy as np
 import pyarrow.parquet as pq
 import pytest
+from fixtures.cli import run_cli
 from fixtures.pulses import synthetic_pulses
 from reference_io import RIEGL, patch, point_field_position, reference_points, vlr_body_position
 from test_io_las_roundtrip import assert_tables_equal
 
 from waveforest.atomic import atomic_path
-from waveforest.cli import main
 from waveforest.errors import WaveforestError
 from waveforest.io.las.format import LasWaveformWarning
 from waveforest.io.las.read import read_waveform_las
@@ -49,13 +49,7 @@ def riegl(tmp_path):
 
 def _run(args, capsys):
     """``main(args)``: (exit code, stdout, stderr)."""
-    try:
-        main([str(a) for a in args])
-        code = 0
-    except SystemExit as exc:
-        code = exc.code
-    out, err = capsys.readouterr()
-    return code, out, err
+    return run_cli(args, capsys)
 
 
 def _fails(tmp_path, las, capsys, command="ingest"):

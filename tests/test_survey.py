@@ -12,6 +12,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import yaml
+from fixtures.cli import run_cli
 from fixtures.survey import fly, tilted_plane, write_obj
 
 from waveforest import config
@@ -38,12 +39,8 @@ def _files(tmp_path, scene=None, survey=None):
 
 def _run(argv, capsys):
     """``main(argv)``: its exit code (0 when it returns) and its non-empty stderr lines."""
-    try:
-        main([str(a) for a in argv])
-        code = 0
-    except SystemExit as exc:
-        code = exc.code
-    return code, [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    code, _, err = run_cli(argv, capsys)
+    return code, [ln for ln in err.splitlines() if ln.strip()]
 
 
 def _fails(tmp_path, capsys, scene=None, survey=None, expect=""):
