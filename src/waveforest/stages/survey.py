@@ -1,7 +1,7 @@
 """The ``survey`` stage: fly a user's scene (SCENE.yaml) with a user's flight (SURVEY.yaml).
 
 Builds the tracer settings from the config's ``mcrt`` section (the survey's quality
-overrides rays per pulse and highest order) and the ``als60`` preset from its ``sensor`` and
+overrides the ray budget's tolerance, or fixes the rays per pulse, and the highest order) and the ``als60`` preset from its ``sensor`` and
 ``sensitivity.reference_system`` sections, then calls :func:`waveforest.survey.run_survey`.
 """
 
