@@ -16,6 +16,7 @@ from fixtures.study import SyntheticStudy
 
 from waveforest.constants import RANGE_PER_NS
 from waveforest.diagnose import catalogue as cat
+from waveforest.diagnose.gap import FEATURES
 from waveforest.diagnose.missing_effects import find_missing_effects
 from waveforest.diagnose.power import LIMIT_COLUMNS, PowerSettings, detection_limits
 from waveforest.diagnose.search import NamedEffect, SearchSettings
@@ -30,7 +31,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def _synthetic_outputs(tmp_path, effects):
     study = SyntheticStudy(samples_per_species=12, pulses_per_sample=8, seed=1)
-    settings = SearchSettings(rounds=2, n_boot=100)
+    settings = SearchSettings(features=FEATURES, rounds=2, n_boot=100)
     tables = {}  # as the stage runs them: the power analysis first, its simulations reused
     limits, curve = detection_limits(study.keys, study.simulate, settings, PowerSettings(replicates=2, values=3), 5,
                                      tables=tables)
@@ -347,7 +348,7 @@ def test_signatures_reuse_the_power_analysis_when_nothing_was_searched():
     """With nothing to search, the signatures come from the power analysis' pseudo-real
     simulations (one seed: common random numbers), not from new simulations."""
     study = SyntheticStudy(samples_per_species=12, pulses_per_sample=8, seed=1)
-    settings = SearchSettings(rounds=2, n_boot=100)
+    settings = SearchSettings(features=FEATURES, rounds=2, n_boot=100)
     calls = []
 
     def counted(pulses, effects, seed):

@@ -9,8 +9,9 @@ species, simulated samples outside the universe, or no valid cell.
 A *cell* is one dataset x species (x stratum: feature tables may carry a ``stratum`` column,
 e.g. "below crown", which splits a species' pulses into cells labelled "birch below crown";
 the bootstrap still resamples the species' samples with all their pulses); in it, each
-waveform feature f (docs/method.md §(h): H, Npeaks, Apeak, FWHM, E) has real values x (n_r pulses)
-and simulated values y (n_s pulses).
+feature f (the first echo's, docs/method.md §(h): H, Npeaks, Apeak, FWHM, E, and the whole
+waveform's, :mod:`.waveform`: energy shares by height, below the first echo, the last return)
+has real values x (n_r pulses) and simulated values y (n_s pulses).
 
 Per cell and feature
 --------------------
@@ -69,6 +70,7 @@ import numpy as np
 import pandas as pd
 from scipy.stats import wasserstein_distance
 
+from waveforest.diagnose.waveform import WAVEFORM_FEATURES, WAVEFORM_SD_FLOOR
 from waveforest.errors import WaveforestError
 from waveforest.stats.bootstrap import (
     DEFAULT_ALPHA,
@@ -79,7 +81,10 @@ from waveforest.stats.bootstrap import (
 )
 
 FEATURES: tuple[str, ...] = ("H", "Npeaks", "Apeak", "FWHM", "E")
-"""Features compared (docs/method.md §(h)), in report order."""
+"""First-echo features (docs/method.md §(h)), in report order."""
+
+DEFAULT_FEATURES: tuple[str, ...] = FEATURES + WAVEFORM_FEATURES
+"""Features compared by default: the first echo's and the whole waveform's (:mod:`.waveform`)."""
 
 _ROUNDING_SD = 1.0 / np.sqrt(12.0)
 """SD of a uniform rounding error of one unit."""
@@ -91,6 +96,7 @@ FEATURE_SD_FLOOR: dict[str, float] = {
     "FWHM": 0.1,  # ns: interpolated half-maximum crossings at 1-ns sampling
     "E": 1.0,  # DN ns: rounding of ~10 summed samples
     "n_echoes": _ROUNDING_SD,  # a count
+    **WAVEFORM_SD_FLOOR,
 }
 """Smallest meaningful SD of each feature (its measurement resolution), feature units."""
 
