@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pandas as pd
@@ -10,14 +11,16 @@ import pytest
 from fixtures.study import SyntheticStudy
 
 from waveforest.diagnose import catalogue as cat
-from waveforest.diagnose.gap import FEATURES
+from waveforest.diagnose.gap import FEATURES, gap_report
 from waveforest.diagnose.missing_effects import final_verdict
 from waveforest.diagnose.power import (
     CURVE_COLUMNS,
     LIMIT_COLUMNS,
+    MIN_CALIBRATION_REPLICATES,
     PowerSettings,
     _crossing,
     detection_limits,
+    floor_calibration,
     ladder,
     verdict_with_limits,
 )
@@ -137,3 +140,37 @@ def test_power_settings_are_checked_and_read_from_the_config():
     assert limits.empty and list(limits.columns) == list(LIMIT_COLUMNS) and verdict_with_limits("none", limits) == "none"
     with pytest.raises(WaveforestError, match="no pulse"):
         detection_limits(pd.DataFrame(columns=["dataset", "sample_id", "species"]), None, SETTINGS, POWER, 1)
+
+
+def test_floor_calibration_is_the_mean_off_gap_over_the_mean_bootstrap_floor():
+    off = np.array([[0.02, 0.01, -0.1], [0.04, 0.01, 0.0]] * MIN_CALIBRATION_REPLICATES)
+    cal = floor_calibration(off)
+    assert cal.scale == pytest.approx(3.0) and cal.gap == pytest.approx(0.03) and cal.floor == pytest.approx(0.01)
+    assert cal.replicates == 2 * MIN_CALIBRATION_REPLICATES
+    assert floor_calibration(off[: MIN_CALIBRATION_REPLICATES - 1]).scale == 1.0  # too few: not calibrated
+    assert floor_calibration(np.array([[np.nan, 0.01, 0.0]] * 9)).scale == 1.0
+
+
+def test_the_calibrated_floor_is_the_no_effect_gap_on_fresh_data():
+    """Three field samples per species: the bootstrap floor misjudges the gap that data without
+    effect give; the floor calibrated on the power analysis' replicates matches it on fresh,
+    independent data without effect (not those it was calibrated on)."""
+    study = SyntheticStudy(samples_per_species=3, pulses_per_sample=8, seed=1)
+    cal = {}
+    detection_limits(study.keys, study.simulate, replace(SETTINGS, candidates=("hotspot",)),
+                     PowerSettings(replicates=10, values=1, pool=4), 3, calibration=cal)
+    scale = cal["floor"].scale
+    gaps, floors = [], []
+    for k in range(12):
+        real = study.simulate(study.keys, {}, 1000 + k).assign(source="real")
+        for fs, out in ((1.0, floors), (scale, None)):
+            rep = gap_report(real, study.simulate(study.keys, {}, 2000 + k), n_boot=100, seed=k, wasserstein=False,
+                             features=FEATURES, floor_scale=fs).summary.loc["total"]
+            if out is not None:
+                out.append(rep["noise_floor"])
+            else:
+                assert rep["noise_floor"] == pytest.approx(scale * floors[-1])  # the factor, nothing else
+        gaps.append(rep["gap"])
+    raw, calibrated = np.mean(gaps) / np.mean(floors), np.mean(gaps) / (scale * np.mean(floors))
+    assert abs(np.log(raw)) > 0.25  # the bootstrap floor is off here ...
+    assert abs(np.log(calibrated)) < 0.6 * abs(np.log(raw)) and 0.75 < calibrated < 1.33  # ... the calibrated one holds

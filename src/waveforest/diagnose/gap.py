@@ -51,7 +51,12 @@ real and simulated pulses together (a paired cluster bootstrap). Even a perfect 
 E[d_bar^2] = Var(d_bar) > 0: the *noise floor* ``F = mean of (Var*(d_bar) + Var*(l_bar))``
 (bootstrap variances, from interquartile ranges: :func:`waveforest.stats.bootstrap.robust_sd`)
 is the gap expected from sampling noise alone (pooling D datasets divides it by up to D;
-less where the datasets share field samples), and the *excess gap* is ``G - F``. The gap is
+less where the datasets share field samples), and the *excess gap* is ``G - F``. On the
+study's own design the bootstrap misjudges that expectation (few field samples per cell,
+skewed replicates of d and l: measured on the model's own twins, half of it on two small
+datasets and twice on the default study, docs/validation.md, Diagnose: the noise floor), so F
+carries a factor ``floor_scale`` (:meth:`GapData.build`) that the diagnosis calibrates on
+pseudo-real data without effect (:func:`.power.floor_calibration`): the mean G over its mean F. The gap is
 *significant* when the lower bound of the excess gap's interval is above 0. Intervals of G (and of differences of G) are bootstrap percentile intervals
 recentred on the estimate (G + quantiles of G* - median G*): the bootstrap adds its own
 noise to d*, shifting G* upwards by about F; recentring removes that shift and keeps the
@@ -163,6 +168,8 @@ class GapData:
         Cells that enter the gap (enough real pulses and samples, >= 2 simulated values).
     real, sim : DataFrame
         The input rows (for the Wasserstein distance).
+    floor_scale : float
+        Factor on every noise floor (module docstring, Noise; 1 = the bootstrap's).
     """
 
     cells: pd.DataFrame
@@ -176,6 +183,7 @@ class GapData:
     valid: np.ndarray
     real: pd.DataFrame
     sim: pd.DataFrame
+    floor_scale: float = 1.0
 
     @classmethod
     def build(
@@ -188,6 +196,7 @@ class GapData:
         floors: dict[str, float] | None = None,
         min_pulses: int = MIN_CELL_PULSES,
         min_samples: int = MIN_CELL_SAMPLES,
+        floor_scale: float = 1.0,
     ) -> GapData:
         """Reduce two feature tables to per-sample sums.
 
@@ -206,7 +215,11 @@ class GapData:
             SD floor per feature (default :data:`FEATURE_SD_FLOOR`; every feature needs one).
         min_pulses, min_samples : int
             Smallest real pulse and sample counts of a cell that enters the gap.
+        floor_scale : float
+            Factor on the noise floors (:attr:`floor_scale`).
         """
+        if not (np.isfinite(floor_scale) and floor_scale > 0):
+            raise WaveforestError(f"gap: floor_scale must be a positive number, got {floor_scale}")
         features = tuple(features)
         floors = {**FEATURE_SD_FLOOR, **(floors or {})}
         missing_floor = [f for f in features if f not in floors]
@@ -253,6 +266,7 @@ class GapData:
             valid=valid,
             real=real,
             sim=sim,
+            floor_scale=float(floor_scale),
         )
 
 
@@ -398,12 +412,12 @@ def masked_gap(data: GapData, stats: dict[str, np.ndarray], mask: np.ndarray) ->
 
 
 def masked_floor(data: GapData, boot: dict[str, np.ndarray], mask: np.ndarray) -> float:
-    """F over the cells of ``mask``: mean of ``Var*(d_bar) + Var*(l_bar)`` from the bootstrap
-    statistics ``boot`` ((B, C, F) arrays of :func:`cell_statistics`)."""
+    """F over the cells of ``mask``: ``data.floor_scale`` x mean of ``Var*(d_bar) + Var*(l_bar)``
+    from the bootstrap statistics ``boot`` ((B, C, F) arrays of :func:`cell_statistics`)."""
     v = robust_sd(pooled(data, boot["d"], mask)) ** 2 + robust_sd(pooled(data, boot["log_sd_ratio"], mask)) ** 2
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        return float(np.nanmean(v))
+        return float(np.nanmean(v)) * data.floor_scale
 
 
 def _mask(data: GapData, valid: np.ndarray | None, feature: str | None) -> np.ndarray:
@@ -499,6 +513,7 @@ def gap_report(
     wasserstein: bool = True,
     universe: pd.Series | None = None,
     weights: np.ndarray | None = None,
+    floor_scale: float = 1.0,
 ) -> GapReport:
     """The gap between real and simulated features, per cell, per feature and in total.
 
@@ -512,7 +527,7 @@ def gap_report(
         Seed of the bootstrap.
     alpha : float
         Two-sided level of the intervals.
-    features, floors, min_pulses, min_samples
+    features, floors, min_pulses, min_samples, floor_scale
         See :meth:`GapData.build`.
     wasserstein : bool
         Also compute w (and its interval) per cell; the slowest part.
@@ -524,7 +539,7 @@ def gap_report(
     GapReport
     """
     data = GapData.build(real, sim, universe, features=features, floors=floors,
-                         min_pulses=min_pulses, min_samples=min_samples)
+                         min_pulses=min_pulses, min_samples=min_samples, floor_scale=floor_scale)
     if weights is None:
         weights = bootstrap_weights(data.universe, n_boot, seed)
     if not data.valid.any():
@@ -533,6 +548,7 @@ def gap_report(
     boot = cell_statistics(data, weights)
     terms = contributions(point)
     noise = np.where(data.valid, robust_sd(boot["d"]) ** 2 + robust_sd(boot["log_sd_ratio"]) ** 2, np.nan)
+    noise = noise * data.floor_scale
     q = [alpha / 2, 1 - alpha / 2]
     df = np.maximum((data.n[0] > 0).sum(axis=-1) - 1, 1)
     d_ci = wald_interval(point["d"], boot["d"], df, alpha)

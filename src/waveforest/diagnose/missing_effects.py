@@ -20,14 +20,14 @@ their real features, the detection limits (:mod:`.power`), then the above.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import pandas as pd
 
 from waveforest.diagnose import catalogue as cat
 from waveforest.diagnose.before_after import before_after
-from waveforest.diagnose.power import detection_limits, verdict_with_limits
+from waveforest.diagnose.power import FloorCalibration, detection_limits, verdict_with_limits
 from waveforest.diagnose.replicate_cache import effects_key, simulate_all
 from waveforest.diagnose.search import SearchResult, SearchSettings, at_bound, search
 from waveforest.diagnose.settings import DiagnoseSettings
@@ -157,15 +157,19 @@ def final_verdict(search_verdict: str, limits: pd.DataFrame) -> tuple[str, list[
     return search_verdict, blind
 
 
-def verdict_record(result: SearchResult, gap: pd.DataFrame, limits: pd.DataFrame) -> dict:
+def verdict_record(result: SearchResult, gap: pd.DataFrame, limits: pd.DataFrame,
+                   floor: FloorCalibration | None = None) -> dict:
     """The machine-readable verdict (``verdict.json``).
 
     Keys: ``verdict`` (:data:`VERDICTS`), ``search_verdict`` (``model.yaml``'s), ``text`` (the
     verdict with its limits, as in ``diagnose.md``), ``reason``, ``gap`` (the base model's total
     gap, its interval, noise floor, excess and its interval, ``above_floor``: the interval's lower
     bound above the floor), ``named`` (name, value, interval), ``blind_to`` (per candidate not seen
-    at its test value: effect, test_value, smallest_detectable or null, status, upper_bound, unit)."""
+    at its test value: effect, test_value, smallest_detectable or null, status, upper_bound, unit),
+    ``floor_calibration`` (``floor``, :class:`.power.FloorCalibration`: scale, the off
+    replicates' mean gap and bootstrap floor, replicates)."""
     verdict, blind = final_verdict(result.verdict, limits)
+    floor = FloorCalibration() if floor is None else floor
     tot = gap[gap["level"] == "total"].iloc[0]
     num = lambda x: None if x is None or not math.isfinite(float(x)) else float(x)  # noqa: E731
     rows = limits[limits["effect"].isin(blind)] if len(limits) else limits
@@ -184,6 +188,8 @@ def verdict_record(result: SearchResult, gap: pd.DataFrame, limits: pd.DataFrame
         "blind_to": [{"effect": r.effect, "test_value": num(r.test_value), "smallest_detectable":
                       num(r.smallest_detectable), "status": r.status, "upper_bound": num(r.upper_bound),
                       "unit": r.unit} for r in rows.itertuples()],
+        "floor_calibration": {"scale": num(floor.scale), "off_gap": num(floor.gap), "off_floor": num(floor.floor),
+                              "replicates": int(floor.replicates)},
     }
 
 
@@ -202,6 +208,7 @@ class Diagnosis:
     curve: pd.DataFrame
     verdict: str = ""
     blind: tuple = ()
+    floor: FloorCalibration = field(default_factory=FloorCalibration)
 
 
 def run_diagnosis(selected: dict, features: pd.DataFrame, metas: dict, simulate, settings: DiagnoseSettings, *,
@@ -213,8 +220,9 @@ def run_diagnosis(selected: dict, features: pd.DataFrame, metas: dict, simulate,
     tables; the stratum under the crowns from its own CFD echoes and ``metas``, dataset ->
     calibration JSON dict), the detection limits (:func:`.power.detection_limits`), then
     :func:`find_missing_effects` with ``simulate`` (:data:`.replicate_cache.Simulator`),
-    whose signatures reuse the power analysis' simulations. ``progress(label)`` is called
-    after every simulation.
+    whose signatures reuse the power analysis' simulations, with every noise floor
+    calibrated on the power analysis' replicates without effect (:func:`.power.floor_calibration`).
+    ``progress(label)`` is called after every simulation.
     """
 
     strata = settings.strata
@@ -227,14 +235,16 @@ def run_diagnosis(selected: dict, features: pd.DataFrame, metas: dict, simulate,
         real = pd.concat([real, below_crown_features(keys, selected, metas, strata)], ignore_index=True)
     if set(settings.search.features) & set(WAVEFORM_FEATURES):
         real = with_waveform_statistics(real, selected, metas)
-    power_tables = {}  # the power analysis' simulations, which the signatures reuse
+    power_tables, calibration = {}, {}  # the power analysis' simulations (the signatures reuse them), its floor
     limits, curve = detection_limits(keys, simulate, settings.search, settings.power, settings.seed,
-                                     progress=progress, tables=power_tables)
-    result, gap, cand, sigs = find_missing_effects(keys, real, simulate, settings.search, settings.seed,
+                                     progress=progress, tables=power_tables, calibration=calibration)
+    floor = calibration.get("floor", FloorCalibration())
+    search_settings = replace(settings.search, floor_scale=floor.scale)
+    result, gap, cand, sigs = find_missing_effects(keys, real, simulate, search_settings, settings.seed,
                                                    fit_keys=fit_keys, progress=progress, power_tables=power_tables)
     verdict, blind = final_verdict(result.verdict, limits)
     return Diagnosis(keys=keys, fit_keys=fit_keys, result=result, gap=gap, candidates=cand, signatures=sigs,
-                     limits=limits, curve=curve, verdict=verdict, blind=tuple(blind))
+                     limits=limits, curve=curve, verdict=verdict, blind=tuple(blind), floor=floor)
 
 
 def _fmt(x: float, nd: int = 3) -> str:
@@ -266,7 +276,11 @@ def summary_markdown(result: SearchResult, gap: pd.DataFrame, cand: pd.DataFrame
         "pooled SDs) and the log SD ratio each averaged over the datasets first, so that an effect "
         "that moves a species the same way in every dataset adds up (src/waveforest/diagnose/gap.py); "
         "the noise floor is the gap that "
-        "sampling noise alone gives (cluster bootstrap over field samples). With diagnose.near_stem_m "
+        "sampling noise alone gives (cluster bootstrap over field samples"
+        + (f", times {_fmt(settings.floor_scale)}: the mean gap over the mean bootstrap floor of the power "
+           "analysis' pseudo-real data without effect, src/waveforest/diagnose/power.py"
+           if settings.floor_scale != 1.0 else "")
+        + "). With diagnose.near_stem_m "
         "(default 0.3 m), a tree species' pulses whose first echo lies that close to the stem form the "
         "cells '<species> near stem' (an XY error moves them one way and those further out the other), in the "
         f"datasets where both parts come from at least {NEAR_STEM_MIN_SAMPLES} field samples. With "

@@ -30,8 +30,16 @@ design of the data and the test that decides the verdict ``none``:
   limit is the ceil(power x replicates)-th smallest crossing. Empty (NaN) when the bound
   itself is detected with less power.
 
+**The floor calibrated on twins.** The off replicates are data without effect on this very
+design: the gap they give is the noise floor by definition. Their mean gap over their mean
+bootstrap floor is the factor ``floor_scale`` (:func:`floor_calibration`) by which the
+diagnosis multiplies every noise floor (:meth:`.gap.GapData.build`), the real data's and the
+replicates' alike: every test below and the diagnosis's verdict compare a gap's interval with
+the calibrated floor. With fewer than :data:`MIN_CALIBRATION_REPLICATES` replicates the factor
+stays 1.
+
 The off value is evaluated in every replicate too: its power is the false-alarm rate of the
-test on this design. A limit is never outside the values tried: "not reached" (NaN) when the
+test on this design (in-sample: the factor comes from the same replicates). A limit is never outside the values tried: "not reached" (NaN) when the
 strongest is detected with less power. Cost: ``pool`` x (1 + values evaluated) simulations of
 all pulses (one more set with ``pulses_per_value`` > 1), whatever ``replicates``.
 """
@@ -40,7 +48,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import pandas as pd
@@ -54,6 +62,49 @@ from waveforest.errors import WaveforestError
 from waveforest.rng import named_generator, named_seeds
 from waveforest.stats.bootstrap import bootstrap_weights
 from waveforest.stats.proportion import wilson_interval
+
+MIN_CALIBRATION_REPLICATES = 5
+"""Fewest off replicates from which the noise floor is calibrated (:func:`floor_calibration`)."""
+
+
+@dataclass(frozen=True)
+class FloorCalibration:
+    """The noise floor calibrated on pseudo-real data without effect (module docstring).
+
+    Attributes
+    ----------
+    scale : float
+        Factor on the bootstrap floor: ``gap / floor`` (1 when not calibrated).
+    gap, floor : float
+        Mean total gap and mean bootstrap noise floor over the off replicates, squared pooled SDs.
+    replicates : int
+        Off replicates (0: none run).
+    """
+
+    scale: float = 1.0
+    gap: float = math.nan
+    floor: float = math.nan
+    replicates: int = 0
+
+
+def floor_calibration(off: np.ndarray) -> FloorCalibration:
+    """:class:`FloorCalibration` of off replicates ``off`` ((R, 3): gap, bootstrap floor and
+    lower bound of the excess, as :class:`_Replicate` tests them); scale 1 with fewer than
+    :data:`MIN_CALIBRATION_REPLICATES` finite rows."""
+    off = np.asarray(off, dtype=np.float64).reshape(-1, 3)
+    ok = off[np.isfinite(off[:, :2]).all(axis=1) & (off[:, 1] > 0)]
+    gap, floor = (float(ok[:, 0].mean()), float(ok[:, 1].mean())) if len(ok) else (math.nan, math.nan)
+    scale = gap / floor if len(ok) >= MIN_CALIBRATION_REPLICATES and gap > 0 else 1.0
+    return FloorCalibration(scale=float(scale), gap=gap, floor=floor, replicates=len(ok))
+
+
+def _calibrated(res: np.ndarray, scale: float) -> np.ndarray:
+    """Replicate results (gap, floor, excess lower bound) with the floor times ``scale``."""
+    res = np.array(res, dtype=np.float64, copy=True)
+    res[:, 2] -= (scale - 1.0) * res[:, 1]
+    res[:, 1] *= scale
+    return res
+
 
 LIMIT_COLUMNS = ("effect", "unit", "smallest_detectable", "status", "upper_bound", "test_value", "sees_test_value",
                  "power", "replicates", "power_at_bound", "power_at_bound_ci_low", "power_at_bound_ci_high")
@@ -183,8 +234,8 @@ class _Replicate:
 
 
 def detection_limits(keys: pd.DataFrame, simulate: Simulator, settings: SearchSettings, power: PowerSettings,
-                     seed: int, *, progress: Callable[[str], None] | None = None, tables: dict | None = None
-                     ) -> tuple[pd.DataFrame, pd.DataFrame]:
+                     seed: int, *, progress: Callable[[str], None] | None = None, tables: dict | None = None,
+                     calibration: dict | None = None) -> tuple[pd.DataFrame, pd.DataFrame]:
     """The power analysis of the module docstring for every candidate of ``settings``.
 
     Parameters
@@ -205,6 +256,9 @@ def detection_limits(keys: pd.DataFrame, simulate: Simulator, settings: SearchSe
         Filled with the pseudo-real feature tables of the pool's first seed, keyed by
         :func:`.replicate_cache.effects_key` (off included): one seed for all, so any two are
         common-random-number pairs (:func:`.missing_effects.signatures` reads them).
+    calibration : dict, optional
+        Filled with ``{"floor": FloorCalibration}`` of the off replicates; the tests of the
+        ladder use that calibrated floor (``settings.floor_scale`` is ignored).
 
     Returns
     -------
@@ -222,12 +276,17 @@ def detection_limits(keys: pd.DataFrame, simulate: Simulator, settings: SearchSe
     if not settings.candidates:
         return pd.DataFrame(columns=list(LIMIT_COLUMNS)), pd.DataFrame(columns=list(CURVE_COLUMNS))
     keys = keys.assign(sample_id=keys["sample_id"].astype(str))
+    settings = replace(settings, floor_scale=1.0)  # the bootstrap floor; calibrated below
     universe = sample_universe(keys)
     n_pool = min(power.pool, power.replicates + 1)
     pool = _Pool(keys, simulate, named_seeds("power", int(seed), n=n_pool), settings.replicates, progress)
     reps = [_Replicate(pool, settings, s, universe)
             for s in named_seeds("power", int(seed), 1, n=power.replicates)]
     off = np.array([r.test({}) for r in reps])  # (R, 3)
+    cal = floor_calibration(off)
+    if calibration is not None:
+        calibration["floor"] = cal
+    off = _calibrated(off, cal.scale)
     limits, curve = [], []
     for name in settings.candidates:
         us = ladder(name, power.values)
@@ -236,7 +295,8 @@ def detection_limits(keys: pd.DataFrame, simulate: Simulator, settings: SearchSe
         rows = {}
         k = len(us) - 1
         while k >= 0:
-            res = np.array([r.test(cat.with_effect({}, name, cat.from_u(name, us[k]))) for r in reps])
+            res = _calibrated([r.test(cat.with_effect({}, name, cat.from_u(name, us[k]))) for r in reps],
+                              cal.scale)
             lbs[k], rows[k] = res[:, 2], res
             if (res[:, 2] > 0).sum() < power.needed:
                 break

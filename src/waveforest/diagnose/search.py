@@ -101,6 +101,9 @@ class SearchSettings:
         Fit on each half and test on the other (both directions), or only fit A / test B.
     features, floors, min_pulses, min_samples
         Gap settings (:meth:`.gap.GapData.build`; ``min_cell_pulses``, ``min_cell_samples``).
+    floor_scale : float
+        Factor on every noise floor (:meth:`.gap.GapData.build`), calibrated by the diagnosis
+        (:func:`.power.floor_calibration`); not a config key.
     """
 
     rounds: int = 3
@@ -117,6 +120,7 @@ class SearchSettings:
     floors: dict | None = None
     min_pulses: int = MIN_CELL_PULSES
     min_samples: int = MIN_CELL_SAMPLES
+    floor_scale: float = 1.0
 
     def __post_init__(self) -> None:
         for name in self.candidates:
@@ -132,7 +136,7 @@ class SearchSettings:
     def gap_kw(self) -> dict:
         """Keyword arguments of :meth:`.gap.GapData.build`."""
         return {"features": self.features, "floors": self.floors,
-                "min_pulses": self.min_pulses, "min_samples": self.min_samples}
+                "min_pulses": self.min_pulses, "min_samples": self.min_samples, "floor_scale": self.floor_scale}
 
     @property
     def folds(self) -> tuple[tuple[str, str], ...]:

@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import click
@@ -47,7 +47,7 @@ from waveforest.cliutil import (
 )
 from waveforest.diagnose.figures import gap_figure, power_figure
 from waveforest.diagnose.missing_effects import final_verdict, run_diagnosis, summary_markdown, verdict_record
-from waveforest.diagnose.power import verdict_with_limits
+from waveforest.diagnose.power import FloorCalibration, verdict_with_limits
 from waveforest.diagnose.search import SearchResult, SearchSettings
 from waveforest.diagnose.strata import StrataSettings, with_pulses_under_crowns
 from waveforest.diagnose.twins import StudySimulator
@@ -102,13 +102,16 @@ class DiagnoseOutputs:
 
 def write_outputs(out_dir, result: SearchResult, gap: pd.DataFrame, cand: pd.DataFrame, sigs: pd.DataFrame, *,
                   limits: pd.DataFrame, curve: pd.DataFrame, settings: SearchSettings, base_effects: dict, datasets,
-                  keys: pd.DataFrame, seconds: float, n_fit_pulses: int | None = None) -> dict:
+                  keys: pd.DataFrame, seconds: float, n_fit_pulses: int | None = None,
+                  floor: FloorCalibration | None = None) -> dict:
     """Write the outputs of :data:`OUTPUT_NAMES` into ``out_dir`` (atomically); returns their paths.
 
     ``limits`` and ``curve`` are :func:`.diagnose.power.detection_limits`' tables. The verdict
     (:func:`.diagnose.missing_effects.final_verdict`: none, named, unexplained or inconclusive)
     goes to ``verdict.json`` (:func:`.diagnose.missing_effects.verdict_record`) and to
-    ``model.yaml`` as ``diagnosis_verdict``; ``model.yaml``'s ``verdict`` is the search's."""
+    ``model.yaml`` as ``diagnosis_verdict``; ``model.yaml``'s ``verdict`` is the search's.
+    ``settings.floor_scale`` and ``floor`` (:class:`.diagnose.power.FloorCalibration`): the
+    calibrated noise floor the gaps were tested against."""
     out_dir = Path(out_dir)
     verdict, blind = final_verdict(result.verdict, limits)
     base = dict(base_effects)
@@ -139,7 +142,7 @@ def write_outputs(out_dir, result: SearchResult, gap: pd.DataFrame, cand: pd.Dat
     gap_figure(gap, cand, paths["figure"], title=f"verdict: {verdict}" + (f" ({named})" if named else ""))
     power_figure(curve, limits, paths["power_figure"], title="what these data could have seen")
     with atomic_path(paths["verdict"]) as tmp:
-        tmp.write_text(json.dumps(verdict_record(result, gap, limits), indent=2) + "\n")
+        tmp.write_text(json.dumps(verdict_record(result, gap, limits, floor), indent=2) + "\n")
     md = summary_markdown(result, gap, cand, datasets=list(datasets), n_pulses=len(keys),
                           n_samples=int(keys["sample_id"].nunique()), seconds=seconds, settings=settings,
                           base_effects=base, n_fit_pulses=n_fit_pulses, limits=limits, curve=curve)
@@ -303,9 +306,10 @@ def run(selected_paths, real_paths, calibration_paths, out_dir, cfg: dict, *, da
         bar.close()
     with folder as out:
         paths = write_outputs(out, found.result, found.gap, found.candidates, found.signatures, limits=found.limits,
-                              curve=found.curve, settings=settings.search, base_effects=dict(settings.base_effects),
+                              curve=found.curve, settings=replace(settings.search, floor_scale=found.floor.scale),
+                              base_effects=dict(settings.base_effects),
                               datasets=sorted(selected), keys=found.keys, seconds=time.perf_counter() - t_start,
-                              n_fit_pulses=None if found.fit_keys is None else len(found.fit_keys))
+                              n_fit_pulses=None if found.fit_keys is None else len(found.fit_keys), floor=found.floor)
     paths = {k: folder.final(p) for k, p in paths.items()}
     tot = found.gap[found.gap["level"] == "total"].iloc[0]
     return DiagnoseOutputs(paths=paths, verdict=found.verdict, search_verdict=found.result.verdict,
