@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import shutil
 import subprocess
 import sys
@@ -23,6 +24,7 @@ from waveforest.diagnose.search import NamedEffect, SearchSettings
 from waveforest.effects import CATALOGUE
 from waveforest.errors import WaveforestError
 from waveforest.io.results import model_dict, read_model, write_model
+from waveforest.report.summary import diagnosis_text
 from waveforest.settings import diagnose_settings
 from waveforest.stages.diagnose import OUTPUT_NAMES, write_outputs
 
@@ -342,6 +344,8 @@ def test_outputs_when_nothing_is_named(tmp_path):
     assert set(curve["effect"]) == set(CATALOGUE) and (curve["power"].between(0, 1)).all()
     md = paths["markdown"].read_text()
     assert "**Verdict: none: no effect larger than " in md and "What these data could have seen" in md
+    verdict = json.loads(paths["verdict"].read_text())  # the report shows the diagnosis's verdict, not the search's
+    assert diagnosis_text(tmp_path).startswith(f"Diagnosis — verdict: {verdict['text']} ({verdict['reason']})")
 
 
 def test_signatures_reuse_the_power_analysis_when_nothing_was_searched():

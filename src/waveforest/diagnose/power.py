@@ -233,6 +233,28 @@ class _Replicate:
         return float(tot["gap"]), float(tot["noise_floor"]), float(tot["excess_ci_low"])
 
 
+def _null_replicates(keys: pd.DataFrame, simulate: Simulator, settings: SearchSettings, power: PowerSettings,
+                     seed: int, progress) -> tuple[_Pool, list[_Replicate], np.ndarray]:
+    """The pool, the replicates and their off results ((R, 3): gap, bootstrap floor, excess lower bound)."""
+    keys = keys.assign(sample_id=keys["sample_id"].astype(str))
+    settings = replace(settings, floor_scale=1.0)  # the bootstrap floor; calibrated by the caller
+    universe = sample_universe(keys)
+    n_pool = min(power.pool, power.replicates + 1)
+    pool = _Pool(keys, simulate, named_seeds("power", int(seed), n=n_pool), settings.replicates, progress)
+    reps = [_Replicate(pool, settings, s, universe)
+            for s in named_seeds("power", int(seed), 1, n=power.replicates)]
+    return pool, reps, np.array([r.test({}) for r in reps])
+
+
+def calibrate_floor(keys: pd.DataFrame, simulate: Simulator, settings: SearchSettings, power: PowerSettings,
+                    seed: int, *, progress: Callable[[str], None] | None = None) -> FloorCalibration:
+    """The noise floor's calibration alone: :func:`detection_limits`' off replicates (same
+    seeds, same pool: the factor the diagnosis applies), without the ladders."""
+    if keys.empty:
+        raise WaveforestError("diagnose: no pulse for the power analysis")
+    return floor_calibration(_null_replicates(keys, simulate, settings, power, seed, progress)[2])
+
+
 def detection_limits(keys: pd.DataFrame, simulate: Simulator, settings: SearchSettings, power: PowerSettings,
                      seed: int, *, progress: Callable[[str], None] | None = None, tables: dict | None = None,
                      calibration: dict | None = None) -> tuple[pd.DataFrame, pd.DataFrame]:
@@ -275,14 +297,7 @@ def detection_limits(keys: pd.DataFrame, simulate: Simulator, settings: SearchSe
         raise WaveforestError("diagnose: no pulse for the power analysis")
     if not settings.candidates:
         return pd.DataFrame(columns=list(LIMIT_COLUMNS)), pd.DataFrame(columns=list(CURVE_COLUMNS))
-    keys = keys.assign(sample_id=keys["sample_id"].astype(str))
-    settings = replace(settings, floor_scale=1.0)  # the bootstrap floor; calibrated below
-    universe = sample_universe(keys)
-    n_pool = min(power.pool, power.replicates + 1)
-    pool = _Pool(keys, simulate, named_seeds("power", int(seed), n=n_pool), settings.replicates, progress)
-    reps = [_Replicate(pool, settings, s, universe)
-            for s in named_seeds("power", int(seed), 1, n=power.replicates)]
-    off = np.array([r.test({}) for r in reps])  # (R, 3)
+    pool, reps, off = _null_replicates(keys, simulate, settings, power, seed, progress)
     cal = floor_calibration(off)
     if calibration is not None:
         calibration["floor"] = cal
