@@ -45,9 +45,10 @@ from waveforest.sensor.calibration import load_calibration
 from waveforest.settings import diagnose_settings
 
 
-def campaign_runs(results: Path, n_sims: int, replicates: int, cfg_path: Path | None = None) -> list[dict]:
-    """G, F, the calibrated floor and G's interval of the base model on one results folder, per
-    simulation seed and feature set (config: ``cfg_path``, default the folder's config/diagnose.yaml)."""
+def study_inputs(results: Path, cfg_path: Path | None = None):
+    """(settings, keys, real features, simulator) of the diagnosis on one results folder (config:
+    ``cfg_path``, default the folder's config/diagnose.yaml); the simulator keeps every table it
+    made, so that several feature sets share its simulations."""
     cfg = config.load(cfg_path or results / "config" / "diagnose.yaml")
     settings = diagnose_settings(cfg)
     fields = read_fields(results / "campaign" / "fields.csv")
@@ -62,7 +63,7 @@ def campaign_runs(results: Path, n_sims: int, replicates: int, cfg_path: Path | 
     memo: dict = {}
     study = StudySimulator(selected, read_datasets(results / "campaign" / "datasets.csv"), cals, settings)
 
-    def simulate(pulses, effects, seed):  # the pool's simulations serve both feature sets
+    def simulate(pulses, effects, seed):
         key = (effects_key(effects), int(seed), len(pulses))
         if key not in memo:
             memo[key] = study(pulses, effects, seed)
@@ -71,6 +72,13 @@ def campaign_runs(results: Path, n_sims: int, replicates: int, cfg_path: Path | 
     keys = pulse_keys(selected, settings.strata)
     feats = read_feature_tables([results / "features" / f"{ds}_real.parquet" for ds in selected])
     real = with_waveform_statistics(real_features(feats, keys, settings.strata), selected, metas)
+    return settings, keys, real, simulate
+
+
+def campaign_runs(results: Path, n_sims: int, replicates: int, cfg_path: Path | None = None) -> list[dict]:
+    """G, F, the calibrated floor and G's interval of the base model on one results folder, per
+    simulation seed and feature set (config: ``cfg_path``, default the folder's config/diagnose.yaml)."""
+    settings, keys, real, simulate = study_inputs(results, cfg_path)
     s = settings.search
     _, s_after, s_boot = named_seeds("missing_effects", int(settings.seed), n=3)
     seeds = [(int(s_after), int(s_boot))] + [(int(x), int(x)) for x in

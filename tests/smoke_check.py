@@ -133,6 +133,10 @@ def check(results: Path, cfg: dict, paper_scale: bool = False) -> list[str]:
             fails.append(f"{verdict}: verdict {v.get('verdict')!r} with the gap's interval above its floor")
         if v.get("verdict") == "inconclusive" and not v.get("blind_to"):
             fails.append(f"{verdict}: inconclusive without the effects these data cannot see")
+        scale = (v.get("floor_calibration") or {}).get("scale")
+        if not (isinstance(scale, (int, float)) and scale > 0):
+            fails.append(f"{verdict}: floor_calibration.scale {scale!r} (expected a positive factor)")
+    need(results / "diagnose/power.png")
     limits = results / "diagnose/detection_limits.csv"
     if limits.exists():
         t = pd.read_csv(limits)
