@@ -4,9 +4,11 @@ the data cannot see."""
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pandas as pd
+import pytest
 from fixtures.study import SyntheticStudy
 
 from waveforest.diagnose.gap import FEATURES
@@ -17,7 +19,7 @@ from waveforest.diagnose.missing_effects import (
     find_missing_effects,
     verdict_record,
 )
-from waveforest.diagnose.power import LIMIT_COLUMNS
+from waveforest.diagnose.power import LIMIT_COLUMNS, FloorCalibration
 from waveforest.diagnose.search import SearchSettings, search
 
 SETTINGS = SearchSettings(features=FEATURES, rounds=1, n_boot=100, candidates=("hotspot", "understory"))
@@ -64,3 +66,25 @@ def test_none_becomes_inconclusive_when_an_effect_of_realistic_size_is_not_seen(
     assert final_verdict("none", blind) == ("inconclusive", ["understory"])
     assert final_verdict("unexplained", blind) == ("unexplained", ["understory"])
     assert final_verdict("named", blind)[0] == "named"
+
+
+def test_the_calibrated_floor_decides_the_verdict():
+    """Every floor the diagnosis reports carries floor_scale; a floor raised above the gap's
+    lower bound turns a gap above its floor into none/inconclusive, and the record says why."""
+    study = SyntheticStudy(samples_per_species=12, pulses_per_sample=8, seed=1)
+    real = study.real({"hotspot": 1.3})
+    _, gap1, _, _ = find_missing_effects(study.keys, real, study.simulate, SETTINGS, seed=5)
+    tot1 = gap1[gap1["level"] == "total"].iloc[0]
+    assert tot1["before_ci_low"] > tot1["noise_floor"]  # the hidden effect clears the bootstrap floor
+    scale = 1.5 * tot1["before_ci_low"] / tot1["noise_floor"]  # a floor above the gap's lower bound
+    result, gap, _, _ = find_missing_effects(study.keys, real, study.simulate, replace(SETTINGS, floor_scale=scale),
+                                             seed=5)
+    tot = gap[gap["level"] == "total"].iloc[0]
+    assert tot["noise_floor"] == pytest.approx(scale * tot1["noise_floor"])
+    assert tot["gap_before"] == pytest.approx(tot1["gap_before"])  # the gap itself is untouched
+    cells = gap[gap["level"] == "feature"]["noise_floor"].to_numpy()
+    assert np.allclose(cells, scale * gap1[gap1["level"] == "feature"]["noise_floor"].to_numpy())
+    rec = verdict_record(result, gap, _limits({"hotspot": True, "understory": True}),
+                         FloorCalibration(scale=scale, gap=0.1, floor=0.1 / scale, replicates=20))
+    assert result.verdict == "none" and rec["verdict"] == "none" and not rec["gap"]["above_floor"]
+    assert rec["floor_calibration"]["scale"] == pytest.approx(scale)

@@ -289,7 +289,9 @@ def summary_markdown(result: SearchResult, gap: pd.DataFrame, cand: pd.DataFrame
         "'<species> below crown'.",
         "",
         f"- base model: gap {_fmt(tot['gap_before'])} [{_fmt(tot['before_ci_low'])}, "
-        f"{_fmt(tot['before_ci_high'])}], noise floor {_fmt(tot['noise_floor'])}",
+        f"{_fmt(tot['before_ci_high'])}], noise floor {_fmt(tot['noise_floor'])}"
+        + (f" (the bootstrap's {_fmt(tot['noise_floor'] / settings.floor_scale)} x {_fmt(settings.floor_scale)}, "
+           "calibrated on pseudo-real data without effect)" if settings.floor_scale != 1.0 else ""),
         f"- extended model: gap {_fmt(tot['gap_after'])} [{_fmt(tot['after_ci_low'])}, "
         f"{_fmt(tot['after_ci_high'])}]",
         f"- reduction {_fmt(tot['reduction'])} [{_fmt(tot['reduction_ci_low'])}, "
