@@ -52,9 +52,10 @@ E[d_bar^2] = Var(d_bar) > 0: the *noise floor* ``F = mean of (Var*(d_bar) + Var*
 (bootstrap variances, from interquartile ranges: :func:`waveforest.stats.bootstrap.robust_sd`)
 is the gap expected from sampling noise alone (pooling D datasets divides it by up to D;
 less where the datasets share field samples), and the *excess gap* is ``G - F``. On the
-study's own design the bootstrap misjudges that expectation (few field samples per cell,
-skewed replicates of d and l: measured on the model's own twins, half of it on two small
-datasets and twice on the default study, docs/validation.md, Diagnose: the noise floor), so F
+study's own design the bootstrap can misjudge that expectation (few field samples per cell,
+skewed replicates of d and l: on the model's own twins G is 0.5-0.8 F on the smoke study's
+campaigns, 1.0 F at the paper's scale on two datasets; docs/validation.md, Diagnose: the noise
+floor), so F
 carries a factor ``floor_scale`` (:meth:`GapData.build`) that the diagnosis calibrates on
 pseudo-real data without effect (:func:`.power.floor_calibration`): the mean G over its mean F. The gap is
 *significant* when the lower bound of the excess gap's interval is above 0. Intervals of G (and of differences of G) are bootstrap percentile intervals
