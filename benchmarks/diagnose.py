@@ -21,6 +21,7 @@ import sys
 import time
 from pathlib import Path
 
+from waveforest.diagnose.gap import FEATURES
 from waveforest.diagnose.search import SearchSettings, search
 from waveforest.effects import CATALOGUE
 
@@ -32,7 +33,7 @@ def toy() -> None:
     study = SyntheticStudy(samples_per_species=12, pulses_per_sample=8, seed=1)
     real = study.real({"hotspot": 1.3, "clumping": 0.3})
     t = time.perf_counter()
-    res = search(study.keys, real, study.simulate, SearchSettings(rounds=3, n_boot=200, replicates=2), seed=3)
+    res = search(study.keys, real, study.simulate, SearchSettings(features=FEATURES, rounds=3, n_boot=200, replicates=2), seed=3)
     print(f"toy_search_two_effects: {time.perf_counter() - t:.2f} s")
     print(f"toy_search_simulations: {res.n_simulations} count")
 

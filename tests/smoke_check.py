@@ -122,6 +122,27 @@ def check(results: Path, cfg: dict, paper_scale: bool = False) -> list[str]:
             fails.append(f"{model}: verdict {m.get('verdict')!r}")
         if not isinstance(m.get("effects"), list):
             fails.append(f"{model}: effects is not a list")
+    verdict = results / "diagnose/verdict.json"
+    if need(verdict):
+        v = json.loads(verdict.read_text())
+        if v.get("verdict") not in ("none", "named", "unexplained", "inconclusive"):
+            fails.append(f"{verdict}: verdict {v.get('verdict')!r}")
+        gap = v.get("gap") or {}
+        # a gap whose interval lies above its floor never reads "none" (within the noise floor)
+        if gap.get("above_floor") and v.get("verdict") in ("none", "inconclusive"):
+            fails.append(f"{verdict}: verdict {v.get('verdict')!r} with the gap's interval above its floor")
+        if v.get("verdict") == "inconclusive" and not v.get("blind_to"):
+            fails.append(f"{verdict}: inconclusive without the effects these data cannot see")
+        scale = (v.get("floor_calibration") or {}).get("scale")
+        if not (isinstance(scale, (int, float)) and scale > 0):
+            fails.append(f"{verdict}: floor_calibration.scale {scale!r} (expected a positive factor)")
+    need(results / "diagnose/power.png")
+    limits = results / "diagnose/detection_limits.csv"
+    if limits.exists():
+        t = pd.read_csv(limits)
+        bad = t[t["smallest_detectable"].notna() & ~t["status"].eq("detected")] if "status" in t else t.iloc[:0]
+        if len(bad):
+            fails.append(f"{limits}: a limit outside the values tried for {bad['effect'].tolist()}")
 
     html = results / "report/report.html"
     if need(html) and "Table 3" not in html.read_text():

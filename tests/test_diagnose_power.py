@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pandas as pd
@@ -10,12 +11,16 @@ import pytest
 from fixtures.study import SyntheticStudy
 
 from waveforest.diagnose import catalogue as cat
+from waveforest.diagnose.gap import FEATURES, gap_report
+from waveforest.diagnose.missing_effects import final_verdict
 from waveforest.diagnose.power import (
     CURVE_COLUMNS,
     LIMIT_COLUMNS,
+    MIN_CALIBRATION_REPLICATES,
     PowerSettings,
     _crossing,
     detection_limits,
+    floor_calibration,
     ladder,
     verdict_with_limits,
 )
@@ -23,7 +28,7 @@ from waveforest.diagnose.search import SearchSettings
 from waveforest.effects import CATALOGUE
 from waveforest.errors import WaveforestError
 
-SETTINGS = SearchSettings(n_boot=100, candidates=("hotspot", "understory"))
+SETTINGS = SearchSettings(features=FEATURES, n_boot=100, candidates=("hotspot", "understory"))
 POWER = PowerSettings(replicates=3, values=4, power=0.8)
 
 
@@ -71,6 +76,22 @@ def test_large_signature_gives_a_monotone_curve_and_a_finite_limit():
         assert above["power"].iloc[0] >= POWER.power and (below["power"].iloc[-1] < POWER.power
                                                           or below["strength"].iloc[-1] == 0)
         assert v < CATALOGUE[name].test_value  # the realistic value is well visible in this toy
+        assert row["status"] == "detected" and row["sees_test_value"] and row["replicates"] == POWER.replicates
+        # each power with its Wilson interval around it, counted from the replicates
+        assert np.all(c["power"] == c["detected"] / POWER.replicates)
+        assert np.all((c["power_ci_low"] <= c["power"]) & (c["power"] <= c["power_ci_high"]))
+        assert np.all(c["power_ci_high"] - c["power_ci_low"] > 0.3)  # 3 replicates say little
+
+
+def test_a_limit_never_lies_outside_the_values_tried():
+    """One replicate, detected only at the bound: the interpolated crossing may not fall beyond
+    the weakest value detected; ``smallest_detectable`` lies between off and the bound."""
+    study = SyntheticStudy(samples_per_species=12, pulses_per_sample=8, seed=1)
+    limits, curve = limits_of(study, power=PowerSettings(replicates=5, values=2, power=0.8))
+    for r in limits.itertuples():
+        u0 = cat.off_u(r.effect)
+        s = abs(cat.to_u(r.effect, r.smallest_detectable) - u0)
+        assert 0 < s <= abs(cat.to_u(r.effect, r.upper_bound) - u0) + 1e-12
 
 
 def test_more_field_samples_see_smaller_effects():
@@ -95,10 +116,15 @@ def test_bounds_too_small_to_see_give_an_empty_limit():
     assert math.isnan(hot["smallest_detectable"]) and hot["upper_bound"] == 2.0
     assert curve.loc[curve["effect"] == "hotspot", "value"].tolist() == [1.0, 2.0]  # off, then the bound only
     assert np.isfinite(limits.set_index("effect").loc["understory", "smallest_detectable"])
-    text = verdict_with_limits("none", limits)
-    assert text.startswith("none: no effect larger than understory ")
-    assert text.endswith("not detectable within the bounds: hotspot (up to 2 factor)")
-    assert verdict_with_limits("named", limits).startswith("named: detection limits understory ")
+    assert hot["status"] == "not reached" and not hot["sees_test_value"] and hot["power_at_bound"] < POWER.power
+    text = verdict_with_limits("inconclusive", limits)
+    assert text.startswith("inconclusive: these data cannot see hotspot at 1.3 factor (not reached up to 2 factor)")
+    assert text.endswith("; no effect larger than understory " + f"{limits['smallest_detectable'].iloc[1]:.3g} LAI")
+    assert "named: " in verdict_with_limits("named", limits) and "detection limits understory " in verdict_with_limits(
+        "named", limits)
+    assert final_verdict("none", limits) == ("inconclusive", ["hotspot"])
+    assert final_verdict("unexplained", limits)[0] == "unexplained"
+    assert final_verdict("none", limits[limits["effect"] == "understory"]) == ("none", [])
 
 
 def test_power_settings_are_checked_and_read_from_the_config():
@@ -110,7 +136,41 @@ def test_power_settings_are_checked_and_read_from_the_config():
     with pytest.raises(WaveforestError, match="diagnose.power"):
         PowerSettings(replicates=0)
     study = SyntheticStudy(samples_per_species=3, pulses_per_sample=2)
-    limits, curve = detection_limits(study.keys, None, SearchSettings(candidates=()), POWER, 1)  # all in the model
+    limits, curve = detection_limits(study.keys, None, SearchSettings(features=FEATURES, candidates=()), POWER, 1)  # all in the model
     assert limits.empty and list(limits.columns) == list(LIMIT_COLUMNS) and verdict_with_limits("none", limits) == "none"
     with pytest.raises(WaveforestError, match="no pulse"):
         detection_limits(pd.DataFrame(columns=["dataset", "sample_id", "species"]), None, SETTINGS, POWER, 1)
+
+
+def test_floor_calibration_is_the_mean_off_gap_over_the_mean_bootstrap_floor():
+    off = np.array([[0.02, 0.01, -0.1], [0.04, 0.01, 0.0]] * MIN_CALIBRATION_REPLICATES)
+    cal = floor_calibration(off)
+    assert cal.scale == pytest.approx(3.0) and cal.gap == pytest.approx(0.03) and cal.floor == pytest.approx(0.01)
+    assert cal.replicates == 2 * MIN_CALIBRATION_REPLICATES
+    assert floor_calibration(off[: MIN_CALIBRATION_REPLICATES - 1]).scale == 1.0  # too few: not calibrated
+    assert floor_calibration(np.array([[np.nan, 0.01, 0.0]] * 9)).scale == 1.0
+
+
+def test_the_calibrated_floor_is_the_no_effect_gap_on_fresh_data():
+    """Three field samples per species: the bootstrap floor misjudges the gap that data without
+    effect give; the floor calibrated on the power analysis' replicates matches it on fresh,
+    independent data without effect (not those it was calibrated on)."""
+    study = SyntheticStudy(samples_per_species=3, pulses_per_sample=8, seed=1)
+    cal = {}
+    detection_limits(study.keys, study.simulate, replace(SETTINGS, candidates=("hotspot",)),
+                     PowerSettings(replicates=10, values=1, pool=4), 3, calibration=cal)
+    scale = cal["floor"].scale
+    gaps, floors = [], []
+    for k in range(12):
+        real = study.simulate(study.keys, {}, 1000 + k).assign(source="real")
+        for fs, out in ((1.0, floors), (scale, None)):
+            rep = gap_report(real, study.simulate(study.keys, {}, 2000 + k), n_boot=100, seed=k, wasserstein=False,
+                             features=FEATURES, floor_scale=fs).summary.loc["total"]
+            if out is not None:
+                out.append(rep["noise_floor"])
+            else:
+                assert rep["noise_floor"] == pytest.approx(scale * floors[-1])  # the factor, nothing else
+        gaps.append(rep["gap"])
+    raw, calibrated = np.mean(gaps) / np.mean(floors), np.mean(gaps) / (scale * np.mean(floors))
+    assert abs(np.log(raw)) > 0.25  # the bootstrap floor is off here ...
+    assert abs(np.log(calibrated)) < 0.6 * abs(np.log(raw)) and 0.75 < calibrated < 1.33  # ... the calibrated one holds

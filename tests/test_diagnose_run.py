@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import shutil
 import subprocess
 import sys
@@ -16,12 +17,14 @@ from fixtures.study import SyntheticStudy
 
 from waveforest.constants import RANGE_PER_NS
 from waveforest.diagnose import catalogue as cat
+from waveforest.diagnose.gap import FEATURES
 from waveforest.diagnose.missing_effects import find_missing_effects
 from waveforest.diagnose.power import LIMIT_COLUMNS, PowerSettings, detection_limits
 from waveforest.diagnose.search import NamedEffect, SearchSettings
 from waveforest.effects import CATALOGUE
 from waveforest.errors import WaveforestError
 from waveforest.io.results import model_dict, read_model, write_model
+from waveforest.report.summary import diagnosis_text
 from waveforest.settings import diagnose_settings
 from waveforest.stages.diagnose import OUTPUT_NAMES, write_outputs
 
@@ -30,7 +33,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def _synthetic_outputs(tmp_path, effects):
     study = SyntheticStudy(samples_per_species=12, pulses_per_sample=8, seed=1)
-    settings = SearchSettings(rounds=2, n_boot=100)
+    settings = SearchSettings(features=FEATURES, rounds=2, n_boot=100)
     tables = {}  # as the stage runs them: the power analysis first, its simulations reused
     limits, curve = detection_limits(study.keys, study.simulate, settings, PowerSettings(replicates=2, values=3), 5,
                                      tables=tables)
@@ -341,13 +344,15 @@ def test_outputs_when_nothing_is_named(tmp_path):
     assert set(curve["effect"]) == set(CATALOGUE) and (curve["power"].between(0, 1)).all()
     md = paths["markdown"].read_text()
     assert "**Verdict: none: no effect larger than " in md and "What these data could have seen" in md
+    verdict = json.loads(paths["verdict"].read_text())  # the report shows the diagnosis's verdict, not the search's
+    assert diagnosis_text(tmp_path).startswith(f"Diagnosis — verdict: {verdict['text']} ({verdict['reason']})")
 
 
 def test_signatures_reuse_the_power_analysis_when_nothing_was_searched():
     """With nothing to search, the signatures come from the power analysis' pseudo-real
     simulations (one seed: common random numbers), not from new simulations."""
     study = SyntheticStudy(samples_per_species=12, pulses_per_sample=8, seed=1)
-    settings = SearchSettings(rounds=2, n_boot=100)
+    settings = SearchSettings(features=FEATURES, rounds=2, n_boot=100)
     calls = []
 
     def counted(pulses, effects, seed):

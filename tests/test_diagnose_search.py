@@ -11,12 +11,13 @@ from fixtures.study import SyntheticStudy
 from scipy.stats import norm
 
 from waveforest.diagnose import catalogue as cat
+from waveforest.diagnose.gap import FEATURES
 from waveforest.diagnose.optimise import parabolic_vertex, refinement_step
 from waveforest.diagnose.search import SearchSettings, search, split_samples
 from waveforest.effects import CATALOGUE
 from waveforest.errors import WaveforestError
 
-SETTINGS = SearchSettings(rounds=3, n_boot=200)
+SETTINGS = SearchSettings(features=FEATURES, rounds=3, n_boot=200)
 
 
 def run_search(effects, *, seed=1, search_seed=3, perturb=None, settings=SETTINGS, samples=12):
@@ -125,16 +126,16 @@ def test_unproducible_disagreement_is_unexplained():
 
 
 def test_search_is_deterministic():
-    a = run_search({"hotspot": 1.3}, settings=SearchSettings(rounds=1, n_boot=50, crossfit=False))
-    b = run_search({"hotspot": 1.3}, settings=SearchSettings(rounds=1, n_boot=50, crossfit=False))
+    a = run_search({"hotspot": 1.3}, settings=SearchSettings(features=FEATURES, rounds=1, n_boot=50, crossfit=False))
+    b = run_search({"hotspot": 1.3}, settings=SearchSettings(features=FEATURES, rounds=1, n_boot=50, crossfit=False))
     pd.testing.assert_frame_equal(a.candidates, b.candidates)
 
 
 def test_settings_are_checked():
     with pytest.raises(WaveforestError, match="unknown"):
-        SearchSettings(candidates=("gremlins",))
+        SearchSettings(features=FEATURES, candidates=("gremlins",))
     with pytest.raises(WaveforestError):
-        SearchSettings(values=2)
+        SearchSettings(features=FEATURES, values=2)
 
 
 @pytest.mark.slow
@@ -158,7 +159,7 @@ def test_value_interval_coverage():
     hits = 0
     for seed in range(12):
         res = run_search({"hotspot": 1.3}, seed=100 + seed, search_seed=seed,
-                         settings=SearchSettings(rounds=1, n_boot=200))
+                         settings=SearchSettings(features=FEATURES, rounds=1, n_boot=200))
         e = {x.name: x for x in res.named}.get("hotspot")
         hits += bool(e is not None and e.ci_low <= 1.3 <= e.ci_high)
     assert hits >= 9  # binomial(12, 0.95): P(hits < 9) < 0.3 %
@@ -176,7 +177,7 @@ def test_fits_on_a_subset_and_tests_on_all_pulses():
         sizes.append((len(pulses), bool(effects)))
         return study.simulate(pulses, effects, seed)
 
-    settings = SearchSettings(rounds=1, n_boot=100)
+    settings = SearchSettings(features=FEATURES, rounds=1, n_boot=100)
     res = search(study.keys, real, simulate, settings, seed=3, fit_keys=fit)
     assert_named(res, {"hotspot": 1.3})
     n_half = {len(study.keys[study.keys["sample_id"].isin(res.halves[h])]) for h in ("A", "B")}
@@ -219,7 +220,7 @@ def test_a_perfect_look_alike_is_reported_with_the_named_effect():
             eff["hotspot"] = eff.get("hotspot", 1.0) + eff.pop("specular")
         return study.simulate(pulses, eff, seed)
 
-    res = search(study.keys, study.real({"hotspot": 1.3}), simulate, SearchSettings(rounds=1, n_boot=100), seed=3)
+    res = search(study.keys, study.real({"hotspot": 1.3}), simulate, SearchSettings(features=FEATURES, rounds=1, n_boot=100), seed=3)
     assert res.verdict == "named" and len(res.named) == 1
     e = res.named[0]
     other = "specular" if e.name == "hotspot" else "hotspot"
@@ -252,7 +253,7 @@ def test_at_bound_is_the_far_edge_of_the_range():
 def test_a_fit_at_the_edge_of_its_range_is_not_named():
     """A hidden hotspot of 3 (its range ends at 2): hotspot reduces the gap most, but only at
     its bound, as do the look-alikes; nothing inside its range explains the gap."""
-    res = run_search({"hotspot": 3.0}, settings=SearchSettings(rounds=2, n_boot=200))
+    res = run_search({"hotspot": 3.0}, settings=SearchSettings(features=FEATURES, rounds=2, n_boot=200))
     first = res.candidates[res.candidates["round"] == 1].sort_values("rank").iloc[0]
     assert first["name"] == "hotspot" and bool(first["significant"]) and bool(first["at_bound"])
     assert res.verdict == "unexplained" and res.named == []

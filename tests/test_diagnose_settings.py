@@ -33,7 +33,8 @@ def _field_default(cls, name):
 
 
 def test_search_settings_defaults_are_the_schemas():
-    assert set(SEARCH_KEYS) | {"floors"} == {f.name for f in fields(SearchSettings)}
+    # floors and floor_scale are not config keys (floor_scale: calibrated by the diagnosis)
+    assert set(SEARCH_KEYS) | {"floors", "floor_scale"} == {f.name for f in fields(SearchSettings)}
     for name, key in SEARCH_KEYS.items():
         want = _schema_default("diagnose", key)
         if key == "candidates":  # null: the whole catalogue
@@ -41,6 +42,7 @@ def test_search_settings_defaults_are_the_schemas():
             want = tuple(CATALOGUE)
         assert _field_default(SearchSettings, name) == want, name
     assert _field_default(SearchSettings, "floors") is None
+    assert _field_default(SearchSettings, "floor_scale") == 1.0
 
 
 def test_power_settings_and_cell_minima_defaults_are_the_schemas():

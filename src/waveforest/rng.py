@@ -149,7 +149,7 @@ STREAMS: dict[str, NamedStream] = {
     "compare_waveforms": NamedStream((), "compare: the example waveforms of Figs. 6-7 (real, then simulated)"),
     "missing_effects": NamedStream((8,), "diagnosis, 3 seeds: search, 'after' simulations, before/after bootstrap"),
     "power": NamedStream((9,), "power analysis: one seed per pseudo-real replicate"),
-    "power_replicate": NamedStream((), "one power replicate's 3 seeds: pseudo-real, base simulations, bootstrap"),
+    "power_replicate": NamedStream((), "one power replicate's 3 seeds: its pool members per field sample (a generator), -, bootstrap"),
     "search": NamedStream((), "search, 6 seeds: split, simulations A, B, bootstrap weights A, B, gap on all"),
     "search_split": NamedStream((), "search: the shuffle of each stratum's samples into the halves"),
     "replicate": NamedStream((), "the simulator seed of replicate r (key r) of a simulation seed"),

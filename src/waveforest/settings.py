@@ -290,7 +290,8 @@ def diagnose_settings(cfg: dict) -> DiagnoseSettings:
             candidates=tuple(c for c in (d["candidates"] or CATALOGUE) if c not in base),
             refit=bool(d["refit"]), crossfit=bool(d["crossfit"]), features=tuple(d["features"]),
             min_pulses=int(d["min_cell_pulses"]), min_samples=int(d["min_cell_samples"])),
-        power=PowerSettings(replicates=int(p["replicates"]), values=int(p["values"]), power=float(p["power"])),
+        power=PowerSettings(replicates=int(p["replicates"]), values=int(p["values"]), power=float(p["power"]),
+                            pool=int(p["pool"])),
         strata=StrataSettings(
             rules=select_rules(cfg), compare_min_h_m={str(s): float(h) for s, h in sim["compare_min_h_m"].items()},
             near_stem_m=None if near is None else float(near), below_crown=bool(d["below_crown"]),

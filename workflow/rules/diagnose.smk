@@ -20,6 +20,8 @@ rule diagnose:
         signatures=result("diagnose", "signatures.csv"),
         limits=result("diagnose", "detection_limits.csv"),
         curve=result("diagnose", "detection_curve.csv"),
+        power=result("diagnose", "power.png"),
+        verdict=result("diagnose", "verdict.json"),
         summary=result("diagnose", "diagnose.md"),
     params:
         out=output_dir,

@@ -36,8 +36,8 @@ def gap_figure(gap: pd.DataFrame, candidates: pd.DataFrame, path: str | Path, *,
     plt = pyplot()
     rows = gap[gap["level"].isin(["feature", "total"])].reset_index(drop=True)
     n_c = len(candidates)
-    fig, axes = plt.subplots(1, 2, figsize=(11, max(3.6, 0.9 + 0.28 * n_c)),
-                             gridspec_kw={"width_ratios": [1.1, 1.0]})
+    fig, axes = plt.subplots(1, 2, figsize=(12, max(4.2, 1.4 + 0.28 * n_c)),
+                             gridspec_kw={"width_ratios": [1.3, 1.0]}, layout="constrained")
     ax = axes[0]
     x = np.arange(len(rows))
     for off, key, colour, label in ((-0.2, "before", BEFORE_COLOUR, "base model"),
@@ -49,10 +49,11 @@ def gap_figure(gap: pd.DataFrame, candidates: pd.DataFrame, path: str | Path, *,
         ax.bar(x + off, g, 0.38, color=colour, label=label, yerr=np.nan_to_num(err), capsize=3)
     fl = rows["noise_floor"].to_numpy(float)
     ax.hlines(fl, x - 0.4, x + 0.4, colors="k", linestyles="--", linewidth=1, label="noise floor (base)")
-    ax.set_xticks(x, rows["feature"].tolist())
+    ax.set_xticks(x, rows["feature"].tolist(), rotation=45, ha="right", fontsize=8)
     ax.set_ylabel("moment gap, mean of $\\bar{d}^2 + \\bar{l}^2$ (datasets pooled)")
     ax.set_title("gap between real and simulated features")
-    ax.legend(fontsize=8)
+    # below the axes: a legend never covers a bar
+    ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.28), ncol=3, frameon=False)
     ax = axes[1]
     if n_c:
         c = candidates.sort_values(["round", "rank"], ascending=[True, False]).reset_index(drop=True)
@@ -71,7 +72,65 @@ def gap_figure(gap: pd.DataFrame, candidates: pd.DataFrame, path: str | Path, *,
         ax.set_axis_off()
     if title:
         fig.suptitle(title)
-    fig.tight_layout()
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    return path
+
+
+def power_figure(curve: pd.DataFrame, limits: pd.DataFrame, path: str | Path, *, title: str = "") -> Path:
+    """Write ``power.png``: per candidate, the power of the test (share of pseudo-real
+    replicates whose gap lies above the noise floor) against the effect's value, with 95 %
+    Wilson intervals, the power required (dashed), the detection limit (dotted) and the
+    test value (grey).
+
+    Parameters
+    ----------
+    curve, limits : DataFrame
+        ``detection_curve.csv`` and ``detection_limits.csv`` (:func:`.power.detection_limits`).
+    path : path
+        PNG written (atomically).
+    """
+    plt = pyplot()
+    names = list(dict.fromkeys(curve["effect"])) if len(curve) else []
+    n = max(len(names), 1)
+    cols = min(n, 5)
+    rows = int(np.ceil(n / cols))
+    fig, axes = plt.subplots(rows, cols, figsize=(2.6 * cols, 2.4 * rows + 0.6), squeeze=False,
+                             layout="constrained")
+    for ax in axes.flat[len(names):]:
+        ax.set_axis_off()
+    if not names:
+        axes[0, 0].text(0.5, 0.5, "no candidate", ha="center", va="center", transform=axes[0, 0].transAxes)
+    for ax, name in zip(axes.flat, names):
+        c = curve[curve["effect"] == name].sort_values("strength")
+        v = c["value"].to_numpy(float)
+        p = c["power"].to_numpy(float)
+        lo = c["power_ci_low"].to_numpy(float) if "power_ci_low" in c else p
+        hi = c["power_ci_high"].to_numpy(float) if "power_ci_high" in c else p
+        ax.errorbar(v, p, yerr=np.vstack([np.clip(p - lo, 0, None), np.clip(hi - p, 0, None)]), marker="o",
+                    color=NAMED_COLOUR, capsize=3, linewidth=1)
+        lim = limits[limits["effect"] == name]
+        if len(lim):
+            r = lim.iloc[0]
+            ax.axhline(float(r["power"]), color="k", linestyle="--", linewidth=0.8)
+            if "test_value" in lim:
+                ax.axvline(float(r["test_value"]), color=OTHER_COLOUR, linewidth=2)
+            if np.isfinite(float(r["smallest_detectable"])):
+                ax.axvline(float(r["smallest_detectable"]), color=AFTER_COLOUR, linestyle=":", linewidth=1.5)
+            unit = str(r["unit"])
+        else:
+            unit = ""
+        ax.set_ylim(-0.03, 1.03)
+        ax.set_title(name, fontsize=9)
+        ax.set_xlabel(unit, fontsize=8)
+        ax.tick_params(labelsize=7)
+    for ax in axes[:, 0]:
+        ax.set_ylabel("power", fontsize=8)
+    reps = int(curve["replicates"].iloc[0]) if len(curve) else 0
+    fig.suptitle((title + "\n" if title else "") + f"power per value ({reps} pseudo-real replicates, 95 % Wilson "
+                 "intervals); dashed: power required, dotted: limit, grey: test value", fontsize=9)
     path = Path(path)
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png", dpi=110, bbox_inches="tight")

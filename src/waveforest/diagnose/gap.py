@@ -9,8 +9,9 @@ species, simulated samples outside the universe, or no valid cell.
 A *cell* is one dataset x species (x stratum: feature tables may carry a ``stratum`` column,
 e.g. "below crown", which splits a species' pulses into cells labelled "birch below crown";
 the bootstrap still resamples the species' samples with all their pulses); in it, each
-waveform feature f (docs/method.md §(h): H, Npeaks, Apeak, FWHM, E) has real values x (n_r pulses)
-and simulated values y (n_s pulses).
+feature f (the first echo's, docs/method.md §(h): H, Npeaks, Apeak, FWHM, E, and the whole
+waveform's, :mod:`.waveform`: energy shares by height, below the first echo, the last return)
+has real values x (n_r pulses) and simulated values y (n_s pulses).
 
 Per cell and feature
 --------------------
@@ -50,7 +51,13 @@ real and simulated pulses together (a paired cluster bootstrap). Even a perfect 
 E[d_bar^2] = Var(d_bar) > 0: the *noise floor* ``F = mean of (Var*(d_bar) + Var*(l_bar))``
 (bootstrap variances, from interquartile ranges: :func:`waveforest.stats.bootstrap.robust_sd`)
 is the gap expected from sampling noise alone (pooling D datasets divides it by up to D;
-less where the datasets share field samples), and the *excess gap* is ``G - F``. The gap is
+less where the datasets share field samples), and the *excess gap* is ``G - F``. On the
+study's own design the bootstrap can misjudge that expectation (few field samples per cell,
+skewed replicates of d and l: on the model's own twins G is 0.5-0.8 F on the smoke study's
+campaigns, 1.0 F at the paper's scale on two datasets; docs/validation.md, Diagnose: the noise
+floor), so F
+carries a factor ``floor_scale`` (:meth:`GapData.build`) that the diagnosis calibrates on
+pseudo-real data without effect (:func:`.power.floor_calibration`): the mean G over its mean F. The gap is
 *significant* when the lower bound of the excess gap's interval is above 0. Intervals of G (and of differences of G) are bootstrap percentile intervals
 recentred on the estimate (G + quantiles of G* - median G*): the bootstrap adds its own
 noise to d*, shifting G* upwards by about F; recentring removes that shift and keeps the
@@ -69,6 +76,7 @@ import numpy as np
 import pandas as pd
 from scipy.stats import wasserstein_distance
 
+from waveforest.diagnose.waveform import WAVEFORM_FEATURES, WAVEFORM_SD_FLOOR
 from waveforest.errors import WaveforestError
 from waveforest.stats.bootstrap import (
     DEFAULT_ALPHA,
@@ -79,7 +87,10 @@ from waveforest.stats.bootstrap import (
 )
 
 FEATURES: tuple[str, ...] = ("H", "Npeaks", "Apeak", "FWHM", "E")
-"""Features compared (docs/method.md §(h)), in report order."""
+"""First-echo features (docs/method.md §(h)), in report order."""
+
+DEFAULT_FEATURES: tuple[str, ...] = FEATURES + WAVEFORM_FEATURES
+"""Features compared by default: the first echo's and the whole waveform's (:mod:`.waveform`)."""
 
 _ROUNDING_SD = 1.0 / np.sqrt(12.0)
 """SD of a uniform rounding error of one unit."""
@@ -91,6 +102,7 @@ FEATURE_SD_FLOOR: dict[str, float] = {
     "FWHM": 0.1,  # ns: interpolated half-maximum crossings at 1-ns sampling
     "E": 1.0,  # DN ns: rounding of ~10 summed samples
     "n_echoes": _ROUNDING_SD,  # a count
+    **WAVEFORM_SD_FLOOR,
 }
 """Smallest meaningful SD of each feature (its measurement resolution), feature units."""
 
@@ -157,6 +169,8 @@ class GapData:
         Cells that enter the gap (enough real pulses and samples, >= 2 simulated values).
     real, sim : DataFrame
         The input rows (for the Wasserstein distance).
+    floor_scale : float
+        Factor on every noise floor (module docstring, Noise; 1 = the bootstrap's).
     """
 
     cells: pd.DataFrame
@@ -170,6 +184,7 @@ class GapData:
     valid: np.ndarray
     real: pd.DataFrame
     sim: pd.DataFrame
+    floor_scale: float = 1.0
 
     @classmethod
     def build(
@@ -182,6 +197,7 @@ class GapData:
         floors: dict[str, float] | None = None,
         min_pulses: int = MIN_CELL_PULSES,
         min_samples: int = MIN_CELL_SAMPLES,
+        floor_scale: float = 1.0,
     ) -> GapData:
         """Reduce two feature tables to per-sample sums.
 
@@ -200,7 +216,11 @@ class GapData:
             SD floor per feature (default :data:`FEATURE_SD_FLOOR`; every feature needs one).
         min_pulses, min_samples : int
             Smallest real pulse and sample counts of a cell that enters the gap.
+        floor_scale : float
+            Factor on the noise floors (:attr:`floor_scale`).
         """
+        if not (np.isfinite(floor_scale) and floor_scale > 0):
+            raise WaveforestError(f"gap: floor_scale must be a positive number, got {floor_scale}")
         features = tuple(features)
         floors = {**FEATURE_SD_FLOOR, **(floors or {})}
         missing_floor = [f for f in features if f not in floors]
@@ -247,6 +267,7 @@ class GapData:
             valid=valid,
             real=real,
             sim=sim,
+            floor_scale=float(floor_scale),
         )
 
 
@@ -392,12 +413,12 @@ def masked_gap(data: GapData, stats: dict[str, np.ndarray], mask: np.ndarray) ->
 
 
 def masked_floor(data: GapData, boot: dict[str, np.ndarray], mask: np.ndarray) -> float:
-    """F over the cells of ``mask``: mean of ``Var*(d_bar) + Var*(l_bar)`` from the bootstrap
-    statistics ``boot`` ((B, C, F) arrays of :func:`cell_statistics`)."""
+    """F over the cells of ``mask``: ``data.floor_scale`` x mean of ``Var*(d_bar) + Var*(l_bar)``
+    from the bootstrap statistics ``boot`` ((B, C, F) arrays of :func:`cell_statistics`)."""
     v = robust_sd(pooled(data, boot["d"], mask)) ** 2 + robust_sd(pooled(data, boot["log_sd_ratio"], mask)) ** 2
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        return float(np.nanmean(v))
+        return float(np.nanmean(v)) * data.floor_scale
 
 
 def _mask(data: GapData, valid: np.ndarray | None, feature: str | None) -> np.ndarray:
@@ -493,6 +514,7 @@ def gap_report(
     wasserstein: bool = True,
     universe: pd.Series | None = None,
     weights: np.ndarray | None = None,
+    floor_scale: float = 1.0,
 ) -> GapReport:
     """The gap between real and simulated features, per cell, per feature and in total.
 
@@ -506,7 +528,7 @@ def gap_report(
         Seed of the bootstrap.
     alpha : float
         Two-sided level of the intervals.
-    features, floors, min_pulses, min_samples
+    features, floors, min_pulses, min_samples, floor_scale
         See :meth:`GapData.build`.
     wasserstein : bool
         Also compute w (and its interval) per cell; the slowest part.
@@ -518,7 +540,7 @@ def gap_report(
     GapReport
     """
     data = GapData.build(real, sim, universe, features=features, floors=floors,
-                         min_pulses=min_pulses, min_samples=min_samples)
+                         min_pulses=min_pulses, min_samples=min_samples, floor_scale=floor_scale)
     if weights is None:
         weights = bootstrap_weights(data.universe, n_boot, seed)
     if not data.valid.any():
@@ -527,6 +549,7 @@ def gap_report(
     boot = cell_statistics(data, weights)
     terms = contributions(point)
     noise = np.where(data.valid, robust_sd(boot["d"]) ** 2 + robust_sd(boot["log_sd_ratio"]) ** 2, np.nan)
+    noise = noise * data.floor_scale
     q = [alpha / 2, 1 - alpha / 2]
     df = np.maximum((data.n[0] > 0).sum(axis=-1) - 1, 1)
     d_ci = wald_interval(point["d"], boot["d"], df, alpha)

@@ -20,14 +20,14 @@ their real features, the detection limits (:mod:`.power`), then the above.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import pandas as pd
 
 from waveforest.diagnose import catalogue as cat
 from waveforest.diagnose.before_after import before_after
-from waveforest.diagnose.power import detection_limits, verdict_with_limits
+from waveforest.diagnose.power import FloorCalibration, detection_limits, verdict_with_limits
 from waveforest.diagnose.replicate_cache import effects_key, simulate_all
 from waveforest.diagnose.search import SearchResult, SearchSettings, at_bound, search
 from waveforest.diagnose.settings import DiagnoseSettings
@@ -38,6 +38,7 @@ from waveforest.diagnose.strata import (
     pulse_keys,
     real_features,
 )
+from waveforest.diagnose.waveform import WAVEFORM_FEATURES, with_waveform_statistics
 from waveforest.effects import CATALOGUE
 from waveforest.errors import WaveforestError
 from waveforest.rng import named_seeds
@@ -104,8 +105,12 @@ def find_missing_effects(keys: pd.DataFrame, real: pd.DataFrame, simulate, setti
         :func:`signatures`.
     """
     s_search, s_after, s_boot = named_seeds("missing_effects", int(seed), n=3)
-    result = search(keys, real, simulate, settings, seed=int(s_search), progress=progress, fit_keys=fit_keys)
     before = simulate_all(simulate, keys, {}, int(s_after), settings.replicates)
+    # the base model's gap as reported decides whether there is a gap to explain
+    shown = before_after(real, before, before, n_boot=settings.n_boot, seed=int(s_boot), alpha=settings.alpha,
+                         wasserstein=False, **settings.gap_kw)
+    result = search(keys, real, simulate, settings, seed=int(s_search), progress=progress, fit_keys=fit_keys,
+                    significant=base_gap_significant(shown))
     after = before if not result.named else simulate_all(simulate, keys, result.effects, int(s_after),
                                                           settings.replicates)
     gap = before_after(real, before, after, n_boot=settings.n_boot, seed=int(s_boot), alpha=settings.alpha,
@@ -126,6 +131,68 @@ def find_missing_effects(keys: pd.DataFrame, real: pd.DataFrame, simulate, setti
     return result, gap, cand, signatures(result, settings, power_tables)
 
 
+def base_gap_significant(gap: pd.DataFrame) -> bool:
+    """Whether the base model's total gap in ``gap`` (:func:`.before_after.before_after`) lies
+    above its noise floor: the lower bound of its interval above the floor."""
+    tot = gap[gap["level"] == "total"].iloc[0]
+    return bool(tot["before_ci_low"] > tot["noise_floor"])
+
+
+VERDICTS = ("none", "named", "unexplained", "inconclusive")
+"""Outcomes of a diagnosis: no gap above its floor and the data see every candidate at its test
+value (``none``); effects named; a gap above the floor that no candidate explains
+(``unexplained``); no gap above the floor, but the data cannot see some candidates at their
+test values (``inconclusive``, :func:`final_verdict`)."""
+
+
+def final_verdict(search_verdict: str, limits: pd.DataFrame) -> tuple[str, list[str]]:
+    """(verdict of :data:`VERDICTS`, the candidates these data cannot see at their test value).
+
+    ``none`` of the search becomes ``inconclusive`` when a candidate's detection limit
+    (:func:`.power.detection_limits`) is not reached within its range or lies beyond its
+    realistic test value (``sees_test_value`` false)."""
+    blind = [] if limits.empty else limits.loc[~limits["sees_test_value"].astype(bool), "effect"].tolist()
+    if search_verdict == "none" and blind:
+        return "inconclusive", blind
+    return search_verdict, blind
+
+
+def verdict_record(result: SearchResult, gap: pd.DataFrame, limits: pd.DataFrame,
+                   floor: FloorCalibration | None = None) -> dict:
+    """The machine-readable verdict (``verdict.json``).
+
+    Keys: ``verdict`` (:data:`VERDICTS`), ``search_verdict`` (``model.yaml``'s), ``text`` (the
+    verdict with its limits, as in ``diagnose.md``), ``reason``, ``gap`` (the base model's total
+    gap, its interval, noise floor, excess and its interval, ``above_floor``: the interval's lower
+    bound above the floor), ``named`` (name, value, interval), ``blind_to`` (per candidate not seen
+    at its test value: effect, test_value, smallest_detectable or null, status, upper_bound, unit),
+    ``floor_calibration`` (``floor``, :class:`.power.FloorCalibration`: scale, the off
+    replicates' mean gap and bootstrap floor, replicates)."""
+    verdict, blind = final_verdict(result.verdict, limits)
+    floor = FloorCalibration() if floor is None else floor
+    tot = gap[gap["level"] == "total"].iloc[0]
+    num = lambda x: None if x is None or not math.isfinite(float(x)) else float(x)  # noqa: E731
+    rows = limits[limits["effect"].isin(blind)] if len(limits) else limits
+    return {
+        "verdict": verdict,
+        "search_verdict": result.verdict,
+        "text": verdict_with_limits(verdict, limits),
+        "reason": _reason(result, gap),
+        "gap": {"total": num(tot["gap_before"]), "ci": [num(tot["before_ci_low"]), num(tot["before_ci_high"])],
+                "noise_floor": num(tot["noise_floor"]), "excess": num(tot["gap_before"] - tot["noise_floor"]),
+                "excess_ci": [num(tot["before_ci_low"] - tot["noise_floor"]),
+                              num(tot["before_ci_high"] - tot["noise_floor"])],
+                "above_floor": bool(tot["before_ci_low"] > tot["noise_floor"])},
+        "named": [{"name": e.name, "value": float(e.value), "ci": [float(e.ci_low), float(e.ci_high)]}
+                  for e in result.named],
+        "blind_to": [{"effect": r.effect, "test_value": num(r.test_value), "smallest_detectable":
+                      num(r.smallest_detectable), "status": r.status, "upper_bound": num(r.upper_bound),
+                      "unit": r.unit} for r in rows.itertuples()],
+        "floor_calibration": {"scale": num(floor.scale), "off_gap": num(floor.gap), "off_floor": num(floor.floor),
+                              "replicates": int(floor.replicates)},
+    }
+
+
 @dataclass
 class Diagnosis:
     """What :func:`run_diagnosis` found (the tables of :func:`find_missing_effects` and
@@ -139,6 +206,9 @@ class Diagnosis:
     signatures: pd.DataFrame
     limits: pd.DataFrame
     curve: pd.DataFrame
+    verdict: str = ""
+    blind: tuple = ()
+    floor: FloorCalibration = field(default_factory=FloorCalibration)
 
 
 def run_diagnosis(selected: dict, features: pd.DataFrame, metas: dict, simulate, settings: DiagnoseSettings, *,
@@ -150,8 +220,9 @@ def run_diagnosis(selected: dict, features: pd.DataFrame, metas: dict, simulate,
     tables; the stratum under the crowns from its own CFD echoes and ``metas``, dataset ->
     calibration JSON dict), the detection limits (:func:`.power.detection_limits`), then
     :func:`find_missing_effects` with ``simulate`` (:data:`.replicate_cache.Simulator`),
-    whose signatures reuse the power analysis' simulations. ``progress(label)`` is called
-    after every simulation.
+    whose signatures reuse the power analysis' simulations, with every noise floor
+    calibrated on the power analysis' replicates without effect (:func:`.power.floor_calibration`).
+    ``progress(label)`` is called after every simulation.
     """
 
     strata = settings.strata
@@ -162,13 +233,18 @@ def run_diagnosis(selected: dict, features: pd.DataFrame, metas: dict, simulate,
     real = real_features(features, keys[keys["stratum"] != BELOW_CROWN], strata)
     if strata.below_crown:
         real = pd.concat([real, below_crown_features(keys, selected, metas, strata)], ignore_index=True)
-    power_tables = {}  # the power analysis' simulations, which the signatures reuse
+    if set(settings.search.features) & set(WAVEFORM_FEATURES):
+        real = with_waveform_statistics(real, selected, metas)
+    power_tables, calibration = {}, {}  # the power analysis' simulations (the signatures reuse them), its floor
     limits, curve = detection_limits(keys, simulate, settings.search, settings.power, settings.seed,
-                                     progress=progress, tables=power_tables)
-    result, gap, cand, sigs = find_missing_effects(keys, real, simulate, settings.search, settings.seed,
+                                     progress=progress, tables=power_tables, calibration=calibration)
+    floor = calibration.get("floor", FloorCalibration())
+    search_settings = replace(settings.search, floor_scale=floor.scale)
+    result, gap, cand, sigs = find_missing_effects(keys, real, simulate, search_settings, settings.seed,
                                                    fit_keys=fit_keys, progress=progress, power_tables=power_tables)
+    verdict, blind = final_verdict(result.verdict, limits)
     return Diagnosis(keys=keys, fit_keys=fit_keys, result=result, gap=gap, candidates=cand, signatures=sigs,
-                     limits=limits, curve=curve)
+                     limits=limits, curve=curve, verdict=verdict, blind=tuple(blind), floor=floor)
 
 
 def _fmt(x: float, nd: int = 3) -> str:
@@ -187,7 +263,8 @@ def summary_markdown(result: SearchResult, gap: pd.DataFrame, cand: pd.DataFrame
     lines = [
         "# Diagnosis: where simulation and measurement disagree",
         "",
-        f"**Verdict: {verdict_with_limits(result.verdict, limits)}.** {result.reason}.",
+        f"**Verdict: {verdict_with_limits(final_verdict(result.verdict, limits)[0], limits)}.** "
+        f"{_reason(result, gap)}.",
         "",
         f"Datasets {', '.join(datasets)}; {n_pulses} real pulses from {n_samples} field samples; "
         f"base model effects {base_effects or 'none (the paper model)'}; {result.n_simulations} half-sample "
@@ -199,7 +276,11 @@ def summary_markdown(result: SearchResult, gap: pd.DataFrame, cand: pd.DataFrame
         "pooled SDs) and the log SD ratio each averaged over the datasets first, so that an effect "
         "that moves a species the same way in every dataset adds up (src/waveforest/diagnose/gap.py); "
         "the noise floor is the gap that "
-        "sampling noise alone gives (cluster bootstrap over field samples). With diagnose.near_stem_m "
+        "sampling noise alone gives (cluster bootstrap over field samples"
+        + (f", times {_fmt(settings.floor_scale)}: the mean gap over the mean bootstrap floor of the power "
+           "analysis' pseudo-real data without effect, src/waveforest/diagnose/power.py"
+           if settings.floor_scale != 1.0 else "")
+        + "). With diagnose.near_stem_m "
         "(default 0.3 m), a tree species' pulses whose first echo lies that close to the stem form the "
         "cells '<species> near stem' (an XY error moves them one way and those further out the other), in the "
         f"datasets where both parts come from at least {NEAR_STEM_MIN_SAMPLES} field samples. With "
@@ -208,7 +289,9 @@ def summary_markdown(result: SearchResult, gap: pd.DataFrame, cand: pd.DataFrame
         "'<species> below crown'.",
         "",
         f"- base model: gap {_fmt(tot['gap_before'])} [{_fmt(tot['before_ci_low'])}, "
-        f"{_fmt(tot['before_ci_high'])}], noise floor {_fmt(tot['noise_floor'])}",
+        f"{_fmt(tot['before_ci_high'])}], noise floor {_fmt(tot['noise_floor'])}"
+        + (f" (the bootstrap's {_fmt(tot['noise_floor'] / settings.floor_scale)} x {_fmt(settings.floor_scale)}, "
+           "calibrated on pseudo-real data without effect)" if settings.floor_scale != 1.0 else ""),
         f"- extended model: gap {_fmt(tot['gap_after'])} [{_fmt(tot['after_ci_low'])}, "
         f"{_fmt(tot['after_ci_high'])}]",
         f"- reduction {_fmt(tot['reduction'])} [{_fmt(tot['reduction_ci_low'])}, "
@@ -251,25 +334,43 @@ def summary_markdown(result: SearchResult, gap: pd.DataFrame, cand: pd.DataFrame
     return "\n".join(lines)
 
 
+def _reason(result: SearchResult, gap: pd.DataFrame) -> str:
+    """Why the search stopped, worded from the base model's gap as reported in ``gap``."""
+    tot = gap[gap["level"] == "total"].iloc[0]
+    if result.verdict == "none":
+        return (f"the base model's gap {_fmt(tot['gap_before'])} [{_fmt(tot['before_ci_low'])}, "
+                f"{_fmt(tot['before_ci_high'])}] is not above its noise floor {_fmt(tot['noise_floor'])} "
+                "(the lower bound of its interval is not above the floor)")
+    return result.reason
+
+
 def _limits_markdown(limits: pd.DataFrame, curve: pd.DataFrame, real_floor: float) -> list[str]:
     """The ``diagnose.md`` section on detection limits (``real_floor``: the real data's noise floor)."""
     reps = int(limits["replicates"].iloc[0]) if len(limits) else 0
     off = curve[curve["strength"] == 0]
     false_alarms = float(off["power"].iloc[0]) if len(off) else math.nan
+    fa_ci = (f" [{_fmt(off['power_ci_low'].iloc[0] * 100)}, {_fmt(off['power_ci_high'].iloc[0] * 100)}] %"
+             if len(off) and "power_ci_low" in off else "")
     off_floor = float(off["noise_floor"].iloc[0]) if len(off) else math.nan
     lines = ["## What these data could have seen", "",
              f"Each candidate simulated at a ladder of values as pseudo-real data of these pulses, {reps} "
              "replicate(s), tested as the base model's gap is (above the noise floor at the same alpha, same "
              "cluster bootstrap); the smallest value detected in at least "
              f"{_fmt(float(limits['power'].iloc[0]) * 100 if len(limits) else math.nan)} % of the replicates "
-             f"(src/waveforest/diagnose/power.py). With no effect the test fired in {_fmt(false_alarms * 100)} % "
-             f"of them. Noise floor of the pseudo-real data without effect {_fmt(off_floor)}, of the real data "
+             f"(src/waveforest/diagnose/power.py). With no effect the test fired in {_fmt(false_alarms * 100)} %{fa_ci} "
+             f"of them (95 % Wilson interval). Noise floor of the pseudo-real data without effect {_fmt(off_floor)}, of the real data "
              f"{_fmt(real_floor)}: a real floor well above the pseudo-real one means more spread between real "
              "plants than between simulated ones, and limits that are too small. The pseudo-real data are the "
              "model's own twins: where real data differ from the model in other ways too, an effect at or somewhat "
              "above its limit can still go unnamed (docs/validation.md, Diagnose at the paper's scale).", "",
-             "| effect | smallest detectable | tried up to |", "|---|---|---|"]
+             "| effect | smallest detectable | test value | seen at the test value | power at the strongest "
+             "value tried [95 %] |", "|---|---|---|---|---|"]
     for r in limits.itertuples():
-        found = "not within the bounds" if pd.isna(r.smallest_detectable) else f"{_fmt(r.smallest_detectable)} {r.unit}"
-        lines.append(f"| {r.effect} | {found} | {_fmt(r.upper_bound)} {r.unit} |")
-    return lines + [""]
+        found = (f"not reached up to {_fmt(r.upper_bound)} {r.unit}" if pd.isna(r.smallest_detectable)
+                 else f"{_fmt(r.smallest_detectable)} {r.unit}")
+        lines.append(f"| {r.effect} | {found} | {_fmt(r.test_value)} {r.unit} | "
+                     f"{'yes' if r.sees_test_value else 'no'} | {_fmt(r.power_at_bound, 2)} "
+                     f"[{_fmt(r.power_at_bound_ci_low, 2)}, {_fmt(r.power_at_bound_ci_high, 2)}] at "
+                     f"{_fmt(r.upper_bound)} {r.unit} |")
+    lines += ["", "Power per value tried: detection_curve.csv and power.png.", ""]
+    return lines

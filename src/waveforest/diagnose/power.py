@@ -11,10 +11,15 @@ design of the data and the test that decides the verdict ``none``:
   bootstrap over field samples and ``alpha``: v is *detected* in a replicate when the lower
   bound of the excess gap's interval is above 0 (the base model's gap is significant above
   its noise floor), the condition without which the search names nothing.
-* **Replicates.** ``replicates`` independent pseudo-real data sets (seeds), each with its own
-  simulation side and bootstrap weights; within one replicate every effect and value shares
-  the seeds (common random numbers), so the excess gap's lower bound LB(v) varies with the
-  effect only. Power(v) = share of replicates that detect v.
+* **Replicates from a pool.** Every model (off and each value) is simulated over all pulses
+  with ``pool`` seeds, the same seeds for every model (common random numbers). Replicate r
+  draws, for every field sample, the pool member of its pseudo-real pulses and another member
+  for its simulation side, and has its own bootstrap weights. Field samples are independent
+  clusters (each its own plants, rays and noise), so a data set assembled sample by sample
+  from independent simulations is a draw of the same distribution as one simulated whole; the
+  replicates share simulations, so they are less independent than ``replicates`` separate
+  simulations would be (the Wilson intervals of the power assume independence). Power(v) =
+  share of replicates that detect v, with its 95 % Wilson interval.
 * **Ladder.** Per candidate, ``values`` strengths from its off value towards the bound on
   the side of its test value (search coordinate u, :mod:`.catalogue`), geometric: the
   distance from off is 1/2^(n-1), ..., 1/4, 1/2, 1 of the way to the bound. The ladder is
@@ -25,15 +30,25 @@ design of the data and the test that decides the verdict ``none``:
   limit is the ceil(power x replicates)-th smallest crossing. Empty (NaN) when the bound
   itself is detected with less power.
 
+**The floor calibrated on twins.** The off replicates are data without effect on this very
+design: the gap they give is the noise floor by definition. Their mean gap over their mean
+bootstrap floor is the factor ``floor_scale`` (:func:`floor_calibration`) by which the
+diagnosis multiplies every noise floor (:meth:`.gap.GapData.build`), the real data's and the
+replicates' alike: every test below and the diagnosis's verdict compare a gap's interval with
+the calibrated floor. With fewer than :data:`MIN_CALIBRATION_REPLICATES` replicates the factor
+stays 1.
+
 The off value is evaluated in every replicate too: its power is the false-alarm rate of the
-test on this design. Cost: ``replicates`` x (2 + values evaluated) simulations of all pulses.
+test on this design (in-sample: the factor comes from the same replicates). A limit is never outside the values tried: "not reached" (NaN) when the
+strongest is detected with less power. Cost: ``pool`` x (1 + values evaluated) simulations of
+all pulses (one more set with ``pulses_per_value`` > 1), whatever ``replicates``.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import pandas as pd
@@ -44,14 +59,69 @@ from waveforest.diagnose.replicate_cache import Simulator, effects_key, simulate
 from waveforest.diagnose.search import SearchSettings
 from waveforest.effects import CATALOGUE
 from waveforest.errors import WaveforestError
-from waveforest.rng import named_seeds
+from waveforest.rng import named_generator, named_seeds
 from waveforest.stats.bootstrap import bootstrap_weights
+from waveforest.stats.proportion import wilson_interval
 
-LIMIT_COLUMNS = ("effect", "unit", "smallest_detectable", "upper_bound", "power", "replicates")
-"""Columns of ``detection_limits.csv`` (:func:`detection_limits`), a contract with the report."""
+MIN_CALIBRATION_REPLICATES = 5
+"""Fewest off replicates from which the noise floor is calibrated (:func:`floor_calibration`)."""
 
-CURVE_COLUMNS = ("effect", "value", "strength", "replicates", "power", "gap", "noise_floor", "excess_ci_low")
-"""Columns of ``detection_curve.csv``: one row per candidate and value evaluated (off included)."""
+
+@dataclass(frozen=True)
+class FloorCalibration:
+    """The noise floor calibrated on pseudo-real data without effect (module docstring).
+
+    Attributes
+    ----------
+    scale : float
+        Factor on the bootstrap floor: ``gap / floor`` (1 when not calibrated).
+    gap, floor : float
+        Mean total gap and mean bootstrap noise floor over the off replicates, squared pooled SDs.
+    replicates : int
+        Off replicates (0: none run).
+    """
+
+    scale: float = 1.0
+    gap: float = math.nan
+    floor: float = math.nan
+    replicates: int = 0
+
+
+def floor_calibration(off: np.ndarray) -> FloorCalibration:
+    """:class:`FloorCalibration` of off replicates ``off`` ((R, 3): gap, bootstrap floor and
+    lower bound of the excess, as :class:`_Replicate` tests them); scale 1 with fewer than
+    :data:`MIN_CALIBRATION_REPLICATES` finite rows."""
+    off = np.asarray(off, dtype=np.float64).reshape(-1, 3)
+    ok = off[np.isfinite(off[:, :2]).all(axis=1) & (off[:, 1] > 0)]
+    gap, floor = (float(ok[:, 0].mean()), float(ok[:, 1].mean())) if len(ok) else (math.nan, math.nan)
+    scale = gap / floor if len(ok) >= MIN_CALIBRATION_REPLICATES and gap > 0 else 1.0
+    return FloorCalibration(scale=float(scale), gap=gap, floor=floor, replicates=len(ok))
+
+
+def _calibrated(res: np.ndarray, scale: float) -> np.ndarray:
+    """Replicate results (gap, floor, excess lower bound) with the floor times ``scale``."""
+    res = np.array(res, dtype=np.float64, copy=True)
+    res[:, 2] -= (scale - 1.0) * res[:, 1]
+    res[:, 1] *= scale
+    return res
+
+
+LIMIT_COLUMNS = ("effect", "unit", "smallest_detectable", "status", "upper_bound", "test_value", "sees_test_value",
+                 "power", "replicates", "power_at_bound", "power_at_bound_ci_low", "power_at_bound_ci_high")
+"""Columns of ``detection_limits.csv`` (:func:`detection_limits`), a contract with the report:
+effect and unit; ``smallest_detectable`` the limit (NaN unless ``status`` is "detected");
+``status`` "detected" or "not reached" (the strongest value tried, ``upper_bound``, is detected
+in fewer than ``power`` x ``replicates`` replicates: "not reached up to upper_bound");
+``test_value`` the effect's realistic size (:data:`waveforest.effects.CATALOGUE`) and
+``sees_test_value`` whether the limit lies at or below it (the data can see an effect of that size);
+``power`` the power required and ``replicates`` the pseudo-real replicates per value;
+``power_at_bound`` the share of replicates that detect ``upper_bound``, with its Wilson interval."""
+
+CURVE_COLUMNS = ("effect", "value", "strength", "replicates", "detected", "power", "power_ci_low", "power_ci_high",
+                 "gap", "noise_floor", "excess_ci_low")
+"""Columns of ``detection_curve.csv``: one row per candidate and value evaluated (off included):
+``detected`` of ``replicates`` pseudo-real replicates detected it, ``power`` their share with its
+95 % Wilson interval; gap, noise floor and the excess gap's lower bound: medians over the replicates."""
 
 
 @dataclass(frozen=True)
@@ -66,15 +136,19 @@ class PowerSettings:
         Ladder values per candidate (off not counted).
     power : float
         Share of replicates that must detect a value for it to count as detectable.
+    pool : int
+        Simulations of all pulses per model from which the replicates are drawn sample by
+        sample (module docstring; at most ``replicates + 1`` are used).
     """
 
-    replicates: int = 1
+    replicates: int = 20
     values: int = 2
     power: float = 0.8
+    pool: int = 2
 
     def __post_init__(self) -> None:
-        if self.replicates < 1 or self.values < 1 or not 0.0 < self.power <= 1.0:
-            raise WaveforestError("diagnose.power: need replicates >= 1, values >= 1, 0 < power <= 1")
+        if self.replicates < 1 or self.values < 1 or not 0.0 < self.power <= 1.0 or self.pool < 2:
+            raise WaveforestError("diagnose.power: need replicates >= 1, values >= 1, 0 < power <= 1, pool >= 2")
 
     @property
     def needed(self) -> int:
@@ -107,29 +181,51 @@ def _crossing(s_lo: float, lb_lo: float, s_hi: float, lb_hi: float) -> float:
     return math.sqrt(s_lo**2 + (s_hi**2 - s_lo**2) * (-lb_lo) / (lb_hi - lb_lo))
 
 
+class _Pool:
+    """The pool of simulations of all pulses: ``size`` seeds, each model simulated once per seed
+    (lazily); the base model's simulation side with ``twins`` twins per pulse, the pseudo-real
+    data with one (the same table when ``twins`` is 1)."""
+
+    def __init__(self, keys, simulate, seeds, twins: int, progress):
+        self.keys, self.simulate, self.seeds, self.twins, self.progress = keys, simulate, seeds, int(twins), progress
+        self.cache: dict = {}
+
+    def get(self, effects: dict, k: int, twins: int = 1) -> pd.DataFrame:
+        key = (effects_key(effects), int(k), int(twins))
+        if key not in self.cache:
+            self.cache[key] = simulate_all(self.simulate, self.keys, effects, int(self.seeds[k]), int(twins))
+            if self.progress is not None:
+                self.progress(f"power: {effects} seed {k}")
+        return self.cache[key]
+
+
+def _assemble(tables: list[pd.DataFrame], pick: np.ndarray, universe: pd.Series) -> pd.DataFrame:
+    """Rows of each field sample j from pool member ``pick[j]``: one data set drawn sample by sample."""
+    parts = []
+    for k, t in enumerate(tables):
+        j = universe.index.get_indexer(t["sample_id"].astype(str))
+        parts.append(t[(j >= 0) & (pick[np.maximum(j, 0)] == k)])
+    return pd.concat(parts, ignore_index=True)
+
+
 class _Replicate:
-    """One pseudo-real replicate: its seeds, base simulation side and bootstrap weights."""
+    """One pseudo-real replicate: per field sample the pool member of its pseudo-real data and
+    another of its simulation side, and its bootstrap weights."""
 
-    def __init__(self, keys, simulate, settings: SearchSettings, seed, universe, progress):
-        s_real, s_sim, s_boot = named_seeds("power_replicate", seed, n=3)
-        self.keys, self.simulate, self.settings, self.progress = keys, simulate, settings, progress
-        self.s_real, self.s_boot = int(s_real), s_boot
-        self.sim = self._count(simulate_all(simulate, keys, {}, int(s_sim), settings.replicates), "power: base")
-        self.universe = universe
+    def __init__(self, pool: _Pool, settings: SearchSettings, seed: int, universe):
+        s_pick, _, s_boot = named_seeds("power_replicate", int(seed), n=3)
+        n_pool = len(pool.seeds)
+        rng = named_generator("power_replicate", int(s_pick))
+        self.real_pick = rng.integers(0, n_pool, len(universe))
+        self.sim_pick = (self.real_pick + rng.integers(1, n_pool, len(universe))) % n_pool  # another member
+        self.pool, self.settings, self.universe = pool, settings, universe
+        self.sim = _assemble([pool.get({}, k, settings.replicates) for k in range(n_pool)], self.sim_pick, universe)
         self.weights = bootstrap_weights(universe, settings.n_boot, s_boot)
-        self.tables = None
-
-    def _count(self, table, label):
-        if self.progress is not None:
-            self.progress(label)
-        return table
 
     def test(self, effects: dict) -> tuple[float, float, float]:
-        """(gap, noise floor, lower bound of the excess gap's interval) of pseudo-real data under
-        ``effects``; the pseudo-real table goes to ``self.tables`` when that is a dict."""
-        real = self._count(simulate_all(self.simulate, self.keys, effects, self.s_real, 1), f"power: {effects}")
-        if self.tables is not None:
-            self.tables[effects_key(effects)] = real
+        """(gap, noise floor, lower bound of the excess gap's interval) of pseudo-real data under ``effects``."""
+        real = _assemble([self.pool.get(effects, k) for k in range(len(self.pool.seeds))], self.real_pick,
+                         self.universe)
         s = self.settings
         rep = gap_report(real, self.sim, n_boot=s.n_boot, alpha=s.alpha, wasserstein=False, universe=self.universe,
                          weights=self.weights, **s.gap_kw)
@@ -137,9 +233,31 @@ class _Replicate:
         return float(tot["gap"]), float(tot["noise_floor"]), float(tot["excess_ci_low"])
 
 
+def _null_replicates(keys: pd.DataFrame, simulate: Simulator, settings: SearchSettings, power: PowerSettings,
+                     seed: int, progress) -> tuple[_Pool, list[_Replicate], np.ndarray]:
+    """The pool, the replicates and their off results ((R, 3): gap, bootstrap floor, excess lower bound)."""
+    keys = keys.assign(sample_id=keys["sample_id"].astype(str))
+    settings = replace(settings, floor_scale=1.0)  # the bootstrap floor; calibrated by the caller
+    universe = sample_universe(keys)
+    n_pool = min(power.pool, power.replicates + 1)
+    pool = _Pool(keys, simulate, named_seeds("power", int(seed), n=n_pool), settings.replicates, progress)
+    reps = [_Replicate(pool, settings, s, universe)
+            for s in named_seeds("power", int(seed), 1, n=power.replicates)]
+    return pool, reps, np.array([r.test({}) for r in reps])
+
+
+def calibrate_floor(keys: pd.DataFrame, simulate: Simulator, settings: SearchSettings, power: PowerSettings,
+                    seed: int, *, progress: Callable[[str], None] | None = None) -> FloorCalibration:
+    """The noise floor's calibration alone: :func:`detection_limits`' off replicates (same
+    seeds, same pool: the factor the diagnosis applies), without the ladders."""
+    if keys.empty:
+        raise WaveforestError("diagnose: no pulse for the power analysis")
+    return floor_calibration(_null_replicates(keys, simulate, settings, power, seed, progress)[2])
+
+
 def detection_limits(keys: pd.DataFrame, simulate: Simulator, settings: SearchSettings, power: PowerSettings,
-                     seed: int, *, progress: Callable[[str], None] | None = None, tables: dict | None = None
-                     ) -> tuple[pd.DataFrame, pd.DataFrame]:
+                     seed: int, *, progress: Callable[[str], None] | None = None, tables: dict | None = None,
+                     calibration: dict | None = None) -> tuple[pd.DataFrame, pd.DataFrame]:
     """The power analysis of the module docstring for every candidate of ``settings``.
 
     Parameters
@@ -157,9 +275,12 @@ def detection_limits(keys: pd.DataFrame, simulate: Simulator, settings: SearchSe
     progress : callable, optional
         Called with a label after each simulation.
     tables : dict, optional
-        Filled with the first replicate's pseudo-real feature tables, keyed by
+        Filled with the pseudo-real feature tables of the pool's first seed, keyed by
         :func:`.replicate_cache.effects_key` (off included): one seed for all, so any two are
         common-random-number pairs (:func:`.missing_effects.signatures` reads them).
+    calibration : dict, optional
+        Filled with ``{"floor": FloorCalibration}`` of the off replicates; the tests of the
+        ladder use that calibrated floor (``settings.floor_scale`` is ignored).
 
     Returns
     -------
@@ -176,12 +297,11 @@ def detection_limits(keys: pd.DataFrame, simulate: Simulator, settings: SearchSe
         raise WaveforestError("diagnose: no pulse for the power analysis")
     if not settings.candidates:
         return pd.DataFrame(columns=list(LIMIT_COLUMNS)), pd.DataFrame(columns=list(CURVE_COLUMNS))
-    keys = keys.assign(sample_id=keys["sample_id"].astype(str))
-    universe = sample_universe(keys)
-    seeds = named_seeds("power", int(seed), n=power.replicates)
-    reps = [_Replicate(keys, simulate, settings, int(s), universe, progress) for s in seeds]
-    reps[0].tables = tables
-    off = np.array([r.test({}) for r in reps])  # (R, 3)
+    pool, reps, off = _null_replicates(keys, simulate, settings, power, seed, progress)
+    cal = floor_calibration(off)
+    if calibration is not None:
+        calibration["floor"] = cal
+    off = _calibrated(off, cal.scale)
     limits, curve = [], []
     for name in settings.candidates:
         us = ladder(name, power.values)
@@ -190,7 +310,8 @@ def detection_limits(keys: pd.DataFrame, simulate: Simulator, settings: SearchSe
         rows = {}
         k = len(us) - 1
         while k >= 0:
-            res = np.array([r.test(cat.with_effect({}, name, cat.from_u(name, us[k]))) for r in reps])
+            res = _calibrated([r.test(cat.with_effect({}, name, cat.from_u(name, us[k]))) for r in reps],
+                              cal.scale)
             lbs[k], rows[k] = res[:, 2], res
             if (res[:, 2] > 0).sum() < power.needed:
                 break
@@ -200,32 +321,59 @@ def detection_limits(keys: pd.DataFrame, simulate: Simulator, settings: SearchSe
             u_lo, lb_lo = (u0, off[:, 2]) if k < 0 else (us[k], lbs[k])
             cross = [_crossing(abs(u_lo - u0), a, abs(us[k + 1] - u0), b) for a, b in zip(lb_lo, lbs[k + 1])]
             s = np.sort(np.where(np.isnan(cross), np.inf, cross))[power.needed - 1]
+            # within the range tried: at most the weakest value detected with power
+            s = min(s, abs(us[k + 1] - u0))
             limit = cat.from_u(name, u0 + math.copysign(s, us[-1] - u0))
+        n_bound = int((lbs[len(us) - 1] > 0).sum())
+        b_lo, b_hi = wilson_interval(n_bound / power.replicates, power.replicates)
+        test = float(CATALOGUE[name].test_value)
+        sees = bool(np.isfinite(limit) and abs(cat.to_u(name, limit) - u0) <= abs(cat.to_u(name, test) - u0) + 1e-9)
         limits.append({"effect": name, "unit": cat.UNITS[name], "smallest_detectable": limit,
-                       "upper_bound": cat.from_u(name, us[-1]), "power": power.power,
-                       "replicates": power.replicates})
+                       "status": "detected" if np.isfinite(limit) else "not reached",
+                       "upper_bound": cat.from_u(name, us[-1]), "test_value": test, "sees_test_value": sees,
+                       "power": power.power, "replicates": power.replicates, "power_at_bound": n_bound / power.replicates,
+                       "power_at_bound_ci_low": b_lo, "power_at_bound_ci_high": b_hi})
         for kk, res in sorted({-1: off, **rows}.items()):
             u = u0 if kk < 0 else us[kk]
+            hits = int((res[:, 2] > 0).sum())
+            p_lo, p_hi = wilson_interval(hits / power.replicates, power.replicates)
             curve.append({"effect": name, "value": cat.from_u(name, u), "strength": abs(u - u0),
-                          "replicates": power.replicates, "power": float(np.mean(res[:, 2] > 0)),
+                          "replicates": power.replicates, "detected": hits, "power": hits / power.replicates,
+                          "power_ci_low": p_lo, "power_ci_high": p_hi,
                           "gap": float(np.median(res[:, 0])), "noise_floor": float(np.median(res[:, 1])),
                           "excess_ci_low": float(np.median(res[:, 2]))})
+    if tables is not None:  # one seed for all models: common-random-number pairs
+        tables.update({eff: t for (eff, k, twins), t in pool.cache.items() if k == 0 and twins == 1})
     return pd.DataFrame(limits, columns=list(LIMIT_COLUMNS)), pd.DataFrame(curve, columns=list(CURVE_COLUMNS))
 
 
 def verdict_with_limits(verdict: str, limits: pd.DataFrame) -> str:
     """The verdict with the detection limits, e.g. ``none: no effect larger than understory 0.8
-    LAI, xy_error 0.15 m; not detectable within the bounds: nonlinearity (up to 50 DN)``.
+    LAI, xy_error 0.15 m`` or ``inconclusive: these data cannot see nonlinearity at 150 DN (not
+    reached up to 50 DN); no effect larger than understory 0.8 LAI``.
 
-    Only ``none`` reads "no effect larger than"; another verdict lists the limits as such.
+    Only ``none`` and ``inconclusive`` read "no effect larger than"; another verdict lists the
+    limits as such. A limit not reached reads "not reached up to" the strongest value tried.
     """
-    found = limits[limits["smallest_detectable"].notna()]
-    blind = limits[limits["smallest_detectable"].isna()]
-    values = ", ".join(f"{r.effect} {r.smallest_detectable:.3g} {r.unit}" for r in found.itertuples())
+    if limits.empty:
+        return verdict
+    sees = limits["sees_test_value"].astype(bool) if "sees_test_value" in limits else limits[
+        "smallest_detectable"].notna()
+    found = limits[limits["smallest_detectable"].notna() & sees]
+    blind = limits[~sees]
+
+    def limit_of(r) -> str:
+        if pd.isna(r.smallest_detectable):
+            return f"not reached up to {r.upper_bound:.3g} {r.unit}"
+        return f"limit {r.smallest_detectable:.3g} {r.unit}"
+
     parts = []
-    if len(found):
-        parts.append(("no effect larger than " if verdict == "none" else "detection limits ") + values)
     if len(blind):
-        parts.append("not detectable within the bounds: " + ", ".join(
-            f"{r.effect} (up to {r.upper_bound:.3g} {r.unit})" for r in blind.itertuples()))
+        parts.append("these data cannot see " + ", ".join(
+            f"{r.effect} at {r.test_value:.3g} {r.unit} ({limit_of(r)})" if "test_value" in limits
+            else f"{r.effect} ({limit_of(r)})" for r in blind.itertuples()))
+    if len(found):
+        values = ", ".join(f"{r.effect} {r.smallest_detectable:.3g} {r.unit}" for r in found.itertuples())
+        parts.append(("no effect larger than " if verdict in ("none", "inconclusive") else "detection limits ")
+                     + values)
     return f"{verdict}: " + "; ".join(parts) if parts else verdict

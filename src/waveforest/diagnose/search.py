@@ -49,7 +49,7 @@ import pandas as pd
 
 from waveforest.diagnose import catalogue as cat
 from waveforest.diagnose.gap import (
-    FEATURES,
+    DEFAULT_FEATURES,
     MIN_CELL_PULSES,
     MIN_CELL_SAMPLES,
     GapData,
@@ -101,6 +101,9 @@ class SearchSettings:
         Fit on each half and test on the other (both directions), or only fit A / test B.
     features, floors, min_pulses, min_samples
         Gap settings (:meth:`.gap.GapData.build`; ``min_cell_pulses``, ``min_cell_samples``).
+    floor_scale : float
+        Factor on every noise floor (:meth:`.gap.GapData.build`), calibrated by the diagnosis
+        (:func:`.power.floor_calibration`); not a config key.
     """
 
     rounds: int = 3
@@ -113,10 +116,11 @@ class SearchSettings:
     candidates: tuple[str, ...] = tuple(CATALOGUE)
     refit: bool = True
     crossfit: bool = True
-    features: tuple[str, ...] = FEATURES
+    features: tuple[str, ...] = DEFAULT_FEATURES
     floors: dict | None = None
     min_pulses: int = MIN_CELL_PULSES
     min_samples: int = MIN_CELL_SAMPLES
+    floor_scale: float = 1.0
 
     def __post_init__(self) -> None:
         for name in self.candidates:
@@ -132,7 +136,7 @@ class SearchSettings:
     def gap_kw(self) -> dict:
         """Keyword arguments of :meth:`.gap.GapData.build`."""
         return {"features": self.features, "floors": self.floors,
-                "min_pulses": self.min_pulses, "min_samples": self.min_samples}
+                "min_pulses": self.min_pulses, "min_samples": self.min_samples, "floor_scale": self.floor_scale}
 
     @property
     def folds(self) -> tuple[tuple[str, str], ...]:
@@ -557,12 +561,12 @@ def _setup(keys: pd.DataFrame, real: pd.DataFrame, simulate: Simulator, settings
     return ctx, ids, report, df
 
 
-def _reason_not_to_search(baseline: GapReport, ctx: _Context, ids: dict) -> str:
+def _reason_not_to_search(significant: bool, ctx: _Context, ids: dict) -> str:
     """Why no round is run (empty when the rounds run): no significant gap, or a half too thin."""
     s = ctx.settings
     thin = [h for h in HALVES
             if not ids[h] or not ctx.data(h, {}).valid.any() or not ctx.test_data(h, {}).valid.any()]
-    if not baseline.significant:  # nothing to explain: no search (and no spurious candidate)
+    if not significant:  # nothing to explain: no search (and no spurious candidate)
         return "the base model's gap is within the noise floor"
     if thin:
         return (f"half {thin[0]} of the field samples has no dataset x species cell with at least "
@@ -666,6 +670,7 @@ def search(
     seed: int = 0,
     progress: Callable[[str], None] | None = None,
     fit_keys: pd.DataFrame | None = None,
+    significant: bool | None = None,
 ) -> SearchResult:
     """Find the effects that explain the gap between ``real`` and the simulation.
 
@@ -689,6 +694,10 @@ def search(
         The subset of ``keys`` (dataset, pulse_id) on which candidates are fitted (step 2 of
         the module docstring), default all of them: a subset keeps the fits cheap while the
         test, which decides what is named, sees every pulse.
+    significant : bool, optional
+        Whether the base model's gap lies significantly above its noise floor, decided
+        elsewhere (the gap that the diagnosis reports, :func:`.missing_effects.find_missing_effects`);
+        default: the search's own baseline. It decides whether rounds run and the verdict ``none``.
 
     Returns
     -------
@@ -697,13 +706,14 @@ def search(
     settings = settings or SearchSettings()
     ctx, ids, report, df = _setup(keys, real, simulate, settings, seed, progress, fit_keys)
     baseline = report({})
-    state = _State(reason=_reason_not_to_search(baseline, ctx, ids))
+    significant = baseline.significant if significant is None else bool(significant)
+    state = _State(reason=_reason_not_to_search(significant, ctx, ids))
     if not state.reason:
         for rnd in range(1, settings.rounds + 1):
             if _run_round(rnd, state, ctx, df, report):
                 break
     residual = report(state.current)
-    verdict = "none" if not baseline.significant else "named" if state.named else "unexplained"
+    verdict = "none" if not significant else "named" if state.named else "unexplained"
     sims, test_sims = ctx.sims, ctx.test_sims
     return SearchResult(
         verdict=verdict, named=state.named, candidates=pd.DataFrame(state.rows), curves=pd.DataFrame(state.curves),

@@ -3,7 +3,7 @@
 A thin adapter over :func:`waveforest.model.simulate.simulate_pulses` (vegetation ->
 MCRT -> sensor -> CFD; effects routed to the module that applies each) and
 :func:`waveforest.sensor.feature_table` (first-echo features, the same code as for the real
-pulses). It adds four things:
+pulses) with :func:`.waveform.waveform_statistics` (the whole waveform). It adds four things:
 
 * **the seed**: ``simulate_pulses`` derives every random number from the settings' master
   seed, the dataset, the sample and the vegetation instance; the adapter passes the search's
@@ -57,6 +57,7 @@ from waveforest.diagnose.strata import (
     stem_distance,
     turned_about_stems,
 )
+from waveforest.diagnose.waveform import WAVEFORM_FEATURES, waveform_statistics
 from waveforest.effects import CATALOGUE
 from waveforest.errors import WaveforestError
 from waveforest.io.tables import dataset_row
@@ -216,9 +217,13 @@ class StudySimulator:
         if sim.num_rows == 0:
             return None
         rc = {ds: range_correction_of(meta)} if self.range_correction else None
-        # the gap reads first-echo features only: no decomposition of the twins
-        return feature_table(sim, {ds: meta}, replace(simulate.sensor.features, decomposition=False),
-                             cfd=cal.cfd or simulate.sensor.cfd, range_corrections=rc)
+        # the gap reads first-echo features and the waveform statistics: no decomposition of the twins
+        feats = feature_table(sim, {ds: meta}, replace(simulate.sensor.features, decomposition=False),
+                              cfd=cal.cfd or simulate.sensor.cfd, range_corrections=rc)
+        stats = waveform_statistics(sim, {ds: meta}, feats[["echo_z"]])
+        for f in WAVEFORM_FEATURES:
+            feats[f] = stats[f].to_numpy()
+        return feats
 
     def _below_crown(self, sub: pa.Table, ds: str, model: dict, simulate: SimulateSettings) -> list[pd.DataFrame]:
         """Twins of the pulses under the crowns: for each, the first of up to

@@ -18,6 +18,7 @@ never an empty cell (:data:`waveforest.report.markdown.NO_VALUE`).
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -428,8 +429,13 @@ def diagnosis_text(d: Path) -> str:
         m = read_model(path)
     except WaveforestError:  # not a model.yaml of the layout: no verdict to report
         return "Diagnosis: " + missing("model.yaml holds no verdict")
-    s = f"Diagnosis — verdict: {m['verdict']}"
-    s += f" ({m['reason']})." if m.get("reason") else "."
+    verdict = _verdict_json(d / "verdict.json")
+    if verdict:  # the diagnosis's verdict (none, named, unexplained, inconclusive) with what it cannot see
+        s = f"Diagnosis — verdict: {verdict.get('text') or verdict.get('verdict')}"
+        s += f" ({verdict['reason']})." if verdict.get("reason") else "."
+    else:
+        s = f"Diagnosis — verdict: {m['verdict']}"
+        s += f" ({m['reason']})." if m.get("reason") else "."
     effects = m["effects"]
     if effects:
         s += " Named: " + "; ".join(
@@ -441,6 +447,15 @@ def diagnosis_text(d: Path) -> str:
               f"{_num(gap.get('after')):.3g} {_ci(gap.get('after_ci'))}; noise floor "
               f"{_num(gap.get('noise_floor')):.3g}.")
     return s
+
+
+def _verdict_json(path: Path) -> dict:
+    """``diagnose/verdict.json`` as a dict; {} when absent or unreadable."""
+    try:
+        out = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
+    return out if isinstance(out, dict) else {}
 
 
 def gap_summary(d: Path) -> pd.DataFrame | None:

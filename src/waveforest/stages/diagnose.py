@@ -21,15 +21,16 @@ the campaign's datasets.csv, targets.csv and fields.csv. Steps 1-3 are
    simulator: search, before/after, signatures (from the search's or step 2's simulations).
 4. **Outputs** in ``out_dir`` (:data:`OUTPUT_NAMES`): ``model.yaml``, ``candidates.csv``,
    ``gap_before_after.csv``, ``gap.png``, ``signatures.csv``, ``detection_limits.csv``,
-   ``detection_curve.csv``, ``diagnose.md``.
+   ``detection_curve.csv``, ``power.png``, ``verdict.json``, ``diagnose.md``.
 
 Errors: :class:`waveforest.errors.WaveforestError` for missing or duplicate inputs.
 """
 
 from __future__ import annotations
 
+import json
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import click
@@ -44,9 +45,9 @@ from waveforest.cliutil import (
     force_option,
     stage_options,
 )
-from waveforest.diagnose.figures import gap_figure
-from waveforest.diagnose.missing_effects import run_diagnosis, summary_markdown
-from waveforest.diagnose.power import verdict_with_limits
+from waveforest.diagnose.figures import gap_figure, power_figure
+from waveforest.diagnose.missing_effects import final_verdict, run_diagnosis, summary_markdown, verdict_record
+from waveforest.diagnose.power import FloorCalibration, verdict_with_limits
 from waveforest.diagnose.search import SearchResult, SearchSettings
 from waveforest.diagnose.strata import StrataSettings, with_pulses_under_crowns
 from waveforest.diagnose.twins import StudySimulator
@@ -75,6 +76,8 @@ OUTPUT_NAMES = {
     "signatures": "signatures.csv",
     "limits": "detection_limits.csv",
     "curve": "detection_curve.csv",
+    "power_figure": "power.png",
+    "verdict": "verdict.json",
     "markdown": "diagnose.md",
 }
 """Files written by :func:`run` (keys of :class:`DiagnoseOutputs`)."""
@@ -86,6 +89,7 @@ class DiagnoseOutputs:
 
     paths: dict
     verdict: str
+    search_verdict: str
     effects: dict
     gap_before: float
     gap_after: float
@@ -98,11 +102,18 @@ class DiagnoseOutputs:
 
 def write_outputs(out_dir, result: SearchResult, gap: pd.DataFrame, cand: pd.DataFrame, sigs: pd.DataFrame, *,
                   limits: pd.DataFrame, curve: pd.DataFrame, settings: SearchSettings, base_effects: dict, datasets,
-                  keys: pd.DataFrame, seconds: float, n_fit_pulses: int | None = None) -> dict:
+                  keys: pd.DataFrame, seconds: float, n_fit_pulses: int | None = None,
+                  floor: FloorCalibration | None = None) -> dict:
     """Write the outputs of :data:`OUTPUT_NAMES` into ``out_dir`` (atomically); returns their paths.
 
-    ``limits`` and ``curve`` are :func:`.diagnose.power.detection_limits`' tables."""
+    ``limits`` and ``curve`` are :func:`.diagnose.power.detection_limits`' tables. The verdict
+    (:func:`.diagnose.missing_effects.final_verdict`: none, named, unexplained or inconclusive)
+    goes to ``verdict.json`` (:func:`.diagnose.missing_effects.verdict_record`) and to
+    ``model.yaml`` as ``diagnosis_verdict``; ``model.yaml``'s ``verdict`` is the search's.
+    ``settings.floor_scale`` and ``floor`` (:class:`.diagnose.power.FloorCalibration`): the
+    calibrated noise floor the gaps were tested against."""
     out_dir = Path(out_dir)
+    verdict, blind = final_verdict(result.verdict, limits)
     base = dict(base_effects)
     tot = gap[gap["level"] == "total"].iloc[0]
     paths = {k: out_dir / v for k, v in OUTPUT_NAMES.items()}
@@ -116,6 +127,7 @@ def write_outputs(out_dir, result: SearchResult, gap: pd.DataFrame, cand: pd.Dat
         extra={"datasets": list(datasets), "n_pulses": int(len(keys)),
                "n_fit_pulses": int(len(keys) if n_fit_pulses is None else n_fit_pulses),
                "n_samples": int(keys["sample_id"].nunique()), "search_simulations": int(result.n_simulations),
+               "diagnosis_verdict": verdict, "blind_to": list(blind),
                "settings": {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(settings).items()
                             if k not in ("floors",)}},
     )
@@ -127,7 +139,10 @@ def write_outputs(out_dir, result: SearchResult, gap: pd.DataFrame, cand: pd.Dat
             table.to_csv(tmp, index=False, float_format="%.6g")
 
     named = ", ".join(f"{e.name} = {e.value:.3g}" for e in result.named)
-    gap_figure(gap, cand, paths["figure"], title=f"verdict: {result.verdict}" + (f" ({named})" if named else ""))
+    gap_figure(gap, cand, paths["figure"], title=f"verdict: {verdict}" + (f" ({named})" if named else ""))
+    power_figure(curve, limits, paths["power_figure"], title="what these data could have seen")
+    with atomic_path(paths["verdict"]) as tmp:
+        tmp.write_text(json.dumps(verdict_record(result, gap, limits, floor), indent=2) + "\n")
     md = summary_markdown(result, gap, cand, datasets=list(datasets), n_pulses=len(keys),
                           n_samples=int(keys["sample_id"].nunique()), seconds=seconds, settings=settings,
                           base_effects=base, n_fit_pulses=n_fit_pulses, limits=limits, curve=curve)
@@ -199,6 +214,15 @@ def _read_selected(selected_paths, fields, fields_path, wanted: list[str]) -> di
     if not selected:
         raise WaveforestError(f"diagnose: no select table of the diagnosed datasets {', '.join(wanted)}")
     return selected
+
+
+def _calibration_metas(calibration_paths, selected: dict) -> dict:
+    """Dataset -> calibration JSON dict (noise mean and SD) of each selected dataset."""
+    def read(p):
+        meta = read_calibration_json(p)
+        return str(meta["dataset"]), meta
+
+    return {ds: m for ds, m in _by_dataset(calibration_paths, read, "calibration").items() if ds in selected}
 
 
 def _read_calibrations(calibration_paths, system_paths, selected: dict, load: bool) -> dict:
@@ -275,19 +299,21 @@ def run(selected_paths, real_paths, calibration_paths, out_dir, cfg: dict, *, da
                                    calibration_pulses=_calibration_pulses(agc_paths, targets_path, datasets_path,
                                                                           selected, settings.search, cfg))
     bar = _progress_bar() if progress else None
-    found = run_diagnosis(selected, read_feature_tables(real_paths),
-                          {ds: meta for ds, (_, meta) in calibrations.items()}, simulator, settings,
+    metas = {ds: meta for ds, (_, meta) in calibrations.items()} or _calibration_metas(calibration_paths, selected)
+    found = run_diagnosis(selected, read_feature_tables(real_paths), metas, simulator, settings,
                           progress=(lambda label: bar.update(1)) if bar is not None else None)
     if bar is not None:
         bar.close()
     with folder as out:
         paths = write_outputs(out, found.result, found.gap, found.candidates, found.signatures, limits=found.limits,
-                              curve=found.curve, settings=settings.search, base_effects=dict(settings.base_effects),
+                              curve=found.curve, settings=replace(settings.search, floor_scale=found.floor.scale),
+                              base_effects=dict(settings.base_effects),
                               datasets=sorted(selected), keys=found.keys, seconds=time.perf_counter() - t_start,
-                              n_fit_pulses=None if found.fit_keys is None else len(found.fit_keys))
+                              n_fit_pulses=None if found.fit_keys is None else len(found.fit_keys), floor=found.floor)
     paths = {k: folder.final(p) for k, p in paths.items()}
     tot = found.gap[found.gap["level"] == "total"].iloc[0]
-    return DiagnoseOutputs(paths=paths, verdict=found.result.verdict, effects=found.result.effects,
+    return DiagnoseOutputs(paths=paths, verdict=found.verdict, search_verdict=found.result.verdict,
+                           effects=found.result.effects,
                            gap_before=float(tot["gap_before"]), gap_after=float(tot["gap_after"]),
                            n_pulses=int(len(found.keys)), n_samples=int(found.keys["sample_id"].nunique()),
                            n_simulations=int(found.result.n_simulations), seconds=time.perf_counter() - t_start,
@@ -322,7 +348,8 @@ def _progress_bar():
                    "sample positions).")
 @click.option("--out", "out", type=OUT_DIR, required=True,
               help="Output folder: model.yaml, candidates.csv, gap_before_after.csv, gap.png, "
-                   "signatures.csv, detection_limits.csv, detection_curve.csv, diagnose.md.")
+                   "signatures.csv, detection_limits.csv, detection_curve.csv, power.png, verdict.json, "
+                   "diagnose.md.")
 @force_option
 @stage_options
 def diagnose(selected, features_real, calibration, system, agc, datasets, targets, fields, out, force, cfg):

@@ -1,0 +1,90 @@
+"""The verdicts of waveforest.diagnose: the gap as reported decides, and "inconclusive" names what
+the data cannot see."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pandas as pd
+import pytest
+from fixtures.study import SyntheticStudy
+
+from waveforest.diagnose.gap import FEATURES
+from waveforest.diagnose.missing_effects import (
+    VERDICTS,
+    base_gap_significant,
+    final_verdict,
+    find_missing_effects,
+    verdict_record,
+)
+from waveforest.diagnose.power import LIMIT_COLUMNS, FloorCalibration
+from waveforest.diagnose.search import SearchSettings, search
+
+SETTINGS = SearchSettings(features=FEATURES, rounds=1, n_boot=100, candidates=("hotspot", "understory"))
+
+
+def _limits(seen: dict) -> pd.DataFrame:
+    rows = [{"effect": e, "unit": "u", "smallest_detectable": 1.0 if s else np.nan,
+             "status": "detected" if s else "not reached", "upper_bound": 2.0, "test_value": 1.5,
+             "sees_test_value": s, "power": 0.8, "replicates": 20, "power_at_bound": 1.0 if s else 0.2,
+             "power_at_bound_ci_low": 0.0, "power_at_bound_ci_high": 1.0} for e, s in seen.items()]
+    return pd.DataFrame(rows, columns=list(LIMIT_COLUMNS))
+
+
+def test_search_follows_the_significance_it_is_given():
+    """The reported gap decides: rounds run when it lies above its floor, whatever the search's
+    own baseline says, and none run when it does not."""
+    study = SyntheticStudy(samples_per_species=12, pulses_per_sample=8, seed=1)
+    hidden = search(study.keys, study.real({"hotspot": 1.3}), study.simulate, SETTINGS, seed=3, significant=False)
+    assert hidden.verdict == "none" and hidden.candidates.empty
+    nothing = search(study.keys, study.real({}), study.simulate, SETTINGS, seed=3, significant=True)
+    assert nothing.verdict != "none" and not nothing.candidates.empty
+
+
+def test_a_gap_above_its_floor_never_reads_none():
+    study = SyntheticStudy(samples_per_species=12, pulses_per_sample=8, seed=1)
+    for effects in ({}, {"hotspot": 1.3}):
+        result, gap, _, _ = find_missing_effects(study.keys, study.real(effects), study.simulate, SETTINGS, seed=5)
+        for limits in (_limits({"hotspot": True, "understory": True}), _limits({"hotspot": True, "understory": False})):
+            rec = verdict_record(result, gap, limits)
+            json.dumps(rec)  # plain JSON
+            assert rec["verdict"] in VERDICTS and rec["search_verdict"] == result.verdict
+            assert rec["gap"]["above_floor"] == base_gap_significant(gap)
+            if rec["gap"]["above_floor"]:
+                assert rec["verdict"] in ("named", "unexplained")
+            else:
+                assert rec["verdict"] in ("none", "inconclusive")
+                assert "not above its noise floor" in rec["reason"]
+    assert result.verdict == "named" and result.named[0].name == "hotspot"  # the hidden effect is found
+
+
+def test_none_becomes_inconclusive_when_an_effect_of_realistic_size_is_not_seen():
+    seen, blind = _limits({"hotspot": True, "understory": True}), _limits({"hotspot": True, "understory": False})
+    assert final_verdict("none", seen) == ("none", [])
+    assert final_verdict("none", blind) == ("inconclusive", ["understory"])
+    assert final_verdict("unexplained", blind) == ("unexplained", ["understory"])
+    assert final_verdict("named", blind)[0] == "named"
+
+
+def test_the_calibrated_floor_decides_the_verdict():
+    """Every floor the diagnosis reports carries floor_scale; a floor raised above the gap's
+    lower bound turns a gap above its floor into none/inconclusive, and the record says why."""
+    study = SyntheticStudy(samples_per_species=12, pulses_per_sample=8, seed=1)
+    real = study.real({"hotspot": 1.3})
+    _, gap1, _, _ = find_missing_effects(study.keys, real, study.simulate, SETTINGS, seed=5)
+    tot1 = gap1[gap1["level"] == "total"].iloc[0]
+    assert tot1["before_ci_low"] > tot1["noise_floor"]  # the hidden effect clears the bootstrap floor
+    scale = 1.5 * tot1["before_ci_low"] / tot1["noise_floor"]  # a floor above the gap's lower bound
+    result, gap, _, _ = find_missing_effects(study.keys, real, study.simulate, replace(SETTINGS, floor_scale=scale),
+                                             seed=5)
+    tot = gap[gap["level"] == "total"].iloc[0]
+    assert tot["noise_floor"] == pytest.approx(scale * tot1["noise_floor"])
+    assert tot["gap_before"] == pytest.approx(tot1["gap_before"])  # the gap itself is untouched
+    cells = gap[gap["level"] == "feature"]["noise_floor"].to_numpy()
+    assert np.allclose(cells, scale * gap1[gap1["level"] == "feature"]["noise_floor"].to_numpy())
+    rec = verdict_record(result, gap, _limits({"hotspot": True, "understory": True}),
+                         FloorCalibration(scale=scale, gap=0.1, floor=0.1 / scale, replicates=20))
+    assert result.verdict == "none" and rec["verdict"] == "none" and not rec["gap"]["above_floor"]
+    assert rec["floor_calibration"]["scale"] == pytest.approx(scale)
