@@ -31,7 +31,7 @@ import pandas as pd
 
 from waveforest import config
 from waveforest.diagnose.before_after import before_after
-from waveforest.diagnose.gap import DEFAULT_FEATURES, FEATURES
+from waveforest.diagnose.gap import ALL_FEATURES, FEATURES
 from waveforest.diagnose.power import calibrate_floor
 from waveforest.diagnose.replicate_cache import effects_key, simulate_all
 from waveforest.diagnose.strata import pulse_keys, real_features
@@ -84,7 +84,7 @@ def campaign_runs(results: Path, n_sims: int, replicates: int, cfg_path: Path | 
     seeds = [(int(s_after), int(s_boot))] + [(int(x), int(x)) for x in
                                              named_seeds("missing_effects", int(settings.seed) + 1000, n=n_sims - 1)]
     rows = []
-    for name, features in (("first_echo", FEATURES), ("whole_waveform", DEFAULT_FEATURES)):
+    for name, features in (("first_echo", FEATURES), ("whole_waveform", ALL_FEATURES)):
         ss = replace(s, features=features)
         power = replace(settings.power, replicates=replicates)
         scale = calibrate_floor(keys, simulate, ss, power, settings.seed).scale

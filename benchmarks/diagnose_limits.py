@@ -27,7 +27,7 @@ from pathlib import Path
 from diagnose_floor import study_inputs
 
 from waveforest.diagnose import catalogue as cat
-from waveforest.diagnose.gap import DEFAULT_FEATURES, FEATURES
+from waveforest.diagnose.gap import ALL_FEATURES, FEATURES
 from waveforest.diagnose.power import detection_limits
 
 
@@ -48,7 +48,7 @@ def main(argv: list[str] | None = None) -> None:
     power = replace(settings.power, replicates=a.replicates)
     search = settings.search if a.candidates is None else replace(settings.search, candidates=tuple(a.candidates))
     limits = {}
-    for name, features in (("first_echo", FEATURES), ("whole_waveform", DEFAULT_FEATURES)):
+    for name, features in (("first_echo", FEATURES), ("whole_waveform", ALL_FEATURES)):
         cal: dict = {}
         lim, _ = detection_limits(keys, simulate, replace(search, features=features), power, settings.seed,
                                   calibration=cal)

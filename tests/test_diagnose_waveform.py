@@ -10,7 +10,7 @@ from fixtures.tables import pulse_table
 from scipy.stats import norm
 
 from waveforest.constants import RANGE_PER_NS
-from waveforest.diagnose.gap import DEFAULT_FEATURES, FEATURE_SD_FLOOR, FEATURES
+from waveforest.diagnose.gap import ALL_FEATURES, DEFAULT_FEATURES, FEATURE_SD_FLOOR, FEATURES
 from waveforest.diagnose.waveform import (
     PROFILE_FEATURES,
     WAVEFORM_FEATURES,
@@ -79,6 +79,6 @@ def test_a_pulse_without_signal_gives_nan_and_rows_join_by_pulse_id():
         waveform_statistics(t, {}, pd.DataFrame({"echo_z": [3.0, 3.0]}))
 
 
-def test_the_default_gap_reads_the_whole_waveform_with_a_floor_per_statistic():
-    assert DEFAULT_FEATURES[: len(FEATURES)] == FEATURES and set(WAVEFORM_FEATURES) <= set(DEFAULT_FEATURES)
-    assert all(FEATURE_SD_FLOOR[f] > 0 for f in DEFAULT_FEATURES)
+def test_every_statistic_has_a_floor_and_the_default_gap_is_the_first_echo_s():
+    assert DEFAULT_FEATURES == FEATURES and ALL_FEATURES == FEATURES + WAVEFORM_FEATURES
+    assert all(FEATURE_SD_FLOOR[f] > 0 for f in ALL_FEATURES)

@@ -89,8 +89,12 @@ from waveforest.stats.bootstrap import (
 FEATURES: tuple[str, ...] = ("H", "Npeaks", "Apeak", "FWHM", "E")
 """First-echo features (docs/method.md §(h)), in report order."""
 
-DEFAULT_FEATURES: tuple[str, ...] = FEATURES + WAVEFORM_FEATURES
-"""Features compared by default: the first echo's and the whole waveform's (:mod:`.waveform`)."""
+ALL_FEATURES: tuple[str, ...] = FEATURES + WAVEFORM_FEATURES
+"""The first echo's features and the whole waveform's (:mod:`.waveform`)."""
+
+DEFAULT_FEATURES: tuple[str, ...] = FEATURES
+"""Features compared by default (``diagnose.features``): the first echo's; the whole waveform's
+diluted most signatures in the one total gap (docs/validation.md, diagnose: whole waveform)."""
 
 _ROUNDING_SD = 1.0 / np.sqrt(12.0)
 """SD of a uniform rounding error of one unit."""
