@@ -53,7 +53,7 @@ STEP_TOL = 0.01
 """The fit has converged when no centre or width moves more than this, samples ..."""
 COST_TOL = 1e-4
 """... or the weighted squared residual falls by less than this fraction."""
-SLOW_FIT = 4
+SLOW_FIT = 2
 """Steps after which a fit whose components would be pruned or merged stops early."""
 
 
@@ -343,7 +343,7 @@ def scratch(n_samples, max_k):
 
 
 @njit(cache=True)
-def _levenberg_marquardt(ws, n, k, s_min, s_max, fixed_width, max_iter, level, merge_sd):
+def _levenberg_marquardt(ws, n, k, s_min, s_max, fixed_width, max_iter, level, merge_sd, amplitudes_first):
     """Refine ``ws.p[:3k]`` in place (F1, bounds by projection); True when converged. The fit
     runs over the initial components +- 4 SD, widened by 2 SD of the widest. Steps use the
     exact Hessian (second derivatives of F1) where it is positive definite, else Gauss-Newton's;
@@ -361,6 +361,24 @@ def _levenberg_marquardt(ws, n, k, s_min, s_max, fixed_width, max_iter, level, m
     pad = int(2.0 * widest) + 1
     lo, hi = max(lo - pad, 0), min(hi + pad, n)
     cost = _residual(y, w, p, k, lo, hi, ex, sup, r)
+    if amplitudes_first:  # the amplitudes that fit best for these centres and widths: linear
+        _normal_equations(p, k, w, r, ex, sup, fixed_width, ws.jac, grad, hess, ws.second)
+        for c in range(k):
+            for d in range(c + 1):
+                work[c, d] = hess[NP * c, NP * d]
+            work[c, c] += 1e-12
+            step[c] = grad[NP * c]
+        if _solve(work, step, k):
+            for u in range(m):
+                trial[u] = p[u]
+            for c in range(k):
+                trial[NP * c] = max(p[NP * c] + step[c], 0.0)
+            new = _residual(y, w, trial, k, lo, hi, ex_t, sup_t, r_t)
+            if new < cost:
+                for u in range(m):
+                    p[u] = trial[u]
+                ex, ex_t, sup, sup_t, r, r_t = ex_t, ex, sup_t, sup, r_t, r
+                cost = new
     for it in range(max_iter):
         if it >= SLOW_FIT and _prunable(p, k, level, merge_sd):
             return False
@@ -448,8 +466,32 @@ def _candidates(xs, d2, n, level, max_k, var_smooth, s_min, s_max, p):
 
 
 @njit(cache=True)
-def _prune(p, k, level, merge_sd):
-    """Drop components below ``level``; merge pairs closer than ``merge_sd`` widths; sort by time."""
+def _merge(p, k, merge_sd, s_lo, s_hi):
+    """Merge neighbours (``p`` sorted by centre) closer than ``merge_sd`` widths into one
+    Gaussian of the same area, mean and variance (clamped to [s_lo, s_hi]); the count left."""
+    c = 0
+    while c < k - 1:
+        u, v = NP * c, NP * (c + 1)
+        if p[v + 1] - p[u + 1] < merge_sd * max(p[u + 2], p[v + 2]):
+            e1, e2 = p[u] * p[u + 2], p[v] * p[v + 2]
+            tot = e1 + e2
+            if tot > 0.0:
+                mu = (e1 * p[u + 1] + e2 * p[v + 1]) / tot
+                var = (e1 * (p[u + 2] ** 2 + (p[u + 1] - mu) ** 2) + e2 * (p[v + 2] ** 2 + (p[v + 1] - mu) ** 2)) / tot
+                sd = min(max(math.sqrt(var), s_lo), s_hi)
+                p[u], p[u + 1], p[u + 2] = tot / sd, mu, sd
+            for d in range(c + 1, k - 1):
+                for j in range(NP):
+                    p[NP * d + j] = p[NP * (d + 1) + j]
+            k -= 1
+        else:
+            c += 1
+    return k
+
+
+@njit(cache=True)
+def _prune(p, k, level, merge_sd, s_lo, s_hi):
+    """Drop components below ``level``; sort by time; :func:`_merge`."""
     q = 0
     for c in range(k):
         if p[NP * c] >= level:
@@ -463,28 +505,13 @@ def _prune(p, k, level, merge_sd):
             for u in range(NP):
                 p[NP * j + u], p[NP * (j - 1) + u] = p[NP * (j - 1) + u], p[NP * j + u]
             j -= 1
-    c = 0
-    while c < k - 1:
-        gap = p[NP * (c + 1) + 1] - p[NP * c + 1]
-        if gap < merge_sd * max(p[NP * c + 2], p[NP * (c + 1) + 2]):
-            a1, a2 = p[NP * c], p[NP * (c + 1)]
-            tot = a1 + a2
-            p[NP * c + 1] = (a1 * p[NP * c + 1] + a2 * p[NP * (c + 1) + 1]) / tot
-            p[NP * c] = max(a1, a2)
-            p[NP * c + 2] = max(p[NP * c + 2], p[NP * (c + 1) + 2])
-            for d in range(c + 1, k - 1):
-                for u in range(NP):
-                    p[NP * d + u] = p[NP * (d + 1) + u]
-            k -= 1
-        else:
-            c += 1
-    return k
+    return _merge(p, k, merge_sd, s_lo, s_hi)
 
 
 @njit(cache=True)
-def _select(p, k, level, merge_sd, max_k):
+def _select(p, k, level, merge_sd, s_lo, s_hi, max_k):
     """:func:`_prune`, then keep the strongest ``max_k``; the count left."""
-    k = _prune(p, k, level, merge_sd)
+    k = _prune(p, k, level, merge_sd, s_lo, s_hi)
     while k > max_k:
         weakest = 0
         for c in range(1, k):
@@ -541,18 +568,20 @@ def decompose_row(x, n, dt, mean, sd, s_min_ns, s_max_ns, min_snr, merge_sd, fix
     _smooth(y, n, g, xs)
     _second_difference(xs, n, d2)
     cap = ws.ex.shape[0]
-    k = _candidates(xs[1:], d2, n, level, cap, var_smooth, s_min, s_max, p)
+    s_hi = s_min if fixed_width else s_max
+    k = _candidates(xs[1:], d2, n, level, cap, var_smooth, s_min, s_hi, p)
     if k == 0:
         return 0, flags | FLAG_NOISE, np.nan
-    converged = _levenberg_marquardt(ws, n, k, s_min, s_max, fixed_width, max_iter, level, merge_sd)
+    k = _prune(p, k, 0.0, merge_sd, s_min, s_hi)  # two minima within one echo: noise on its top
+    converged = _levenberg_marquardt(ws, n, k, s_min, s_max, fixed_width, max_iter, level, merge_sd, True)
     added = 0
     for _round in range(8):
         before = k
-        k = _select(p, k, level, merge_sd, max_k)
+        k = _select(p, k, level, merge_sd, s_min, s_hi, max_k)
         if k == 0:
             break
         if k != before:  # refit what is left, then select again
-            converged = _levenberg_marquardt(ws, n, k, s_min, s_max, fixed_width, max_iter, level, merge_sd)
+            converged = _levenberg_marquardt(ws, n, k, s_min, s_max, fixed_width, max_iter, level, merge_sd, False)
             continue
         if k >= max_k or added == 3:
             break
@@ -568,9 +597,9 @@ def decompose_row(x, n, dt, mean, sd, s_min_ns, s_max_ns, min_snr, merge_sd, fix
         p[NP * k], p[NP * k + 1], p[NP * k + 2] = best, float(at), max(s_min, min(s_max, 2.0 * math.sqrt(var_smooth)))
         k += 1
         added += 1
-        converged = _levenberg_marquardt(ws, n, k, s_min, s_max, fixed_width, max_iter, level, merge_sd)
+        converged = _levenberg_marquardt(ws, n, k, s_min, s_max, fixed_width, max_iter, level, merge_sd, True)
     else:
-        k = _select(p, k, level, merge_sd, max_k)
+        k = _select(p, k, level, merge_sd, s_min, s_hi, max_k)
     if k == 0:
         return 0, flags | FLAG_NOISE, np.nan
     lo, hi = _window(p, k, n)
