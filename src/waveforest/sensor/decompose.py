@@ -53,7 +53,7 @@ STEP_TOL = 0.01
 """The fit has converged when no centre or width moves more than this, samples ..."""
 COST_TOL = 1e-4
 """... or the weighted squared residual falls by less than this fraction."""
-SLOW_FIT = 2
+SLOW_FIT = 1
 """Steps after which a fit whose components would be pruned or merged stops early."""
 
 
