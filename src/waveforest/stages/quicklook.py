@@ -65,6 +65,11 @@ def _write(las_path: Path, folder: OutputFolder, cfg: dict, *, dataset, trajecto
     pulses, cfd_json, cfd_png = out / "pulses.parquet", out / "cfd.json", out / "cfd.png"
     feats, page = out / "features.parquet", out / "quicklook.html"
 
+    look = settings.quicklook_settings(cfg)
+    # the file's summary first, while the process is small: its reading is the page's peak
+    summary = summarise(las_path, agc_attribute=cfg["agc"]["attribute"], chunk_points=icfg["chunk_points"],
+                        bucket_points=icfg["bucket_points"], grid_cells=look.map_cells)
+    _release_memory()
     _say(f"1/4 ingest {las_path} -> {final(pulses)}")
     ing = las_to_pulses(las_path, pulses, dataset=name, trajectory=trajectory, agc_attribute=cfg["agc"]["attribute"],
                         chunk_points=icfg["chunk_points"], bucket_points=icfg["bucket_points"],
@@ -85,10 +90,6 @@ def _write(las_path: Path, folder: OutputFolder, cfg: dict, *, dataset, trajecto
     fr = cfd_features([pulses], cfd_json, feats, settings.feature_table_settings(cfg), progress=progress)
     _release_memory()
     _say(f"4/4 page -> {final(page)}")
-    look = settings.quicklook_settings(cfg)
-    summary = summarise(las_path, agc_attribute=cfg["agc"]["attribute"], chunk_points=icfg["chunk_points"],
-                        bucket_points=icfg["bucket_points"], grid_cells=look.map_cells)
-    _release_memory()
     passed = quicklook_page(page, las_path=las_path, summary=summary, tuning=res, pulses=pulses, cfd_json=cfd_json,
                             cfd_png=cfd_png, features=feats, settings=look)
     return {"page": final(page), "pulses": final(pulses), "cfd": final(cfd_json), "features": final(feats), "tune": res,
