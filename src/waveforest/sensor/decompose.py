@@ -11,7 +11,8 @@ fitted by weighted least squares over the samples within 4 s of any component:
    exceeds half the detection level is a candidate; its width comes from the two inflection
    points (interpolated zero crossings of the second difference) around it,
    ``s = sqrt((half distance)^2 - v - 1/6)``, its amplitude from the smoothed value scaled by
-   the width lost to smoothing.
+   the width lost to smoothing. Candidates closer than ``merge_sd`` widths are merged, and the
+   amplitudes are solved for (linear least squares) before the first step.
 2. **Bounded Levenberg–Marquardt** refinement of (A, mu, s) of all components together, with
    the analytic Jacobian and, while it is positive definite, the exact Hessian (the residual's
    second-derivative term added to Gauss–Newton's, which otherwise converges only linearly for
