@@ -1,12 +1,17 @@
 """Gaussian decomposition: speed against scipy's curve_fit, accuracy against truth and the
 Cramér–Rao bound, and first-echo ranges against the sensor's discrete returns.
 
-Usage: ``python benchmarks/decompose.py [--n 20000] [--reference 300]``. Prints ``name: value unit``.
+Usage: ``python benchmarks/decompose.py [--n 20000] [--reference 300] [--las F.las ...]
+[--baseline REV]``. Prints ``name: value unit``.
 
-- **speed**: waveforms per second per core (Numba with 1 thread, and with both cores / 2) on
-  the bundled RIEGL file's waveforms and on synthetic ALS60-like waveforms (1-ns sampling,
-  FWHM 7 ns, 160 samples, 1-3 echoes); ``scipy.optimize.curve_fit`` of the same Gaussian model
-  started from the true parameters, on ``--reference`` of the synthetic waveforms.
+- **speed**: waveforms per CPU second per core (Numba with 1 thread, and with both cores: the
+  process's CPU time, so a loaded machine costs wall time but not the figure) on the bundled
+  RIEGL file's waveforms and the first ``--las-pulses`` of each ``--las`` file (noise from the
+  waveforms' tails, no pulse width: what ``waveforest decompose`` does without ``--cfd``), and
+  on synthetic ALS60-like waveforms (1-ns sampling, FWHM 7 ns given, 160 samples, 1-3 echoes);
+  with ``--baseline REV`` the ``sensor/decompose.py`` of git revision REV on the same waveforms
+  in the same run (``*_baseline`` lines); ``scipy.optimize.curve_fit`` of the same Gaussian
+  model started from the true parameters, on ``--reference`` of the synthetic waveforms.
 - **accuracy** on the synthetic waveforms (noise SD 1.3 DN; echoes of 5-40 SD, 1-3 FWHM
   apart): recall and precision (a found echo within one SD of a true one), range RMSE of
   isolated echoes against the Cramér–Rao bound for their amplitude, width, noise and sampling
@@ -25,6 +30,7 @@ import subprocess
 import sys
 import tempfile
 import time
+import types
 from pathlib import Path
 
 import numba
@@ -33,6 +39,7 @@ import pyarrow as pa
 
 from waveforest.constants import RANGE_PER_NS
 from waveforest.io.las.read import WaveformPulseReader
+from waveforest.model.decompose import noise_and_width
 from waveforest.model.self_tuning import Pulses
 from waveforest.sensor.decompose import decompose
 
@@ -62,19 +69,51 @@ def synthetic(n: int, seed: int = 1):
     return x, truth
 
 
-def rate(fn, n: int, threads: int, repeat: int = 3) -> float:
-    """Waveforms per second of ``fn()`` on ``n`` waveforms with ``threads`` Numba threads (best of ``repeat``)."""
+def rate(fn, n: int, threads: int, repeat: int = 3) -> tuple[float, float]:
+    """Waveforms per CPU second and per wall second of ``fn()`` on ``n`` waveforms with
+    ``threads`` Numba threads (best of ``repeat``)."""
     numba.set_num_threads(threads)
     fn()  # compiled and warm
-    best = min(_timed(fn) for _ in range(repeat))
+    cpu, wall = zip(*(_timed(fn) for _ in range(repeat)))
     numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
-    return n / best
+    return n / min(cpu), n / min(wall)
 
 
-def _timed(fn) -> float:
-    t0 = time.perf_counter()
+def _timed(fn) -> tuple[float, float]:
+    c0, t0 = time.process_time(), time.perf_counter()
     fn()
-    return time.perf_counter() - t0
+    return time.process_time() - c0, time.perf_counter() - t0
+
+
+def baseline_decompose(rev: str):
+    """``decompose`` of ``src/waveforest/sensor/decompose.py`` at git revision ``rev``."""
+    src = subprocess.run(["git", "-C", str(ROOT), "show", f"{rev}:src/waveforest/sensor/decompose.py"],
+                         check=True, capture_output=True, text=True).stdout
+    mod = types.ModuleType(f"decompose_{rev}")
+    exec(compile(src.replace("cache=True", "cache=False"), f"decompose@{rev}", "exec"), mod.__dict__)
+    return mod.decompose
+
+
+def first_batch(path: Path, n: int):
+    """The first ``n`` pulses of a waveform file, its noise (tails) and the waveform arrays."""
+    reader = iter(WaveformPulseReader(path, agc_attribute=None, batch_pulses=n))
+    batch = next(reader)
+    reader.close()
+    mean, sd, _, _ = noise_and_width(None, batch)
+    p = Pulses.of(batch)
+    return p.samples, p.lengths, p.sampling_ns, mean, sd
+
+
+def speeds(name: str, fn_args: tuple, kwargs: dict, versions: dict) -> None:
+    n = len(fn_args[0])
+    cores = min(2, numba.config.NUMBA_NUM_THREADS)
+    for tag, dec in versions.items():
+        fn = functools.partial(dec, *fn_args, **kwargs)
+        cpu1, _ = rate(fn, n, 1)
+        cpu2, wall2 = rate(fn, n, cores)
+        out(f"waveforms_per_cpu_s_{name}_1_thread{tag}", cpu1, "/s", ".0f")
+        out(f"waveforms_per_cpu_s_per_core_{name}_{cores}_threads{tag}", cpu2, "/s", ".0f")
+        out(f"waveforms_per_wall_s_{name}_{cores}_threads{tag}", wall2, "/s", ".0f")
 
 
 def crb_range_m(amplitude: float) -> float:
@@ -157,19 +196,21 @@ def main() -> None:
     ap.add_argument("--n", type=int, default=20000, help="synthetic waveforms")
     ap.add_argument("--reference", type=int, default=300, help="waveforms fitted by curve_fit")
     ap.add_argument("--las", type=Path, nargs="*", default=[],
-                    help="more waveform files for the DR-range check (e.g. a virtual campaign's)")
+                    help="more waveform files for the speed and DR-range checks (e.g. a virtual campaign's)")
+    ap.add_argument("--las-pulses", type=int, default=20000, help="pulses of each --las file timed")
+    ap.add_argument("--baseline", help="git revision whose decomposition is timed beside this one")
     args = ap.parse_args()
     x, truth = synthetic(args.n)
     p = file_pulses()
-    cores = min(2, numba.config.NUMBA_NUM_THREADS)
-    for name, (xx, lens, dt, mean, sd) in {
-        "riegl": (p.samples, p.lengths, p.sampling_ns, 4.1, 1.17),
-        "synthetic": (x, None, DT, 10.0, SD),
-    }.items():
-        n = len(xx)
-        fn = functools.partial(decompose, xx, lens, dt, mean, sd)
-        out(f"waveforms_per_s_per_core_{name}_1_thread", rate(fn, n, 1), "/s", ".0f")
-        out(f"waveforms_per_s_per_core_{name}_{cores}_threads", rate(fn, n, cores) / cores, "/s", ".0f")
+    versions = {"": decompose}
+    if args.baseline:
+        versions["_baseline"] = baseline_decompose(args.baseline)
+        out(f"baseline_{args.baseline}", 1, "", "d")
+    mean, sd, _, _ = noise_and_width(None, pa.concat_tables(list(WaveformPulseReader(RIEGL, agc_attribute=None))))
+    speeds("riegl", (p.samples, p.lengths, p.sampling_ns, mean, sd), {}, versions)
+    for path in args.las:
+        speeds(path.stem, first_batch(path, args.las_pulses), {}, versions)
+    speeds("synthetic", (x, None, DT, 10.0, SD), {"pulse_fwhm_ns": FWHM}, versions)
     out("waveforms_per_s_curve_fit_synthetic", curve_fit_rate(x, truth, args.reference), "/s", ".0f")
     accuracy(x, truth)
     dr_ranges(p)

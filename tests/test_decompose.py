@@ -146,3 +146,55 @@ def test_multi_echo_features_of_a_feature_table():
     np.testing.assert_allclose(df["gd_depth"].to_numpy()[ok], span[ok], atol=0.05)
     assert (df["gd_E"].to_numpy() > 0).all()
     np.testing.assert_array_equal(df["gd_later_A"].to_numpy()[(lens == 1) & ok], 0.0)
+
+
+def test_merging_two_components_keeps_their_area_mean_and_variance():
+    import waveforest.sensor.decompose as dec
+
+    p = np.array([10.0, 20.0, 2.0, 6.0, 21.5, 3.0])
+    area = p[0] * p[2] + p[3] * p[5]
+    mean = (p[0] * p[2] * p[1] + p[3] * p[5] * p[4]) / area
+    var = (p[0] * p[2] * (p[2] ** 2 + (p[1] - mean) ** 2) + p[3] * p[5] * (p[5] ** 2 + (p[4] - mean) ** 2)) / area
+    assert dec._merge(p, 2, 1.0, 0.5, 10.0) == 1
+    np.testing.assert_allclose([p[0] * p[2], p[1], p[2] ** 2], [area, mean, var], rtol=1e-12)
+
+
+def test_the_exact_hessian_matches_finite_differences_of_the_cost():
+    """The Newton step's Hessian, J^T W J minus the residual's second-derivative term, is the
+    Hessian of half the weighted squared residual (Eq. F1)."""
+    import waveforest.sensor.decompose as dec
+
+    rng = np.random.default_rng(4)
+    n, k = 60, 2
+    ws = dec.scratch(n, 4)
+    ws.y[:] = _waveforms([[(30.0, 25.0), (12.0, 31.0)]], n_samples=n, seed=2)[0] - 10.0
+    ws.w[:] = 1.0
+    ws.w[27] = 0.0  # a clipped sample weighs nothing
+    p0 = np.array([25.0, 24.6, 2.6, 15.0, 31.8, 3.4]) + rng.normal(0.0, 0.05, 6)
+
+    def half_cost(q):
+        return 0.5 * dec._residual(ws.y, ws.w, q, k, 0, n, ws.ex2, ws.sup2, ws.r2)
+
+    ws.p[:6] = p0
+    dec._residual(ws.y, ws.w, ws.p, k, 0, n, ws.ex, ws.sup, ws.r)
+    dec._normal_equations(ws.p, k, ws.w, ws.r, ws.ex, ws.sup, False, ws.jac, ws.grad, ws.hess, ws.second)
+    h = np.tril(ws.hess[:6, :6])
+    h = h + np.tril(h, -1).T
+    for c in range(k):
+        s = ws.second[c]
+        block = np.array([[s[0], s[1], s[3]], [s[1], s[2], s[4]], [s[3], s[4], s[5]]])
+        h[3 * c:3 * c + 3, 3 * c:3 * c + 3] -= block
+    eps = 1e-4
+    fd = np.empty((6, 6))
+    for u in range(6):
+        for v in range(6):
+            q = [p0.copy() for _ in range(4)]
+            q[0][u] += eps; q[0][v] += eps  # noqa: E702
+            q[1][u] += eps; q[1][v] -= eps  # noqa: E702
+            q[2][u] -= eps; q[2][v] += eps  # noqa: E702
+            q[3][u] -= eps; q[3][v] -= eps  # noqa: E702
+            fd[u, v] = (half_cost(q[0]) - half_cost(q[1]) - half_cost(q[2]) + half_cost(q[3])) / (4 * eps * eps)
+    np.testing.assert_allclose(h, fd, rtol=2e-3, atol=2e-3 * np.abs(fd).max())
+    # and the gradient is minus that of half the cost
+    g = [(half_cost(p0 + eps * np.eye(6)[u]) - half_cost(p0 - eps * np.eye(6)[u])) / (2 * eps) for u in range(6)]
+    np.testing.assert_allclose(ws.grad[:6], -np.array(g), rtol=1e-4, atol=1e-6 * np.abs(g).max())

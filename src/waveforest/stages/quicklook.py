@@ -9,10 +9,14 @@ Composes the library as the ``ingest``, ``tune-cfd`` and ``features --cfd`` stag
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
+import gc
 from dataclasses import replace
 from pathlib import Path
 
 import click
+import pyarrow as pa
 
 from waveforest import settings
 from waveforest.atomic import OutputFolder, write_json
@@ -26,6 +30,18 @@ from waveforest.report.quicklook import plot_self_tuning, quicklook_page
 
 def _say(msg: str) -> None:
     click.echo(f"quicklook: {msg}", err=True)
+
+
+def _release_memory() -> None:
+    """Hand memory freed by the step before back to the system (Arrow's pool, the C heap), so
+    that the steps' peaks do not stack up in one process."""
+    gc.collect()
+    pa.default_memory_pool().release_unused()
+    libc = ctypes.util.find_library("c")
+    if libc:
+        trim = getattr(ctypes.CDLL(libc), "malloc_trim", None)
+        if trim is not None:
+            trim(0)
 
 
 def run(las_path, out_dir, cfg: dict, *, dataset: str | None = None, trajectory=None, progress: bool = True,
@@ -49,12 +65,18 @@ def _write(las_path: Path, folder: OutputFolder, cfg: dict, *, dataset, trajecto
     pulses, cfd_json, cfd_png = out / "pulses.parquet", out / "cfd.json", out / "cfd.png"
     feats, page = out / "features.parquet", out / "quicklook.html"
 
+    look = settings.quicklook_settings(cfg)
+    # the file's summary first, while the process is small: its reading is the page's peak
+    summary = summarise(las_path, agc_attribute=cfg["agc"]["attribute"], chunk_points=icfg["chunk_points"],
+                        bucket_points=icfg["bucket_points"], grid_cells=look.map_cells)
+    _release_memory()
     _say(f"1/4 ingest {las_path} -> {final(pulses)}")
     ing = las_to_pulses(las_path, pulses, dataset=name, trajectory=trajectory, agc_attribute=cfg["agc"]["attribute"],
                         chunk_points=icfg["chunk_points"], bucket_points=icfg["bucket_points"],
                         batch_pulses=icfg["batch_pulses"], progress=progress)
     ing = replace(ing, out=final(pulses))
     _say(ing.summary())
+    _release_memory()
     _say(f"2/4 tune-cfd -> {final(cfd_json)}")
     tuned = tune_pulse_table(pulses, settings.self_tuning_settings(cfg), progress=progress)
     tuned.result["source"] = str(final(pulses))
@@ -62,13 +84,12 @@ def _write(las_path: Path, folder: OutputFolder, cfg: dict, *, dataset, trajecto
     plot_self_tuning(tuned, cfd_png, seed=int(cfg["seed"]))
     res = tuned.result
     del tuned  # its per-pulse arrays are not needed further on
+    _release_memory()
     _say(summary_line(res, final(cfd_json)))
     _say(f"3/4 features -> {final(feats)}")
     fr = cfd_features([pulses], cfd_json, feats, settings.feature_table_settings(cfg), progress=progress)
+    _release_memory()
     _say(f"4/4 page -> {final(page)}")
-    look = settings.quicklook_settings(cfg)
-    summary = summarise(las_path, agc_attribute=cfg["agc"]["attribute"], chunk_points=icfg["chunk_points"],
-                        bucket_points=icfg["bucket_points"], grid_cells=look.map_cells)
     passed = quicklook_page(page, las_path=las_path, summary=summary, tuning=res, pulses=pulses, cfd_json=cfd_json,
                             cfd_png=cfd_png, features=feats, settings=look)
     return {"page": final(page), "pulses": final(pulses), "cfd": final(cfd_json), "features": final(feats), "tune": res,
