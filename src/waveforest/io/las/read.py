@@ -66,7 +66,7 @@ from waveforest.io.pulses import PULSE_SCHEMA
 
 DEFAULT_CHUNK_POINTS = 250_000
 """Points read from the LAS file per laspy chunk."""
-DEFAULT_BUCKET_POINTS = 1_000_000
+DEFAULT_BUCKET_POINTS = 250_000
 """Points grouped in memory at once (76 bytes each, plus an 8-byte sort index)."""
 DEFAULT_BATCH_PULSES = 16_384
 """Pulses per output batch (one waveform gather, one Arrow table)."""
