@@ -93,6 +93,7 @@ Wall times are the minimum of ``--repeat`` runs (the machine is shared). Run:
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import sys
 import time
@@ -172,15 +173,17 @@ METHODS = {
     "adaptive_0.33": dict(n_rays=16384, sampler="sobol", roulette=0.5, quality="medium", tolerance=1 / 3),
     "adaptive_0.25": dict(n_rays=16384, sampler="sobol", roulette=0.5, quality="medium", tolerance=0.25),
     "adaptive_0.2": dict(n_rays=16384, sampler="sobol", roulette=0.5, quality="medium", tolerance=0.2),
+    "adaptive_0.2_b8": dict(n_rays=16384, sampler="sobol", roulette=0.5, quality="medium", tolerance=0.2, batches=8),
 }
 """Estimators of the error section: ``trace`` keywords, and the BVH quality a one-pulse
 instance gets (``quality``). ``random_30k`` was the default before ``sobol_rr_16k``;
 ``random_1500`` was the virtual campaign's own tracing before ``sobol_rr_512``; ``adaptive_<tol>``:
 the adaptive ray budget (``trace(tolerance=...)``, :func:`trace_kwargs`) at that fraction of the
 digitiser noise SD :data:`NOISE_SD_DN` of the waveform of S(t) :data:`SYSTEM_FWHM_NS`, :data:`SYSTEM_PEAK`
-(``n_rays`` unused)."""
+(``n_rays`` unused); ``_b8``: its error estimated from 8 batches instead of
+:data:`waveforest.mcrt.tracer.BATCHES` (the earlier estimator; :func:`batches`)."""
 
-SENSOR_METHODS = ("random_30k", "sobol_rr_16k", "adaptive_0.33", "adaptive_0.25", "adaptive_0.2")
+SENSOR_METHODS = ("random_30k", "sobol_rr_16k", "adaptive_0.25", "adaptive_0.2_b8", "adaptive_0.2")
 """Estimators of the sensor section (:func:`bench_sensor`): the paper's, today's fixed default, the adaptive budgets."""
 
 NOISE_SD_DN = 1.3
@@ -208,10 +211,23 @@ SPECIES = {"birch": 3.0, "raspberry": 1.3, "fireweed": 1.5}
 """The paper's species and the heights they are benchmarked at, m (as benchmarks/vegetation.py)."""
 
 
+@contextlib.contextmanager
+def batches(method: dict):
+    """The adaptive budget's batch count of a :data:`METHODS` entry (``batches``; default: the tracer's)."""
+    import waveforest.mcrt.tracer as tracer
+
+    kept = tracer.BATCHES
+    tracer.BATCHES = method.get("batches", kept)
+    try:
+        yield
+    finally:
+        tracer.BATCHES = kept
+
+
 def trace_kwargs(method: dict, n: int | None = None) -> dict:
-    """``trace`` keywords of a :data:`METHODS` entry (its ``quality`` left out); an adaptive one
+    """``trace`` keywords of a :data:`METHODS` entry (its ``quality`` and ``batches`` left out); an adaptive one
     gets the system pulse and noise (:data:`SYSTEM_PEAK`, :data:`NOISE_SD_DN` at :data:`RANGE_M`)."""
-    kw = {k: v for k, v in method.items() if k != "quality"}
+    kw = {k: v for k, v in method.items() if k not in ("quality", "batches")}
     if kw.get("tolerance") is not None:
         from waveforest.sensor.system_waveform import gaussian_system_waveform
 
@@ -426,9 +442,10 @@ def bench_error(prefix: str, scene, beams, args, methods) -> dict:
             tkw = trace_kwargs(kw)
             target = counted[kw["quality"]]
             target.intersector.rays = 0
-            c = time.process_time()
-            res = trace(target, beams, seed=seed, by_order=True, max_order=MAX_ORDER, threads=1, **tkw)
-            cpu[m].append(time.process_time() - c)
+            with batches(kw):
+                c = time.process_time()
+                res = trace(target, beams, seed=seed, by_order=True, max_order=MAX_ORDER, threads=1, **tkw)
+                cpu[m].append(time.process_time() - c)
             rays[m] += target.intersector.rays
             sig[m].append(_one_ns(res))
             feat[m].append(waveform_features(res))
@@ -549,9 +566,10 @@ def bench_sensor(prefix: str, scene, instance, beams, args, methods) -> dict:
     rays = {m: [] for m in methods}
     for seed in range(args.seeds):  # seeds outermost: every method sees the same load
         for m in methods:
-            c = time.thread_time()
-            res = trace(medium, beams, seed=seed, max_order=MAX_ORDER, threads=1, **trace_kwargs(METHODS[m]))
-            cpu[m].append(time.thread_time() - c)
+            with batches(METHODS[m]):
+                c = time.thread_time()
+                res = trace(medium, beams, seed=seed, max_order=MAX_ORDER, threads=1, **trace_kwargs(METHODS[m]))
+                cpu[m].append(time.thread_time() - c)
             rays[m].append(res.rays.mean())
             w, f = recorded(res)
             e = np.sqrt(np.where(support, (w - w_ref) ** 2, 0).sum(axis=1) / np.maximum(support.sum(axis=1), 1))
