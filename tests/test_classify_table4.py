@@ -195,3 +195,19 @@ def test_degenerate_input_says_why():
     ts = classify_dataset(few, classify_settings(config.load(overrides={"select": {"min_pulses": 2}})))["three_species"]
     assert ts["one_pulse"] is not None and ts["multi_pulse"] is None
     assert "only raspberry" in ts["multi_pulse_reason"]
+
+
+def test_later_echo_amplitude_is_normalised_by_the_road_apeak():
+    """The road's single-echo pulses have no later echoes (gd_later_A 0): a normaliser mean of 0
+    must not stop the study; gd_later_A is divided by the road's mean Apeak (the same DN scale)."""
+    from waveforest.analysis.classify import normalise
+
+    df = pd.DataFrame(dict(species=["sand_road"] * 3 + ["birch"] * 2, Apeak=[50.0, 60.0, 70.0, 30.0, 40.0],
+                           gd_later_A=[0.0, 0.0, 0.0, 12.0, 24.0], E=[1.0, 2.0, 3.0, 4.0, 5.0]))
+    out, record = normalise(df, ["Apeak", "gd_later_A", "E"], "sand_road")
+    assert record["gd_later_A"] == pytest.approx(60.0) and record["Apeak"] == pytest.approx(60.0)
+    assert out["gd_later_A"].tolist() == pytest.approx([0, 0, 0, 0.2, 0.4])
+    assert out["E"].tolist() == pytest.approx([0.5, 1.0, 1.5, 2.0, 2.5])
+    df.loc[:2, "Apeak"] = 0.0
+    with pytest.raises(WaveforestError, match="mean Apeak is 0.0; cannot normalise"):
+        normalise(df, ["gd_later_A"], "sand_road")

@@ -48,6 +48,10 @@ HEIGHT_FEATURES = ("H", "maxH", "gd_depth", "gd_last_H", "gd_n")
 """Heights and distances (m) and the echo count: not divided by the normaliser (the sand road's
 H and depth are about 0, its count about 1)."""
 
+NORMALISED_BY = {"gd_later_A": "Apeak"}
+"""Intensities the normaliser has none of (its pulses hold one echo: no later echoes), divided by
+its mean of another intensity on the same radiometric scale (DN) instead of their own."""
+
 
 @dataclass(frozen=True)
 class ClassifySettings:
@@ -148,7 +152,8 @@ def add_sample_features(df: pd.DataFrame) -> pd.DataFrame:
 
 def normalise(df: pd.DataFrame, features, normaliser: str, reference: pd.DataFrame | None = None
               ) -> tuple[pd.DataFrame, dict]:
-    """Divide ``features`` by their mean over the ``normaliser`` species' pulses.
+    """Divide ``features`` by their mean over the ``normaliser`` species' pulses (those of
+    :data:`NORMALISED_BY` by its mean of the feature named there).
 
     ``reference`` (default ``df``) holds the pulses the mean is taken over. Returns the
     normalised copy and a record of the divisors. Without normaliser pulses the features are
@@ -164,9 +169,10 @@ def normalise(df: pd.DataFrame, features, normaliser: str, reference: pd.DataFra
         return df, {"species": None, "n": 0, "reason": reason}
     record = {"species": normaliser, "n": int(len(ref))}
     for f in features:
-        mean = float(np.nanmean(ref[f].to_numpy(float)))
+        by = NORMALISED_BY.get(f, f)
+        mean = float(np.nanmean(ref[by].to_numpy(float)))
         if not np.isfinite(mean) or mean == 0:
-            raise WaveforestError(f"normaliser {normaliser}: mean {f} is {mean}; cannot normalise")
+            raise WaveforestError(f"normaliser {normaliser}: mean {by} is {mean}; cannot normalise {f}")
         df[f] = df[f].to_numpy(float) / mean
         record[f] = mean
     return df, record
