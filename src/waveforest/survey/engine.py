@@ -186,8 +186,9 @@ def window_ns(prepared, origin: np.ndarray, direction: np.ndarray, max_order: in
     return 2.0 * span / C_M_PER_NS + T0_LEAD_NS + (MULTIPLE_SCATTERING_NS if max_order > 1 else FIRST_ORDER_MARGIN_NS)
 
 
-def pulse_table(p: Pulses, pulse_id: np.ndarray, sim, range_m: np.ndarray) -> pa.Table:
-    """The pulses with at least one discrete return as a pulse table (io/pulses.py schema)."""
+def pulse_table(p: Pulses, pulse_id: np.ndarray, sim, range_m: np.ndarray, agc: float = np.nan) -> pa.Table:
+    """The pulses with at least one discrete return as a pulse table (io/pulses.py schema), each
+    with AGC value ``agc`` (the scanner's :attr:`~waveforest.survey.spec.Scanner.agc`)."""
     keep = np.flatnonzero(sim.n_echoes > 0)
     d, o = p.direction[keep], p.origin[keep]
     first = sim.first_sample_ns[keep]
@@ -203,7 +204,7 @@ def pulse_table(p: Pulses, pulse_id: np.ndarray, sim, range_m: np.ndarray) -> pa
         "dir_x": pa.array(d[:, 0]), "dir_y": pa.array(d[:, 1]), "dir_z": pa.array(d[:, 2]),
         "anchor_x": pa.array(anchor[:, 0]), "anchor_y": pa.array(anchor[:, 1]), "anchor_z": pa.array(anchor[:, 2]),
         "range_m": pa.array((first + et[:, 0]) * RANGE_PER_NS),
-        "scan_angle_deg": pa.array(p.scan_angle_deg[keep]), "agc": pa.array(np.full(n, np.nan)),
+        "scan_angle_deg": pa.array(p.scan_angle_deg[keep]), "agc": pa.array(np.full(n, float(agc))),
         "sampling_ns": pa.array(np.full(n, sim.sampling_ns)),
         "digitizer_gain": pa.array(np.ones(n)), "digitizer_offset": pa.array(np.zeros(n)),
         "samples": padded_to_list(sim.samples[keep], sim.lengths[keep], pa.float32()),
@@ -266,7 +267,7 @@ def run_tile(k: int, plan_: Plan, scenes: TileScenes, survey: Survey, mcrt: MCRT
                         **mcrt.kwargs(), **mcrt.budget(setup.system, setup.noise_sd, s[sl]))
             rays += int(res.rays.sum())
             sim = render_sigma(res.sigma, res.t0_ns, s[sl], setup, rng, sigma_total=res.total)
-            tables.append(pulse_table(p.take(np.arange(len(rows))[sl]), rows[sl], sim, s[sl]))
+            tables.append(pulse_table(p.take(np.arange(len(rows))[sl]), rows[sl], sim, s[sl], survey.scanner.agc))
             if survey.truth:
                 truths.append(truth_table(rows[sl], p.gps_time[sl], res))
             if progress is not None:

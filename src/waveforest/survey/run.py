@@ -105,7 +105,7 @@ def merge(pl: Plan, cache: Path, scene: SurveyScene, survey: Survey, out_dir: Pa
     with folder as tmp:
         las = tmp / "survey.las"
         with WaveformLasWriter(las, version=survey.las_version, bits=survey.scanner.bits,
-                               storage=survey.waveforms, agc_attribute=None, wkt=survey.crs_wkt or LOCAL_WKT,
+                               storage=survey.waveforms, agc_attribute="user_data", wkt=survey.crs_wkt or LOCAL_WKT,
                                generating_software="waveforest survey") as w:
             for k in range(len(pl.tiles)):
                 t = pq.read_table(cache / f"tile_{k:06d}.parquet")
