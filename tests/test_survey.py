@@ -19,7 +19,7 @@ from waveforest import config
 from waveforest.cli import main
 from waveforest.settings import mcrt_setup, reference_system, sensor_settings
 from waveforest.survey import SurveyError, load_scene, load_survey, survey_mcrt
-from waveforest.survey.engine import run_key
+from waveforest.survey.engine import plan, run_key, tile_side
 from waveforest.survey.run import cache_folder
 from waveforest.survey.spec import AGC_LAW
 
@@ -343,3 +343,23 @@ def test_an_agc_beyond_the_8_bit_register_is_clipped(tmp_path):
     survey = {**SURVEY, "scanner": {**SURVEY["scanner"], "gain": 1e-3, "agc_law_a": 3.0}}
     sv = load_survey(_files(tmp_path, survey=survey)[1], sensor_settings(cfg), reference_system(cfg))
     assert sv.scanner.agc == 1
+
+
+def test_tiles_are_widened_under_the_adaptive_budget_only(tmp_path):
+    """plan(min_tile_pulses) widens the tiles by an integer factor until they hold that many pulses
+    on average; every pulse's ground point stays in its tile; without it the tiles are tile_m."""
+    assert tile_side(10.0, 1000, 10, 256) == 20.0 and tile_side(10.0, 3000, 10, 256) == 10.0
+    assert tile_side(2.0, 90, 10, 256) == 12.0  # 9 per tile: factor ceil(sqrt(256 / 9)) = 6
+    cfg = config.load(None)
+    sc, sv_path = _files(tmp_path, survey={**SURVEY, "scanner": {**SURVEY["scanner"], "pulse_rate_hz": 400.0}})
+    scene, sv = load_scene(sc), load_survey(sv_path, sensor_settings(cfg), reference_system(cfg))
+    fixed, wide = plan(scene, sv), plan(scene, sv, 64)
+    assert fixed.tile_m == sv.tile_m and len(wide.pulses) == len(fixed.pulses)
+    assert wide.tile_m > sv.tile_m and len(wide.tiles) < len(fixed.tiles)
+    f, mean = round(wide.tile_m / sv.tile_m), len(fixed.pulses) / len(fixed.tiles)
+    assert mean < 64 and (f - 1) ** 2 * mean < 64 <= f**2 * mean  # the smallest factor
+    for pl in (fixed, wide):
+        p = pl.pulses
+        ground = p.origin + ((pl.ground_z - p.origin[:, 2]) / p.direction[:, 2])[:, None] * p.direction
+        lo = pl.tile_xy[np.searchsorted(pl.tiles, pl.tile)]
+        assert np.all((ground[:, :2] >= lo - 1e-9) & (ground[:, :2] < lo + pl.tile_m + 1e-9))
