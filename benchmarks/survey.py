@@ -22,7 +22,15 @@ mcrt section) unless ``--rays``/``--orders``. Figures: ``stand_pulses``,
 ``stand_1ha_minutes_2_cores`` (CPU per pulse x 50,000 pulses / 2 cores, plus the prototype
 build), ``stand_pulses_per_s``.
 
+The adaptive ray budget against a fixed one (``--adaptive``): ``examples/survey`` (5 orders)
+with its leg cut to ``--leg-m`` m over the plot, flown at 4,096 fixed rays, at the budget
+(``quality.tolerance`` 0.2) in the planned tiles (widened to ``ADAPTIVE_TILE_PULSES`` pulses)
+and at the budget in tiles of ``quality.tile_m``, in one run: ``<case>_cpu_us_per_ray``,
+``<case>_wall_s``, ``<case>_rays_per_pulse``, ``<case>_queries_per_ray`` (Embree nearest-hit and
+visibility queries per emitted ray: the orders above the first) and ``<case>_cpu_us_per_query``.
+
     python benchmarks/survey.py [--area-ha 0.01] [--rays N] [--orders K] [--full] [--no-physics] [--memory-only]
+    python benchmarks/survey.py --adaptive [--leg-m 10]
 """
 
 from __future__ import annotations
@@ -50,10 +58,12 @@ from fixtures.survey import (
 )
 from scipy.special import erf
 
+import waveforest.survey.run as survey_run
 from waveforest import config
 from waveforest.constants import C_M_PER_NS, RANGE_PER_NS
+from waveforest.mcrt.backends.base import RayQueries
 from waveforest.settings import mcrt_setup, reference_system, sensor_settings
-from waveforest.survey import load_scene, load_survey, survey_mcrt
+from waveforest.survey import load_scene, load_survey, run_survey, sensor_setup, survey_mcrt
 from waveforest.survey.engine import TileScenes
 from waveforest.survey.run import peak_memory_mb
 
@@ -195,6 +205,60 @@ def stand_memory(tmp: Path, area_ha: float, seeds: int) -> None:
     print(f"memory_peak_mb: {peak_memory_mb():.0f} MB")
 
 
+EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "survey"
+
+
+def adaptive(tmp: Path, leg_m: float) -> None:
+    """CPU per ray of the example survey at a fixed budget and at the adaptive budget (module docstring)."""
+    import shutil
+
+    import yaml
+
+    for f in EXAMPLE.iterdir():
+        shutil.copy(f, tmp / f.name)
+    doc = yaml.safe_load((EXAMPLE / "SURVEY.yaml").read_text())
+    leg = doc["platform"]["legs"][0]
+    leg["end"] = [leg["start"][0], leg["start"][1] + 32.0 + leg_m]  # the plot starts 32 m after the leg's start
+    leg["start"] = [leg["start"][0], leg["start"][1] + 32.0]
+    cfg = config.load(None)
+    sensor = sensor_settings(cfg)
+    scene = load_scene(tmp / "SCENE.yaml")
+    queries = [0]
+    intersect, occluded = RayQueries.intersect, RayQueries.occluded
+
+    def count(method):
+        def wrapped(self, origins, *args, **kwargs):
+            queries[0] += len(origins)
+            return method(self, origins, *args, **kwargs)
+        return wrapped
+
+    RayQueries.intersect, RayQueries.occluded = count(intersect), count(occluded)
+    widened = survey_run.ADAPTIVE_TILE_PULSES
+    try:
+        for case, quality, min_pulses in (("fixed4096", {"rays_per_pulse": 4096}, widened),
+                                          ("adaptive", {"tolerance": 0.2}, widened),
+                                          ("adaptive_tile_m", {"tolerance": 0.2}, 1)):
+            doc["quality"] = {"max_order": 5, "tile_m": 10.0, **quality}
+            (tmp / f"{case}.yaml").write_text(yaml.safe_dump(doc))
+            sv = load_survey(tmp / f"{case}.yaml", sensor, reference_system(cfg))
+            survey_run.ADAPTIVE_TILE_PULSES = min_pulses
+            queries[0] = 0
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                r = run_survey(scene, sv, survey_mcrt(mcrt_setup(cfg), sv), sensor_setup(sv, sensor), tmp / case)
+            print(f"{case}_pulses: {r['pulses_traced']} pulses")
+            print(f"{case}_tiles: {r['tiles']} tiles")
+            print(f"{case}_rays_per_pulse: {r['rays'] / r['pulses_traced']:.0f} rays")
+            print(f"{case}_cpu_ms_per_pulse: {r['cpu_ms_per_pulse']:.1f} ms")
+            print(f"{case}_cpu_us_per_ray: {1e6 * r['cpu_s'] / r['rays']:.2f} us")
+            print(f"{case}_queries_per_ray: {queries[0] / r['rays']:.2f} queries")
+            print(f"{case}_cpu_us_per_query: {1e6 * r['cpu_s'] / queries[0]:.3f} us")
+            print(f"{case}_wall_s: {r['wall_s']:.1f} s", flush=True)
+    finally:
+        RayQueries.intersect, RayQueries.occluded = intersect, occluded
+        survey_run.ADAPTIVE_TILE_PULSES = widened
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--area-ha", type=float, default=0.01, help="stand area, ha (default 0.01)")
@@ -207,9 +271,14 @@ def main(argv=None) -> None:
     ap.add_argument("--memory-only", action="store_true",
                     help="only the scene of a 1-ha stand (--area-ha to change): prototypes and the largest tile, "
                          "no tracing; peak memory")
+    ap.add_argument("--adaptive", action="store_true", help="only the adaptive budget against a fixed one")
+    ap.add_argument("--leg-m", type=float, default=10.0, help="--adaptive: leg length over the plot, m (default 10)")
     a = ap.parse_args(argv)
     with tempfile.TemporaryDirectory(prefix="survey_bench_") as tmp:
         tmp = Path(tmp)
+        if a.adaptive:
+            adaptive(tmp, a.leg_m)
+            return
         if a.memory_only:
             stand_memory(tmp, 1.0 if a.area_ha == 0.01 else a.area_ha, a.prototype_seeds)
             return

@@ -19,8 +19,9 @@ from waveforest import config
 from waveforest.cli import main
 from waveforest.settings import mcrt_setup, reference_system, sensor_settings
 from waveforest.survey import SurveyError, load_scene, load_survey, survey_mcrt
-from waveforest.survey.engine import run_key
+from waveforest.survey.engine import plan, run_key, tile_side
 from waveforest.survey.run import cache_folder
+from waveforest.survey.spec import AGC_LAW
 
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
 
@@ -300,3 +301,65 @@ def test_the_ray_budget_is_the_config_s_unless_the_survey_fixes_it(tmp_path):
     assert summary["tolerance"] == 0.5 and summary["rays_per_pulse"] is None
     n = summary["pulses_traced"]
     assert n > 0 and cfg["mcrt"]["min_rays"] * n <= summary["rays"] <= cfg["mcrt"]["max_rays"] * n
+
+
+def test_seed_option_overrides_the_survey_file_s_seed(tmp_path, capsys):
+    """--seed N replaces SURVEY.yaml's seed: the file's own seed given as --seed writes the same
+    bytes as no option, and another seed changes the waveforms."""
+    sc, sv = _files(tmp_path, survey={**SURVEY, "seed": 4})
+    files = {}
+    for name, extra in (("file", []), ("same", ["--seed", "4"]), ("other", ["--seed", "5"])):
+        code, lines = _run(["survey", sc, sv, "--out", tmp_path / name, "--no-progress", *extra], capsys)
+        assert code == 0, lines
+        files[name] = [(tmp_path / name / f).read_bytes() for f in ("survey.las", "survey.wdp")]
+    assert files["same"] == files["file"]
+    assert files["other"][1] != files["file"][1]
+
+
+@pytest.mark.parametrize("gain", [1.0, 2.0])
+def test_the_agc_of_the_scanner_s_gain_reads_back(tmp_path, gain):
+    """Every point's user_data holds the AGC whose gain under the law of Eq. 1 is the scanner's
+    gain (within half an AGC step); the reader takes it without warning that AGC is missing."""
+    write_obj(tmp_path / "plane.obj", tilted_plane(20.0, 1.0))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        _, table, sv, _ = fly(tmp_path, PLANE, {**SURVEY["scanner"], "gain": gain}, altitude=300.0, length=2.0,
+                              quality={"rays_per_pulse": 256, "max_order": 1})
+    assert not [w for w in caught if "AGC" in str(w.message)], [str(w.message) for w in caught]
+    sc = sv.scanner
+    assert (sc.agc_law_a, sc.agc_law_b) == AGC_LAW
+    agc = table.column("agc").to_numpy()
+    assert len(agc) > 0 and np.all(agc == sc.agc)
+    assert np.all(np.asarray(laspy.read(tmp_path / "out" / "survey.las").user_data) == sc.agc)
+    assert abs(1 + (sc.agc - sc.agc_law_a) * sc.agc_law_b - gain) <= sc.agc_law_b / 2
+
+
+def test_an_agc_beyond_the_8_bit_register_is_clipped(tmp_path):
+    """A gain whose AGC would fall outside 1..255 records the nearest end."""
+    cfg = config.load(None)
+    survey = {**SURVEY, "scanner": {**SURVEY["scanner"], "gain": 100.0}}
+    sv = load_survey(_files(tmp_path, survey=survey)[1], sensor_settings(cfg), reference_system(cfg))
+    assert sv.scanner.agc == 255
+    survey = {**SURVEY, "scanner": {**SURVEY["scanner"], "gain": 1e-3, "agc_law_a": 3.0}}
+    sv = load_survey(_files(tmp_path, survey=survey)[1], sensor_settings(cfg), reference_system(cfg))
+    assert sv.scanner.agc == 1
+
+
+def test_tiles_are_widened_under_the_adaptive_budget_only(tmp_path):
+    """plan(min_tile_pulses) widens the tiles by an integer factor until they hold that many pulses
+    on average; every pulse's ground point stays in its tile; without it the tiles are tile_m."""
+    assert tile_side(10.0, 1000, 10, 256) == 20.0 and tile_side(10.0, 3000, 10, 256) == 10.0
+    assert tile_side(2.0, 90, 10, 256) == 12.0  # 9 per tile: factor ceil(sqrt(256 / 9)) = 6
+    cfg = config.load(None)
+    sc, sv_path = _files(tmp_path, survey={**SURVEY, "scanner": {**SURVEY["scanner"], "pulse_rate_hz": 400.0}})
+    scene, sv = load_scene(sc), load_survey(sv_path, sensor_settings(cfg), reference_system(cfg))
+    fixed, wide = plan(scene, sv), plan(scene, sv, 64)
+    assert fixed.tile_m == sv.tile_m and len(wide.pulses) == len(fixed.pulses)
+    assert wide.tile_m > sv.tile_m and len(wide.tiles) < len(fixed.tiles)
+    f, mean = round(wide.tile_m / sv.tile_m), len(fixed.pulses) / len(fixed.tiles)
+    assert mean < 64 and (f - 1) ** 2 * mean < 64 <= f**2 * mean  # the smallest factor
+    for pl in (fixed, wide):
+        p = pl.pulses
+        ground = p.origin + ((pl.ground_z - p.origin[:, 2]) / p.direction[:, 2])[:, None] * p.direction
+        lo = pl.tile_xy[np.searchsorted(pl.tiles, pl.tile)]
+        assert np.all((ground[:, :2] >= lo - 1e-9) & (ground[:, :2] < lo + pl.tile_m + 1e-9))

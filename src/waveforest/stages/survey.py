@@ -7,6 +7,8 @@ overrides the ray budget's tolerance, or fixes the rays per pulse, and the highe
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import click
 
 from waveforest.cliutil import EXISTING_FILE, OUT_DIR, force_option, stage_options
@@ -40,8 +42,8 @@ def survey(scene_file, survey_file, out, part, progress, force, cfg):
     """Fly a survey over your own scene with multiple scattering and write LAS 1.4 waveform files.
 
     SCENE_FILE and SURVEY_FILE are YAML files (docs/survey.md; examples/survey/). Random draws
-    follow SURVEY_FILE's seed (not --seed); --config gives the tracer (mcrt) and the sensor
-    model of the als60 preset. An interrupted run resumes from its completed tiles.
+    follow SURVEY_FILE's seed, or --seed where given (the same seed gives the same files);
+    --config gives the tracer (mcrt) and the sensor model of the als60 preset. An interrupted run resumes from its completed tiles.
 
     Example:
 
@@ -50,6 +52,9 @@ def survey(scene_file, survey_file, out, part, progress, force, cfg):
     """
     sensor = sensor_settings(cfg)
     sv = load_survey(survey_file, sensor, reference_system(cfg))
+    seed = click.get_current_context().params.get("seed")
+    if seed is not None:  # --seed overrides the survey file's seed
+        sv = replace(sv, seed=int(seed))
     scene = load_scene(scene_file, progress=progress)
     mcrt = survey_mcrt(mcrt_setup(cfg), sv)
     setup = sensor_setup(sv, sensor)

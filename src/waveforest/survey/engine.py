@@ -64,11 +64,36 @@ class Plan:
     ground_z: float
     n_flown: int
     tracks: list
+    tile_m: float              # side of the tiles, m
 
 
-def plan(scene: SurveyScene, survey: Survey) -> Plan:
+ADAPTIVE_TILE_PULSES = 256
+"""Under the adaptive ray budget, tiles are widened (:func:`tile_side`) until they hold this many
+pulses on average: the budget's pulses differ in cost, and a tile ends when its slowest chunk
+does, so a tile of few pulses leaves a thread idle (``CHUNKS_PER_WORKER`` x
+``ADAPTIVE_CHUNK_PULSES`` x 2 threads = 256 pulses fill both threads' chunks)."""
+
+
+def tile_side(tile_m: float, n_pulses: int, n_tiles: int, min_pulses: int) -> float:
+    """``tile_m`` times the smallest integer f with f^2 x the mean pulses per tile >= ``min_pulses``
+    (f = 1 when the tiles already hold that many)."""
+    mean = n_pulses / max(n_tiles, 1)
+    if mean <= 0 or mean >= min_pulses:
+        return float(tile_m)
+    return float(tile_m) * math.ceil(math.sqrt(min_pulses / mean))
+
+
+def tile_ids(ground: np.ndarray, lo: np.ndarray, side: float) -> tuple[np.ndarray, np.ndarray]:
+    """The tile id of each point ``ground`` (n, 2+) in tiles of ``side`` from ``lo`` (2,), and the sorted ids."""
+    ij = np.floor((ground[:, :2] - lo) / side).astype(np.int64)
+    tile = ij[:, 0] * 1_000_003 + ij[:, 1]
+    return tile, np.unique(tile)
+
+
+def plan(scene: SurveyScene, survey: Survey, min_tile_pulses: int = 1) -> Plan:
     """Fly the survey block by block; keep the pulses whose axis passes through the scene's box;
-    tile them (memory: the kept pulses, about 80 bytes each).
+    tile them (memory: the kept pulses, about 80 bytes each). Tiles of side ``quality.tile_m``
+    are widened by :func:`tile_side` to hold ``min_tile_pulses`` pulses on average.
 
     A leg none of whose pulses sees the scene is an error naming the leg.
     """
@@ -89,12 +114,14 @@ def plan(scene: SurveyScene, survey: Survey) -> Plan:
     zg = float(box[0, 2])
     s = (zg - kept.origin[:, 2]) / kept.direction[:, 2]
     ground = kept.origin + s[:, None] * kept.direction
-    ij = np.floor((ground[:, :2] - box[0, :2]) / survey.tile_m).astype(np.int64)
-    tile = ij[:, 0] * 1_000_003 + ij[:, 1]
-    tiles = np.unique(tile)
-    tile_xy = box[0, :2] + survey.tile_m * np.stack([tiles // 1_000_003, tiles % 1_000_003], axis=1)
+    side = float(survey.tile_m)
+    tile, tiles = tile_ids(ground, box[0, :2], side)
+    if min_tile_pulses > 1:  # the tiles of quality.tile_m, widened if they are too sparse
+        side = tile_side(side, len(tile), len(tiles), min_tile_pulses)
+        tile, tiles = tile_ids(ground, box[0, :2], side)
+    tile_xy = box[0, :2] + side * np.stack([tiles // 1_000_003, tiles % 1_000_003], axis=1)
     order = np.lexsort((kept.gps_time, tile))
-    return Plan(kept.take(order), tile[order], tiles, tile_xy, zg, n_flown, tracks)
+    return Plan(kept.take(order), tile[order], tiles, tile_xy, zg, n_flown, tracks, side)
 
 
 def system_waveform(survey: Survey, cfd: CFDParams):
@@ -148,10 +175,12 @@ class TileScenes:
         if scene.plants is not None:
             self.protos = prepare_prototypes(list(scene.plants.prototypes))
 
-    def build(self, xy: np.ndarray, n_pulses: int, n_rays: int):
-        """The prepared scene of the tile with lower-left corner ``xy`` (None if it is empty)."""
+    def build(self, xy: np.ndarray, n_pulses: int, n_rays: int, side: float | None = None):
+        """The prepared scene of the tile with lower-left corner ``xy`` and side ``side`` (None:
+        ``quality.tile_m``), or None if it is empty."""
+        side = self.survey.tile_m if side is None else side
         lo = np.array([xy[0] - self.margin, xy[1] - self.margin, -np.inf])
-        hi = np.array([xy[0] + self.survey.tile_m + self.margin, xy[1] + self.survey.tile_m + self.margin, np.inf])
+        hi = np.array([xy[0] + side + self.margin, xy[1] + side + self.margin, np.inf])
         static = None
         if self.scene.static is not None:
             sel = np.all((self.static_box[:, 1] >= lo) & (self.static_box[:, 0] <= hi), axis=1)
@@ -186,8 +215,9 @@ def window_ns(prepared, origin: np.ndarray, direction: np.ndarray, max_order: in
     return 2.0 * span / C_M_PER_NS + T0_LEAD_NS + (MULTIPLE_SCATTERING_NS if max_order > 1 else FIRST_ORDER_MARGIN_NS)
 
 
-def pulse_table(p: Pulses, pulse_id: np.ndarray, sim, range_m: np.ndarray) -> pa.Table:
-    """The pulses with at least one discrete return as a pulse table (io/pulses.py schema)."""
+def pulse_table(p: Pulses, pulse_id: np.ndarray, sim, range_m: np.ndarray, agc: float = np.nan) -> pa.Table:
+    """The pulses with at least one discrete return as a pulse table (io/pulses.py schema), each
+    with AGC value ``agc`` (the scanner's :attr:`~waveforest.survey.spec.Scanner.agc`)."""
     keep = np.flatnonzero(sim.n_echoes > 0)
     d, o = p.direction[keep], p.origin[keep]
     first = sim.first_sample_ns[keep]
@@ -203,7 +233,7 @@ def pulse_table(p: Pulses, pulse_id: np.ndarray, sim, range_m: np.ndarray) -> pa
         "dir_x": pa.array(d[:, 0]), "dir_y": pa.array(d[:, 1]), "dir_z": pa.array(d[:, 2]),
         "anchor_x": pa.array(anchor[:, 0]), "anchor_y": pa.array(anchor[:, 1]), "anchor_z": pa.array(anchor[:, 2]),
         "range_m": pa.array((first + et[:, 0]) * RANGE_PER_NS),
-        "scan_angle_deg": pa.array(p.scan_angle_deg[keep]), "agc": pa.array(np.full(n, np.nan)),
+        "scan_angle_deg": pa.array(p.scan_angle_deg[keep]), "agc": pa.array(np.full(n, float(agc))),
         "sampling_ns": pa.array(np.full(n, sim.sampling_ns)),
         "digitizer_gain": pa.array(np.ones(n)), "digitizer_offset": pa.array(np.zeros(n)),
         "samples": padded_to_list(sim.samples[keep], sim.lengths[keep], pa.float32()),
@@ -253,7 +283,7 @@ def run_tile(k: int, plan_: Plan, scenes: TileScenes, survey: Survey, mcrt: MCRT
     cpu = time.process_time()
     rows = np.flatnonzero(plan_.tile == plan_.tiles[k])
     p = plan_.pulses.take(rows)
-    prepared = scenes.build(plan_.tile_xy[k], len(rows), mcrt.n_rays)
+    prepared = scenes.build(plan_.tile_xy[k], len(rows), mcrt.n_rays, plan_.tile_m)
     rng = named_generator("survey", survey.seed, int(k))
     tables, truths, rays = [], [], 0
     s = (plan_.ground_z - p.origin[:, 2]) / p.direction[:, 2]
@@ -266,7 +296,7 @@ def run_tile(k: int, plan_: Plan, scenes: TileScenes, survey: Survey, mcrt: MCRT
                         **mcrt.kwargs(), **mcrt.budget(setup.system, setup.noise_sd, s[sl]))
             rays += int(res.rays.sum())
             sim = render_sigma(res.sigma, res.t0_ns, s[sl], setup, rng, sigma_total=res.total)
-            tables.append(pulse_table(p.take(np.arange(len(rows))[sl]), rows[sl], sim, s[sl]))
+            tables.append(pulse_table(p.take(np.arange(len(rows))[sl]), rows[sl], sim, s[sl], survey.scanner.agc))
             if survey.truth:
                 truths.append(truth_table(rows[sl], p.gps_time[sl], res))
             if progress is not None:

@@ -26,6 +26,7 @@ from waveforest.atomic import OutputFolder, atomic_path
 from waveforest.io.las.write import WaveformLasWriter
 from waveforest.model.forward import MCRTSetup, SensorSetup
 from waveforest.survey.engine import (
+    ADAPTIVE_TILE_PULSES,
     Plan,
     TileResult,
     TileScenes,
@@ -63,8 +64,10 @@ def peak_memory_mb() -> float:
 def run_tiles(scene: SurveyScene, survey: Survey, mcrt: MCRTSetup, setup: SensorSetup,
               out_dir: Path, *, part: tuple[int, int] = (0, 1), threads: int | None = None,
               progress: bool = False) -> tuple[Plan, Path]:
-    """Trace every tile of part ``part = (i, n)`` (tiles ``k`` with ``k % n == i``) not yet in the cache."""
-    pl = plan(scene, survey)
+    """Trace every tile of part ``part = (i, n)`` (tiles ``k`` with ``k % n == i``) not yet in the cache
+    (under the adaptive ray budget, tiles of :data:`~waveforest.survey.engine.ADAPTIVE_TILE_PULSES`
+    pulses on average)."""
+    pl = plan(scene, survey, 1 if mcrt.tolerance is None else ADAPTIVE_TILE_PULSES)
     cache = cache_folder(out_dir, run_key(scene, survey, mcrt, repr(setup)))
     cache.mkdir(parents=True, exist_ok=True)
     todo = [k for k in range(len(pl.tiles)) if k % part[1] == part[0]]
@@ -105,7 +108,7 @@ def merge(pl: Plan, cache: Path, scene: SurveyScene, survey: Survey, out_dir: Pa
     with folder as tmp:
         las = tmp / "survey.las"
         with WaveformLasWriter(las, version=survey.las_version, bits=survey.scanner.bits,
-                               storage=survey.waveforms, agc_attribute=None, wkt=survey.crs_wkt or LOCAL_WKT,
+                               storage=survey.waveforms, agc_attribute="user_data", wkt=survey.crs_wkt or LOCAL_WKT,
                                generating_software="waveforest survey") as w:
             for k in range(len(pl.tiles)):
                 t = pq.read_table(cache / f"tile_{k:06d}.parquet")

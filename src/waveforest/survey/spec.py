@@ -23,6 +23,14 @@ from waveforest.sensor.reference import ReferenceSystem
 SCHEMA_PATH = Path(__file__).parents[1] / "survey.schema.yaml"
 
 
+AGC_LAW = (120.0, 0.0155)
+"""The ``als60`` preset's AGC gain law ``gain = 1 + (AGC - a) b`` (docs/method.md Eq. 1): a of
+the study's 2010 datasets and the median b of its nine."""
+
+AGC_RANGE = (1, 255)
+"""Recorded AGC values (8-bit ``user_data``; 0 reads as "no AGC")."""
+
+
 class SurveyError(WaveforestError):
     """A scene, survey or survey input that cannot be used (one line: file, field, expected)."""
 
@@ -102,6 +110,15 @@ class Scanner:
     cfd_arming_sd: float
     plane_hdrf: float
     plane_dn: float
+    agc_law_a: float
+    agc_law_b: float
+
+    @property
+    def agc(self) -> int:
+        """The AGC value recorded with every pulse: the integer nearest to the one whose gain
+        under the AGC law (Eq. 1) is ``gain``, clipped to :data:`AGC_RANGE`."""
+        v = round(self.agc_law_a + (self.gain - 1.0) / self.agc_law_b)
+        return int(min(max(v, AGC_RANGE[0]), AGC_RANGE[1]))
 
 
 @dataclass(frozen=True)
@@ -140,7 +157,8 @@ def als60(sensor: SensorSettings, reference: ReferenceSystem) -> dict:
                 divergence_mrad=0.15, pulse_fwhm_ns=reference.fwhm_ns, system_waveform=None, sampling_ns=1.0,
                 bits=8 if sensor.digitizer_max <= 255 else 16, gain=1.0, noise_mean=reference.noise_mean,
                 noise_sd=reference.noise_sd, record_ns=sensor.record_ns, cfd_fraction=sensor.cfd.fraction,
-                cfd_arming_sd=sensor.cfd.arming_sd, plane_hdrf=reference.plane_hdrf, plane_dn=reference.plane_dn)
+                cfd_arming_sd=sensor.cfd.arming_sd, plane_hdrf=reference.plane_hdrf, plane_dn=reference.plane_dn,
+                agc_law_a=AGC_LAW[0], agc_law_b=AGC_LAW[1])
 
 
 PRESETS = {"als60": als60}
@@ -171,6 +189,8 @@ def load_survey(path: str | Path, sensor: SensorSettings, reference: ReferenceSy
                 v = getattr(reference, f.name)
             elif f.name == "gain":
                 v = 1.0
+            elif f.name in ("agc_law_a", "agc_law_b"):
+                v = AGC_LAW[f.name == "agc_law_b"]
             else:
                 raise SurveyError(f"{path}: scanner/{f.name}: expected a value (scanner preset is null)")
         values[f.name] = v
@@ -180,7 +200,7 @@ def load_survey(path: str | Path, sensor: SensorSettings, reference: ReferenceSy
     values["bits"] = int(values["bits"])
     for k in ("pulse_rate_hz", "scan_angle_deg", "scan_frequency_hz", "divergence_mrad", "pulse_fwhm_ns",
               "sampling_ns", "gain", "noise_mean", "noise_sd", "record_ns", "cfd_fraction", "cfd_arming_sd",
-              "plane_hdrf", "plane_dn"):
+              "plane_hdrf", "plane_dn", "agc_law_a", "agc_law_b"):
         values[k] = float(values[k])
     trajectory = resolve(base, p["trajectory"])
     if trajectory is not None and not trajectory.exists():
