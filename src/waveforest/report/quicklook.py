@@ -702,6 +702,7 @@ def quicklook_page(page, *, las_path, summary: LasSummary, tuning: dict, pulses,
         if np.isfinite(grid).any():
             figures["map"] = figure_uri(map_figure(grid, extent, settings.map_feature))
     gal = _gallery(pulses, features, ok, checked, settings.gallery, settings.seed)
+    del sample, ok, checked  # 2 bytes per pulse and the feature sample: not needed further on
     for g in gal:
         d = decompose(g["samples"][None, :], None, float(g["t_ns"][1] - g["t_ns"][0]) if len(g["t_ns"]) > 1 else 1.0,
                       res["noise_mean"], res["noise_sd"], pulse_fwhm_ns=res.get("system_fwhm_ns"), max_echoes=15)
