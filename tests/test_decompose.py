@@ -181,6 +181,20 @@ def test_point_format_9_of_internal_waveforms_writes_them_beside(tmp_path):
     _check_waveforms_kept(read_waveform_las(tmp_path / "in.las", agc_attribute=None), tmp_path / "e.las")
 
 
+def test_point_format_9_never_overwrites_the_inputs_waveforms(tmp_path):
+    import shutil
+
+    for suffix in (".las", ".wdp"):
+        shutil.copy(RIEGL.with_suffix(suffix), tmp_path / f"in{suffix}")
+    before = (tmp_path / "in.wdp").read_bytes()
+    with pytest.raises(SystemExit) as exc:
+        main(["decompose", str(tmp_path / "in.las"), "--out", str(tmp_path / "in.laz"), "--point-format", "9",
+              "--no-progress"])
+    assert exc.value.code == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["in.las", "in.wdp"]
+    assert (tmp_path / "in.wdp").read_bytes() == before
+
+
 def test_decompose_refuses_a_wrong_output_name_and_writes_nothing(tmp_path):
     with pytest.raises(SystemExit) as exc:
         main(["decompose", str(RIEGL), "--out", str(tmp_path / "echoes.txt"), "--no-progress"])
