@@ -163,12 +163,12 @@ def decompose_file(las_path, out_path, settings: DecomposeSettings, *, cfd_path=
         raise WaveforestError(f"point format {settings.point_format}: expected 6 or 9")
     keep_waves = settings.point_format == 9
     wdp = out_path.with_suffix(".wdp")
-    if keep_waves and wdp.resolve() == las_path.with_suffix(".wdp").resolve():
-        raise WaveforestError(f"{out_path}: its waveforms would go to {wdp}, the input's own; choose another name")
     locate, _ = sensor_locator(trajectory, nominal_range_m)
     reader = WaveformPulseReader(las_path, locate=locate, agc_attribute=None, batch_pulses=settings.batch_pulses,
                                  tmp_dir=out_path.parent, packets=keep_waves)
     las = reader.las
+    if keep_waves and wdp.resolve() in (las.waveform.path.resolve(), las_path.with_suffix(".wdp").resolve()):
+        raise WaveforestError(f"{out_path}: its waveforms would go to {wdp}, the input's own; choose another name")
     with open_point_reader(las) as pr:
         vlrs = [v for v in pr.header.vlrs if type(v).__name__ in ("WktCoordinateSystemVlr", "GeoKeyDirectoryVlr",
                                                                    "GeoDoubleParamsVlr", "GeoAsciiParamsVlr")]
