@@ -6,7 +6,8 @@ the pulses of the bundled real RIEGL file (tests/data/real), repeated as tiles o
 with new GPS times, pulse ids and x/y offsets, until the LAS and ``.wdp`` reach SIZE_GB (1e9 bytes).
 
 Then each command runs as a user types it (``ingest``, ``tune-cfd``, ``features --cfd``,
-``quicklook``, and ``decompose`` where the tree has it), one fresh process each, under a small
+``quicklook``, and ``decompose`` where the tree has it, also with ``--point-format 9`` as
+``decompose_pf9``), one fresh process each, under a small
 parent that reports the child's peak RSS (``getrusage(RUSAGE_CHILDREN).ru_maxrss``). With
 ``--compare REF`` (default ``HEAD``) the same commands of ``git archive REF src`` run too, the two
 taking turns command by command, so old and new are measured in one run.
@@ -129,6 +130,9 @@ def commands(work: Path, las: Path, tag: str, src: Path) -> dict[str, list[str]]
     }
     if has_decompose(src):
         cmds["decompose"] = [*cli, "decompose", str(las), "--out", str(out / "points.laz")]
+        if "--point-format" in (src / "waveforest" / "stages" / "decompose.py").read_text():
+            cmds["decompose_pf9"] = [*cli, "decompose", str(las), "--out", str(out / "points9.laz"),
+                                     "--point-format", "9"]
     return cmds
 
 
@@ -158,7 +162,7 @@ def main() -> None:
     ap.add_argument("--dir", type=Path, default=Path("/tmp/h47b"), help="folder of big.las (default /tmp/h47b)")
     ap.add_argument("--make", type=float, default=None, metavar="SIZE_GB", help="write big.las (+ .wdp) of this size")
     ap.add_argument("--compare", default="HEAD", help="git ref to measure beside the working tree ('none': skip)")
-    ap.add_argument("--commands", default=None, help="comma-separated subset (ingest,tune_cfd,features,quicklook,decompose)")
+    ap.add_argument("--commands", default=None, help="comma-separated subset (ingest,tune_cfd,features,quicklook,decompose,decompose_pf9)")
     args = ap.parse_args()
     las = args.dir / "big.las"
     if args.make is not None:

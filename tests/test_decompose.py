@@ -115,6 +115,86 @@ def test_decompose_command_writes_a_point_cloud_laspy_reads(tmp_path, capsys):
     assert "UTM_North zone 33" in said  # the source file's coordinate system is carried over
 
 
+def _by_gps(table):
+    """gps time -> row of a pulse table."""
+    return {float(g): i for i, g in enumerate(table.column("gps_time").to_numpy())}
+
+
+def _check_waveforms_kept(src_table, out):
+    """The PF9 cloud ``out``: each echo's packet is its source pulse's, its return point location is its time."""
+    from waveforest.constants import RANGE_PER_NS
+    from waveforest.io.las import read_waveform_las
+    from waveforest.io.pulses import list_to_padded
+
+    las = laspy.read(out)
+    assert (las.header.point_format.id, las.header.global_encoding.waveform_data_packets_external) == (9, True)
+    assert list(las.point_format.extra_dimension_names) == [n for n, _, _ in ECHO_DIMENSIONS]
+    # the return point location is the echo's time after the first sample, and x(t), y(t), z(t) c/2 per ps
+    np.testing.assert_allclose(np.asarray(las.return_point_wave_location) / 1000.0, las.echo_time_ns, rtol=1e-6)
+    d = np.stack([np.asarray(las[k], np.float64) for k in ("x_t", "y_t", "z_t")], 1)
+    np.testing.assert_allclose(np.linalg.norm(d, axis=1), RANGE_PER_NS / 1000.0, rtol=1e-6)
+    back = read_waveform_las(out, agc_attribute=None)
+    assert back.num_rows == len(np.unique(np.asarray(las.gps_time)))
+    src_row, row = _by_gps(src_table), _by_gps(back)
+    xs, ls = list_to_padded(src_table.column("samples"))
+    xb, lb = list_to_padded(back.column("samples"))
+    i = np.array([src_row[g] for g in row])
+    j = np.array(list(row.values()))
+    np.testing.assert_array_equal(lb[j], ls[i])
+    np.testing.assert_array_equal(xb[j], xs[i][:, : xb.shape[1]])
+    for c in ("sampling_ns", "dir_x", "dir_y", "dir_z"):
+        np.testing.assert_allclose(back.column(c).to_numpy()[j], src_table.column(c).to_numpy()[i], atol=1e-4)
+    for a in "xyz":  # the first sample's position, from the quantised points (scale 1 mm)
+        np.testing.assert_allclose(back.column(f"anchor_{a}").to_numpy()[j], src_table.column(f"anchor_{a}").to_numpy()[i],
+                                   atol=2e-3)
+    # each echo's time read back reproduces its range: range - t c/2 is the range of the first sample, one per pulse
+    first_sample = np.asarray(las.range_m, np.float64) - np.asarray(las.echo_time_ns, np.float64) * RANGE_PER_NS
+    pid = np.asarray(las.pulse_id)
+    for p in np.unique(pid)[:200]:
+        assert np.ptp(first_sample[pid == p]) < 2e-3
+    te, tl = list_to_padded(back.column("echo_time_ns"), dtype=np.float64)
+    assert int(tl.sum()) == len(las.points)
+    np.testing.assert_allclose(np.sort(te[np.arange(te.shape[1]) < tl[:, None]]),
+                               np.sort(np.asarray(las.echo_time_ns, np.float64)), atol=1e-3)
+    return las
+
+
+@pytest.mark.parametrize("suffix", [".las", ".laz"])
+def test_point_format_9_keeps_each_echos_waveform(tmp_path, suffix):
+    from waveforest.io.las import read_waveform_las
+
+    out = tmp_path / f"echoes{suffix}"
+    main(["decompose", str(RIEGL), "--out", str(out), "--nominal-range", "1000", "--point-format", "9",
+          "--no-progress"])
+    assert (tmp_path / "echoes.wdp").read_bytes() == RIEGL.with_suffix(".wdp").read_bytes()
+    _check_waveforms_kept(read_waveform_las(RIEGL, agc_attribute=None), out)
+
+
+def test_point_format_9_of_internal_waveforms_writes_them_beside(tmp_path):
+    from waveforest.io.las import read_waveform_las, write_waveform_las
+
+    src = read_waveform_las(RIEGL, agc_attribute=None).slice(0, 300)
+    write_waveform_las(tmp_path / "in.las", src, version="1.4", bits=16, storage="internal", agc_attribute=None)
+    main(["decompose", str(tmp_path / "in.las"), "--out", str(tmp_path / "e.las"), "--nominal-range", "1000",
+          "--point-format", "9", "--no-progress"])
+    assert (tmp_path / "e.wdp").is_file()
+    _check_waveforms_kept(read_waveform_las(tmp_path / "in.las", agc_attribute=None), tmp_path / "e.las")
+
+
+def test_point_format_9_never_overwrites_the_inputs_waveforms(tmp_path):
+    import shutil
+
+    for suffix in (".las", ".wdp"):
+        shutil.copy(RIEGL.with_suffix(suffix), tmp_path / f"in{suffix}")
+    before = (tmp_path / "in.wdp").read_bytes()
+    with pytest.raises(SystemExit) as exc:
+        main(["decompose", str(tmp_path / "in.las"), "--out", str(tmp_path / "in.laz"), "--point-format", "9",
+              "--no-progress"])
+    assert exc.value.code == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["in.las", "in.wdp"]
+    assert (tmp_path / "in.wdp").read_bytes() == before
+
+
 def test_decompose_refuses_a_wrong_output_name_and_writes_nothing(tmp_path):
     with pytest.raises(SystemExit) as exc:
         main(["decompose", str(RIEGL), "--out", str(tmp_path / "echoes.txt"), "--no-progress"])

@@ -170,3 +170,19 @@ def test_quicklook_shows_the_decomposition(looked):
     counts, xyz = decomposition_sample(looked / "pulses.parquet", res, seed=7)
     assert counts.sum() == 2368 and int(np.argmax(counts)) == 2
     assert len(xyz) == int((np.arange(len(counts)) * counts).sum()) and np.isfinite(xyz).all()
+
+
+@pytest.mark.parametrize("p_true", [0.0005, 0.3, 0.999])
+def test_gallery_draws_the_same_pulses_without_an_index_of_every_pulse(p_true):
+    """nth_true picks the ranked true elements, so drawing ranks picks what rng.choice on the index array picked."""
+    from waveforest.report.quicklook import nth_true
+
+    mask = np.random.default_rng(3).random(2_500_007) < p_true
+    idx = np.flatnonzero(mask)
+    for seed in range(3):
+        k = min(len(idx), 7)
+        old = np.random.default_rng(seed).choice(idx, size=k, replace=False)
+        new = nth_true(mask, np.random.default_rng(seed).choice(len(idx), size=k, replace=False), chunk=100_003)
+        np.testing.assert_array_equal(new, old)
+    with pytest.raises(IndexError):
+        nth_true(mask, np.array([len(idx)]))

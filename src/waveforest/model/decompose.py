@@ -3,7 +3,9 @@
 
 Each batch of pulses from :class:`waveforest.io.las.read.WaveformPulseReader` is decomposed
 and its echoes written to a LAS 1.4 point format 6 file with extra bytes
-(:mod:`waveforest.io.las.extra_bytes`); memory is one batch. Per echo: the centre along the
+(:mod:`waveforest.io.las.extra_bytes`); memory is one batch. Point format 9 keeps the
+waveforms: each echo points into its pulse's packet, in a copy of the source's waveform data
+(a ``.wdp`` beside the output), at its time within the packet. Per echo: the centre along the
 beam (``anchor + dir * t * c/2``), range, amplitude, SD, FWHM, energy, the pulse's fit residual,
 echo number and count, and the backscatter cross-section (Eq. F2):
 
@@ -28,8 +30,9 @@ import pyarrow as pa
 from waveforest.atomic import atomic_path, output_files, write_json
 from waveforest.constants import RANGE_PER_NS
 from waveforest.errors import WaveforestError
-from waveforest.io.las.extra_bytes import EchoCloudWriter, echo_header
+from waveforest.io.las.extra_bytes import EchoCloudWriter, copy_waveform_data, echo_header
 from waveforest.io.las.file import open_point_reader
+from waveforest.io.las.format import WAVEFORM_HEADER_SIZE
 from waveforest.io.las.info import projection_records
 from waveforest.io.las.pulses import sensor_locator
 from waveforest.io.las.read import WaveformPulseReader
@@ -51,6 +54,7 @@ class DecomposeSettings:
     fixed_width : every echo has the system pulse's width (needs a CFD/calibration JSON).
     calibration_constant : C_cal of Eq. F2, m^2 / (m^4 DN ns); None: relative cross-sections.
     batch_pulses : pulses decomposed at once (memory).
+    point_format : 6, or 9 to keep the waveform packets (a ``.wdp`` beside the output).
     """
 
     min_snr: float = 3.0
@@ -58,6 +62,7 @@ class DecomposeSettings:
     fixed_width: bool = False
     calibration_constant: float | None = None
     batch_pulses: int = 20000
+    point_format: int = 6
 
 
 @dataclass
@@ -125,17 +130,24 @@ def echo_columns(batch: pa.Table, dec, settings: DecomposeSettings, first_pulse:
     else:
         cross = settings.calibration_constant * rng ** 4 * amp * sig
     number = np.broadcast_to(np.arange(1, dec.time_ns.shape[1] + 1), dec.time_ns.shape)[has]
-    return {**xyz, "gps_time": col("gps_time"), "scan_angle_deg": col("scan_angle_deg"),
-            "return_number": number, "number_of_returns": k[rows], "intensity": amp,
-            "pulse_id": first_pulse + rows, "echo_time_ns": t, "range_m": rng, "amplitude_dn": amp,
-            "sigma_ns": sig, "fwhm_ns": dec.fwhm_ns[has], "energy_dn_ns": dec.energy[has],
-            "residual_dn": dec.rms_residual[rows], "cross_section": cross}
+    out = {**xyz, "gps_time": col("gps_time"), "scan_angle_deg": col("scan_angle_deg"),
+           "return_number": number, "number_of_returns": k[rows], "intensity": amp,
+           "pulse_id": first_pulse + rows, "echo_time_ns": t, "range_m": rng, "amplitude_dn": amp,
+           "sigma_ns": sig, "fwhm_ns": dec.fwhm_ns[has], "energy_dn_ns": dec.energy[has],
+           "residual_dn": dec.rms_residual[rows], "cross_section": cross}
+    if "wave_packet_index" in batch.column_names:  # point format 9: the pulse's packet, t in ps, -dir * c/2 per ps
+        out.update({c: batch.column(c).to_numpy()[rows] for c in
+                    ("wave_packet_index", "wave_packet_offset", "wave_packet_bytes")})
+        out["return_point_ps"] = t * 1000.0
+        out.update({f"{a}_t": -col(f"dir_{a}") * (RANGE_PER_NS / 1000.0) for a in "xyz"})
+    return out
 
 
 def decompose_file(las_path, out_path, settings: DecomposeSettings, *, cfd_path=None, trajectory=None,
                    nominal_range_m: float | None = None, progress: bool = True) -> DecomposeSummary:
     """Decompose every waveform of ``las_path`` into ``out_path`` (.las or .laz) and a summary
-    JSON beside it (``<out>.json``); both written atomically, together.
+    JSON beside it (``<out>.json``); with ``settings.point_format`` 9 also the waveform data
+    (``out_path`` with suffix ``.wdp``); all written atomically, together.
 
     Raises
     ------
@@ -147,16 +159,23 @@ def decompose_file(las_path, out_path, settings: DecomposeSettings, *, cfd_path=
     las_path, out_path = Path(las_path), Path(out_path)
     if out_path.suffix.lower() not in (".las", ".laz"):
         raise WaveforestError(f"{out_path}: expected a .las or .laz output file")
+    if settings.point_format not in (6, 9):
+        raise WaveforestError(f"point format {settings.point_format}: expected 6 or 9")
+    keep_waves = settings.point_format == 9
+    wdp = out_path.with_suffix(".wdp")
     locate, _ = sensor_locator(trajectory, nominal_range_m)
     reader = WaveformPulseReader(las_path, locate=locate, agc_attribute=None, batch_pulses=settings.batch_pulses,
-                                 tmp_dir=out_path.parent)
+                                 tmp_dir=out_path.parent, packets=keep_waves)
     las = reader.las
+    if keep_waves and wdp.resolve() in (las.waveform.path.resolve(), las_path.with_suffix(".wdp").resolve()):
+        raise WaveforestError(f"{out_path}: its waveforms would go to {wdp}, the input's own; choose another name")
     with open_point_reader(las) as pr:
         vlrs = [v for v in pr.header.vlrs if type(v).__name__ in ("WktCoordinateSystemVlr", "GeoKeyDirectoryVlr",
                                                                    "GeoDoubleParamsVlr", "GeoAsciiParamsVlr")]
     vlrs += projection_records(las.projection_evlrs)
     header = echo_header(las.scales, las.offsets, vlrs,
-                         "relative" if settings.calibration_constant is None else "m2")
+                         "relative" if settings.calibration_constant is None else "m2",
+                         descriptors=las.descriptors if keep_waves else None)
     summary = DecomposeSummary(out_path)
     started = time.perf_counter()
     total = int(las.header_points_by_return[0]) or None
@@ -182,6 +201,11 @@ def decompose_file(las_path, out_path, settings: DecomposeSettings, *, cfd_path=
                     bar.update(batch.num_rows)
             finally:
                 batches.close()
+        if keep_waves:
+            wf = las.waveform  # an internal record may be followed by EVLRs: its own length
+            size = WAVEFORM_HEADER_SIZE + wf.record_length if wf.storage == "internal" and wf.header_ok else wf.size
+            with atomic_path(wdp) as tmp:
+                copy_waveform_data(wf.path, wf.base, size, tmp)
         summary.seconds = time.perf_counter() - started
         write_json(summary.as_dict(), out_path.with_name(out_path.name + ".json"))
     return summary

@@ -417,16 +417,36 @@ def _histograms_and_map(path: Path, sample: dict, ext, map_feature: str, cells: 
     return hists, grid, (x0, x0 + nx * size, y0, y0 + ny * size)
 
 
+def nth_true(mask: np.ndarray, ranks: np.ndarray, chunk: int = 1 << 20) -> np.ndarray:
+    """``np.flatnonzero(mask)[ranks]`` without the index array of every true element (8 bytes
+    each): ``mask`` is scanned in chunks of ``chunk`` elements."""
+    ranks = np.asarray(ranks, np.int64)
+    out = np.empty(len(ranks), np.int64)
+    before = 0
+    for start in range(0, len(mask), chunk):
+        part = mask[start:start + chunk]
+        n = int(np.count_nonzero(part))
+        inside = (ranks >= before) & (ranks < before + n)
+        if inside.any():
+            out[inside] = start + np.flatnonzero(part)[ranks[inside] - before]
+        before += n
+    if len(ranks) and (ranks.min() < 0 or ranks.max() >= before):
+        raise IndexError(f"rank out of range: {before} true elements")
+    return out
+
+
 def _gallery(pulses: Path, features: Path, ok, checked, k: int, seed: int) -> list[dict]:
     """``k`` pulses drawn at random (seeded): half among those that miss 0.10 m (if any), the rest among the others."""
     if k == 0:
         return []
     rng = named_generator("quicklook_gallery", int(seed))
-    miss = np.flatnonzero(checked & ~ok)
-    rest = np.flatnonzero(~(checked & ~ok))
-    a = rng.choice(miss, size=min(len(miss), k // 2), replace=False) if len(miss) else np.zeros(0, np.int64)
-    b = rng.choice(rest, size=min(len(rest), k - len(a)), replace=False) if len(rest) else np.zeros(0, np.int64)
-    rows = np.sort(np.concatenate([a, b]).astype(np.int64))
+    miss = checked & ~ok
+    n_miss = int(np.count_nonzero(miss))
+    n_rest = len(miss) - n_miss
+    # ranks among the misses and the rest (the draws of rng.choice on the index arrays themselves)
+    a = rng.choice(n_miss, size=min(n_miss, k // 2), replace=False) if n_miss else np.zeros(0, np.int64)
+    b = rng.choice(n_rest, size=min(n_rest, k - len(a)), replace=False) if n_rest else np.zeros(0, np.int64)
+    rows = np.sort(np.concatenate([nth_true(miss, a), nth_true(~miss, b)]).astype(np.int64))
     want = set(rows.tolist())
     out: dict[int, dict] = {}
     start = 0
@@ -682,6 +702,7 @@ def quicklook_page(page, *, las_path, summary: LasSummary, tuning: dict, pulses,
         if np.isfinite(grid).any():
             figures["map"] = figure_uri(map_figure(grid, extent, settings.map_feature))
     gal = _gallery(pulses, features, ok, checked, settings.gallery, settings.seed)
+    del sample, ok, checked  # 2 bytes per pulse and the feature sample: not needed further on
     for g in gal:
         d = decompose(g["samples"][None, :], None, float(g["t_ns"][1] - g["t_ns"][0]) if len(g["t_ns"]) > 1 else 1.0,
                       res["noise_mean"], res["noise_sd"], pulse_fwhm_ns=res.get("system_fwhm_ns"), max_echoes=15)

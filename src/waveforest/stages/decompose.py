@@ -13,7 +13,7 @@ DEFAULTS = DecomposeSettings()
 @click.command("decompose")
 @click.argument("las_file", type=EXISTING_FILE)
 @click.option("--out", "out", type=OUT_FILE, required=True,
-              help="Echo point cloud: .laz (compressed) or .las, LAS 1.4 point format 6 with extra bytes; "
+              help="Echo point cloud: .laz (compressed) or .las, LAS 1.4 point format 6 (or 9) with extra bytes; "
                    "a summary JSON is written beside it (OUT.json).")
 @click.option("--cfd", "cfd", type=EXISTING_FILE, default=None,
               help="CFD or calibration JSON (`waveforest tune-cfd` or `calibrate`): noise and the system "
@@ -30,9 +30,12 @@ DEFAULTS = DecomposeSettings()
               help="Trajectory CSV (gps_time,x,y,z): sensor positions, hence ranges and cross-sections.")
 @click.option("--nominal-range", type=click.FloatRange(min=0, min_open=True), default=None,
               help="Without a trajectory: the sensor this many metres before the first echo.")
+@click.option("--point-format", type=click.Choice(["6", "9"]), default="6", show_default=True,
+              help="9 keeps the waveforms: each echo points into its pulse's packet, copied to a .wdp "
+                   "beside OUT (LAS 1.4 point format 9).")
 @click.option("--progress/--no-progress", default=True, help="Progress bar on stderr.")
 def decompose(las_file, out, cfd, min_snr, max_echoes, fixed_width, calibration_constant, trajectory,
-              nominal_range, progress):
+              nominal_range, point_format, progress):
     """Decompose every waveform into Gaussian echoes: an echo point cloud (docs/method.md §(f2)).
 
     Per echo: range, amplitude, width, energy and the backscatter cross-section.
@@ -45,11 +48,12 @@ def decompose(las_file, out, cfd, min_snr, max_echoes, fixed_width, calibration_
 
     \b
     waveforest decompose flight.las --out echoes.laz --cfd cfd.json --nominal-range 1000
+    waveforest decompose flight.las --out echoes.las --point-format 9   # + echoes.wdp
     """
     if fixed_width and cfd is None:
         raise click.BadParameter("needs --cfd (the system pulse width)", param_hint="'--fixed-width'")
     settings = DecomposeSettings(min_snr=min_snr, max_echoes=max_echoes, fixed_width=fixed_width,
-                                 calibration_constant=calibration_constant)
+                                 calibration_constant=calibration_constant, point_format=int(point_format))
     with warnings_to_stderr():
         s = decompose_file(las_file, out, settings, cfd_path=cfd, trajectory=trajectory,
                            nominal_range_m=nominal_range, progress=progress)

@@ -124,6 +124,11 @@ class WaveformPulseReader:
         (default: the system temp folder).
     on_points : callable, optional
         Called with the number of points processed after each step (progress bars).
+    packets : bool
+        Add the chosen packet of each pulse as three columns beyond the pulse schema:
+        ``wave_packet_index`` (uint8, the descriptor), ``wave_packet_offset`` (uint64, bytes
+        from the start of the waveform data record) and ``wave_packet_bytes`` (uint32,
+        samples x bytes per sample of the descriptor).
 
     Attributes
     ----------
@@ -144,6 +149,7 @@ class WaveformPulseReader:
         batch_pulses: int = DEFAULT_BATCH_PULSES,
         tmp_dir: str | os.PathLike | None = None,
         on_points: Callable[[int], None] | None = None,
+        packets: bool = False,
     ) -> None:
         for name, value in (("chunk_points", chunk_points), ("bucket_points", bucket_points), ("batch_pulses", batch_pulses)):
             if int(value) < 1:
@@ -157,6 +163,7 @@ class WaveformPulseReader:
         self.batch_pulses = int(batch_pulses)
         self.tmp_dir = Path(tmp_dir) if tmp_dir is not None else None
         self.on_points = on_points or (lambda n: None)
+        self.packets = bool(packets)
         self.stats = ReadStats()
         self.n_passes = 1 if self.las.n_points <= self.bucket_points else 2
         """Passes over the point records (progress total = n_passes * n_points)."""
@@ -409,7 +416,13 @@ class WaveformPulseReader:
             "echo_time_ns": lst(echo_t, e_off, f64),
             "echo_intensity": lst(pts["intensity"].astype(np.float32), e_off, pa.float32()),
         }
-        return pa.Table.from_pydict(cols, schema=PULSE_SCHEMA)
+        table = pa.Table.from_pydict(cols, schema=PULSE_SCHEMA)
+        if self.packets:
+            table = table.append_column("wave_packet_index", pa.array(r["wpi"], pa.uint8()))
+            table = table.append_column("wave_packet_offset", pa.array(r["off"], pa.uint64()))
+            table = table.append_column("wave_packet_bytes",
+                                        pa.array(n_samples * lut["sample_bytes"][wpi], pa.uint32()))
+        return table
 
 
 def read_waveform_las(path: str | os.PathLike, **options) -> pa.Table:
