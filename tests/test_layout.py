@@ -153,6 +153,7 @@ FUNCTION_LEVEL_IMPORTS = {
     "tqdm": "progress bars, loaded only when one is shown",
     "matplotlib": "figures, loaded only when one is drawn",
     "scipy": "a few special functions and optimisers, loaded where used",
+    "sklearn": "the LDA and its folds (~80 MB, ~1 s), loaded only by the commands that classify",
 }
 """Modules that may be imported inside a function (heavy and needed only on some paths)."""
 

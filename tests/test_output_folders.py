@@ -234,7 +234,8 @@ def test_quicklook_on_a_text_file_keeps_the_earlier_output(looked, tmp_path, cap
 
 
 _WATCHED = """\
-import sys
+import signal, sys
+signal.signal(signal.SIGINT, signal.default_int_handler)  # as a terminal gives it, even if started in the background
 from waveforest.cli import main
 main(sys.argv[1:])
 """

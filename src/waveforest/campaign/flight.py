@@ -34,7 +34,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import pandas as pd
-from scipy.signal import lfilter
 
 from waveforest.campaign.layout import Frame
 from waveforest.campaign.params import azimuths
@@ -150,6 +149,8 @@ def georeferencing_error(trajectory: pd.DataFrame, pulse_strip: np.ndarray, puls
         phi = float(np.exp(-(t[rows[1]] - t[rows[0]]) / tau_s)) if len(rows) > 1 else 0.0
         e = rng.standard_normal((len(rows), 2))
         e[1:] *= np.sqrt(1.0 - phi**2)  # x_0 = e_0 ~ N(0, 1) (stationary), x_i = phi x_(i-1) + e_i
+        from scipy.signal import lfilter
+
         traj_off[rows] = sd_m * lfilter([1.0], [1.0, -phi], e, axis=0)
         on = np.flatnonzero(pulse_strip == k)
         for a in range(2):

@@ -22,8 +22,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import brentq
-from scipy.special import erfc, erfcx
 
 from waveforest.campaign.dr_cfd import dr_cfd
 from waveforest.constants import BIN_NS
@@ -51,6 +49,8 @@ def emg(t, sigma: float, tau: float) -> np.ndarray:
     array, 1/ns
         The density; it integrates to 1.
     """
+    from scipy.special import erfc, erfcx
+
     t = np.asarray(t, dtype=np.float64)
     z = (sigma / tau - t / sigma) / np.sqrt(2.0)
     with np.errstate(over="ignore", under="ignore"):
@@ -171,6 +171,8 @@ def true_system_waveform(fwhm_ns: float, tail_ratio: float, afterpulse_rel: floa
         return shape(np.array([t - delta]))[0] - cfd_fraction * shape(np.array([t]))[0]
 
     t_left = t_peak - 4.0 * sigma
+    from scipy.optimize import brentq
+
     t_cfd = brentq(y, t_left, t_peak + delta, xtol=1e-9)
     # tabulate on the BIN_NS grid with t = 0 at t_cfd
     lo = t_peak - 8.0 * sigma - t_cfd

@@ -74,7 +74,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import pandas as pd
-from scipy.stats import wasserstein_distance
 
 from waveforest.diagnose.waveform import WAVEFORM_FEATURES, WAVEFORM_SD_FLOOR
 from waveforest.errors import WaveforestError
@@ -625,6 +624,8 @@ def wasserstein_cells(data: GapData, pooled: np.ndarray, weights: np.ndarray, q)
     The bootstrap reuses the sample multiplicities as pulse weights (scipy's weighted W1),
     so no resampled arrays are built.
     """
+    from scipy.stats import wasserstein_distance
+
     n_c, n_f = data.valid.shape
     w1 = np.full((n_c, n_f), np.nan)
     ci = np.full((2, n_c, n_f), np.nan)

@@ -35,7 +35,6 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 import pyarrow as pa
-from scipy.spatial import cKDTree
 
 from waveforest.errors import WaveforestError
 from waveforest.io.pulses import list_to_padded
@@ -109,6 +108,8 @@ def match_samples(echo_xyz: np.ndarray, fields: pd.DataFrame, rules: SelectRules
     is_tree = fields["is_tree"].to_numpy(bool)
     radius = np.where(is_tree, rules.tree_radius_m, fields["radius_m"].to_numpy(float))
     ground = fields["ground_z"].to_numpy(float)
+    from scipy.spatial import cKDTree
+
     tree = cKDTree(fields[["x", "y"]].to_numpy(float))
     xy = echo_xyz[ok_rows, :2]
     z = echo_xyz[ok_rows, 2]

@@ -52,7 +52,6 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 import pyarrow as pa
-from scipy.optimize import minimize_scalar
 
 import waveforest.sensor.checks as checks
 from waveforest.sensor.params import GAIN_MIN
@@ -258,6 +257,8 @@ def fit_b(amplitudes, agc, groups, a: float, bounds=(0.0, 0.05), grid_points: in
     k = int(np.nanargmin(curve))
     lo_r, hi_r = grid[max(k - 1, 0)], grid[min(k + 1, grid.size - 1)]
     if hi_r > lo_r:
+        from scipy.optimize import minimize_scalar
+
         res = minimize_scalar(lambda b: nested_cv(amplitudes, agc, groups, a, b), bounds=(lo_r, hi_r),
                               method="bounded", options={"xatol": 1e-9 * max(1.0, abs(hi - lo))})
         b_best, cv_best = (float(res.x), float(res.fun)) if res.fun <= curve[k] else (float(grid[k]), float(curve[k]))

@@ -23,7 +23,6 @@ import warnings
 
 import numpy as np
 import pandas as pd
-from scipy.stats import t as student_t
 
 from waveforest.rng import named_generator
 
@@ -101,6 +100,8 @@ def wald_interval(estimate: np.ndarray, replicates: np.ndarray, df, alpha: float
     (2, ...) float64
         Lower and upper bounds.
     """
+    from scipy.stats import t as student_t
+
     half = student_t.ppf(1 - alpha / 2, df) * robust_sd(replicates)
     return np.stack([estimate - half, estimate + half])
 

@@ -16,8 +16,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import pandas as pd
-from sklearn.discriminant_analysis import LinearDiscriminantAnalysis
-from sklearn.model_selection import StratifiedGroupKFold
 
 from waveforest.errors import WaveforestError
 
@@ -107,6 +105,8 @@ def _fit_predict(x_train, y_train, x_test) -> np.ndarray:
         return classes[np.argmin(d, axis=1)].astype(object)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # collinear features warn; the SVD solver copes
+        from sklearn.discriminant_analysis import LinearDiscriminantAnalysis
+
         model = LinearDiscriminantAnalysis(solver="svd")
         model.fit(x_train, y_train)
         return model.predict(x_test).astype(object)
@@ -168,6 +168,8 @@ def cv_folds(y, groups, n_folds: int, seed: int) -> list[tuple[np.ndarray, np.nd
     with _FOLDS_LOCK:
         folds = _FOLDS.get(key)
     if folds is None:
+        from sklearn.model_selection import StratifiedGroupKFold
+
         splitter = StratifiedGroupKFold(n_splits=k, shuffle=True, random_state=key[1])
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # "least populated class has fewer members than n_splits"

@@ -42,7 +42,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
-from scipy import special
 
 DEWIT = ("planophile", "erectophile", "plagiophile", "extremophile")
 LAD_NAMES = DEWIT + ("uniform", "spherical")
@@ -251,6 +250,8 @@ class LeafAngleDistribution:
         elif self.name == "spherical":
             f = np.sin(th)
         elif self.name == "beta":
+            from scipy import special
+
             t = np.clip(th / HALF_PI, 0.0, 1.0)
             with np.errstate(divide="ignore"):
                 f = c * np.exp((self.nu - 1) * np.log(t) + (self.mu - 1) * np.log1p(-t)
@@ -270,6 +271,8 @@ class LeafAngleDistribution:
         if self.name == "spherical":
             return 1.0 - np.cos(th)
         if self.name == "beta":
+            from scipy import special
+
             return special.betainc(self.nu, self.mu, th / HALF_PI)
         return (th >= self.mu).astype(np.float64)
 
