@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -175,6 +177,25 @@ def test_robust_sd_is_the_sd_of_normal_replicates_and_ignores_a_wild_one():
     lo, hi = B.recentred_interval(1.0, r[:, 0])
     assert lo < 1.0 < hi and hi - lo < 10.0
     assert np.isnan(B.robust_sd(np.array([[1.0], [np.nan]])))[0]
+
+
+def test_nanquantile0_is_numpys_nanquantile_bit_for_bit():
+    """The one-sort quantile behind every bootstrap SE: NaN, +-inf, ties, all-NaN columns and
+    single values, every quantile from 0 to 1."""
+    rng = np.random.default_rng(5)
+    q = [0.0, 0.025, 0.25, 0.5, 0.75, 0.975, 1.0, 0.3141]
+    for _ in range(500):
+        shape = (int(rng.integers(1, 60)),) + tuple(rng.integers(1, 5, size=rng.integers(0, 3)))
+        x = rng.normal(size=shape) * 10 ** rng.uniform(-5, 5)
+        x[rng.random(shape) < rng.uniform(0.0, 1.0)] = np.nan
+        x[rng.random(shape) < 0.05] = np.inf
+        x[rng.random(shape) < 0.05] = -np.inf
+        if rng.random() < 0.3:
+            x = np.round(x)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN columns, inf - inf
+            ref = np.nanquantile(x, q, axis=0)
+        assert np.array_equal(B.nanquantile0(x, q), ref, equal_nan=True)
 
 
 def test_bootstrap_weights_are_stratified_rescaled_and_seeded():

@@ -71,6 +71,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import pandas as pd
@@ -188,6 +189,12 @@ class GapData:
     real: pd.DataFrame
     sim: pd.DataFrame
     floor_scale: float = 1.0
+
+    @cached_property
+    def label_members(self) -> np.ndarray:
+        """(L, C) bool: the cells of each label (species and stratum), in order of appearance."""
+        codes = pd.factorize(self.cells["species"])[0]
+        return codes[None, :] == np.arange(codes.max() + 1)[:, None]
 
     @classmethod
     def build(
@@ -395,9 +402,9 @@ def pooled(data: GapData, x: np.ndarray, mask: np.ndarray) -> np.ndarray:
         One value per label x feature with at least one cell in ``mask`` (NaN where all of
         its cells are NaN).
     """
-    codes = pd.factorize(data.cells["species"])[0]
-    member = (codes[None, :] == np.arange(codes.max() + 1)[:, None])[:, :, None] & mask[None]  # (L, C, F)
+    member = data.label_members[:, :, None] & mask[None]  # (L, C, F)
     keep = member.any(axis=1)  # (L, F)
+    member = member.astype(np.float64)  # einsum is faster on floats, and exact on 0 / 1
     ok = np.isfinite(x)
     num = np.einsum("lcf,...cf->...lf", member, np.where(ok, x, 0.0))
     den = np.einsum("lcf,...cf->...lf", member, ok.astype(np.float64))
