@@ -196,6 +196,7 @@ def test_nanquantile0_is_numpys_nanquantile_bit_for_bit():
             warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN columns, inf - inf
             ref = np.nanquantile(x, q, axis=0)
         assert np.array_equal(B.nanquantile0(x, q), ref, equal_nan=True)
+    assert np.isnan(B.nanquantile0(np.empty((0, 3)), q)).all() and B.nanquantile0(np.empty((0, 3)), q).shape == (8, 3)
 
 
 def test_bootstrap_weights_are_stratified_rescaled_and_seeded():

@@ -150,6 +150,8 @@ def nanquantile0(x: np.ndarray, q) -> np.ndarray:
     s = np.sort(np.asarray(x, dtype=np.float64), axis=0)
     n = np.sum(~np.isnan(s), axis=0)
     out = np.full((len(q),) + s.shape[1:], np.nan)
+    if s.shape[0] == 0:
+        return out
     for i, qi in enumerate(q):
         vi = (n - 1) * qi  # NumPy's virtual index of the linear method
         lo = np.floor(vi)
