@@ -154,11 +154,11 @@ def nanquantile0(x: np.ndarray, q) -> np.ndarray:
         return out
     for i, qi in enumerate(q):
         vi = (n - 1) * qi  # NumPy's virtual index of the linear method
-        lo = np.floor(vi)
+        below = np.floor(vi)
         at_end = vi >= n - 1
-        lo = np.where(at_end, n - 1, lo).astype(np.intp)
+        lo = np.where(at_end, n - 1, below).astype(np.intp)
         hi = np.where(at_end, n - 1, lo + 1)
-        t = np.where(at_end, 0.0, vi - np.floor(vi))
+        t = np.where(at_end, 0.0, vi - below)
         a = np.take_along_axis(s, np.maximum(lo, 0)[None], axis=0)[0]
         b = np.take_along_axis(s, np.maximum(hi, 0)[None], axis=0)[0]
         with np.errstate(invalid="ignore"):  # inf - inf: NaN, as NumPy's

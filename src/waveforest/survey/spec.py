@@ -190,7 +190,7 @@ def load_survey(path: str | Path, sensor: SensorSettings, reference: ReferenceSy
             elif f.name == "gain":
                 v = 1.0
             elif f.name in ("agc_law_a", "agc_law_b"):
-                v = AGC_LAW[f.name == "agc_law_b"]
+                v = dict(zip(("agc_law_a", "agc_law_b"), AGC_LAW))[f.name]
             else:
                 raise SurveyError(f"{path}: scanner/{f.name}: expected a value (scanner preset is null)")
         values[f.name] = v
