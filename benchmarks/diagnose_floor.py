@@ -45,16 +45,19 @@ from waveforest.sensor.calibration import load_calibration
 from waveforest.settings import diagnose_settings
 
 
-def study_inputs(results: Path, cfg_path: Path | None = None):
+def study_inputs(results: Path, cfg_path: Path | None = None, overrides: dict | None = None, geometry=None):
     """(settings, keys, real features, simulator) of the diagnosis on one results folder (config:
-    ``cfg_path``, default the folder's config/diagnose.yaml); the simulator keeps every table it
-    made, so that several feature sets share its simulations."""
-    cfg = config.load(cfg_path or results / "config" / "diagnose.yaml")
+    ``cfg_path``, default the folder's config/diagnose.yaml, with ``overrides`` as
+    :func:`waveforest.config.load` takes them); the simulator keeps every table it made, so that
+    several feature sets share its simulations. ``geometry``, if given, maps each select table
+    to the one the simulator traces (the real features are always the recorded pulses')."""
+    cfg = config.load(cfg_path or results / "config" / "diagnose.yaml", overrides)
     settings = diagnose_settings(cfg)
     fields = read_fields(results / "campaign" / "fields.csv")
     datasets = [ds for ds in settings.datasets if (results / "select" / f"{ds}.parquet").exists()]
-    selected = {ds: with_sample_columns(read_select_table(results / "select" / f"{ds}.parquet"), fields, "fields.csv")
+    recorded = {ds: with_sample_columns(read_select_table(results / "select" / f"{ds}.parquet"), fields, "fields.csv")
                 for ds in datasets}
+    selected = recorded if geometry is None else {ds: geometry(t) for ds, t in recorded.items()}
     cals = {}
     for ds in selected:
         cal = load_calibration(results / "calibration" / f"{ds}.json", results / "calibration" / f"{ds}.parquet")
@@ -69,9 +72,9 @@ def study_inputs(results: Path, cfg_path: Path | None = None):
             memo[key] = study(pulses, effects, seed)
         return memo[key]
 
-    keys = pulse_keys(selected, settings.strata)
+    keys = pulse_keys(recorded, settings.strata)
     feats = read_feature_tables([results / "features" / f"{ds}_real.parquet" for ds in selected])
-    real = with_waveform_statistics(real_features(feats, keys, settings.strata), selected, metas)
+    real = with_waveform_statistics(real_features(feats, keys, settings.strata), recorded, metas)
     return settings, keys, real, simulate
 
 

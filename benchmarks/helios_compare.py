@@ -24,14 +24,14 @@ range) and then applied to the canopy. Figures (``name: value unit``):
   (target within HELIOS's 0.25-ns bins); ``canopy_centroid_rms_ns``: per matched pulse;
 * ``helios_cpu_ms_per_pulse``, ``waveforest_cpu_ms_per_pulse_order1``,
   ``waveforest_cpu_ms_per_pulse_order10`` (the canopy, equal rays; the marginal CPU time per
-  pulse between a leg of ``--length`` and one three times as long, so that scene loading and
-  BVH builds cancel: HELIOS's whole process on one thread, waveforest's tiles: trace and sensor
+  pulse between a leg of ``--length`` and one three times as long (``canopy_marginal_pulses_*``
+  pulses more), so that scene loading and BVH builds cancel: HELIOS's whole process on one thread, waveforest's tiles: trace and sensor
   twin) and ``speedup_order1``, ``order10_over_helios``; ``waveforest_run_cpu_ms_per_pulse_order1``
   and ``speedup_order1_whole_run`` count waveforest's whole survey call (tiles and the merge into
   the LAS, ``.wdp`` and truth files), as HELIOS's figure counts its writing. Energies and centroids are those of the
   long leg.
 
-    python benchmarks/helios_compare.py [--quality 98] [--length 4] [--tilt 1]
+    python benchmarks/helios_compare.py [--quality 98] [--length 4] [--tilt 1] [--rate 2000]
 """
 
 from __future__ import annotations
@@ -61,7 +61,10 @@ from waveforest.vegetation import build
 HELIOS = "/work/helios/build-helios/helios++"
 ALTITUDE = 1100.0
 SPEED = 40.0
-RATE = 250.0
+RATE = 2000.0
+"""Pulse rate, Hz: at 40 m/s a pulse every 2 cm along the leg, so that the long leg adds ~200
+pulses over the canopy and its marginal CPU is several times the noise of loading the scene and
+building its BVH (at 250 Hz the ~27 added pulses left the figure within that noise)."""
 
 
 def ply2obj(ply: Path, obj: Path) -> Path:
@@ -104,7 +107,7 @@ def subrays(q: int) -> int:
     return 1 + sum(int(math.floor(2 * math.pi * r)) for r in range(1, q))
 
 
-def helios_files(d: Path, obj: Path, q: int, length: float) -> Path:
+def helios_files(d: Path, obj: Path, q: int, length: float, rate: float = RATE) -> Path:
     (d / "platform.xml").write_text("""<?xml version="1.0"?>
 <document><platform id="sr22" name="Cirrus SR-22" type="linearpath">
 <scannerMount z="0.7"><rot axis="x" angle_deg="-90" /><rot axis="z" angle_deg="90" /></scannerMount>
@@ -112,7 +115,7 @@ def helios_files(d: Path, obj: Path, q: int, length: float) -> Path:
 """)
     (d / "scanner.xml").write_text(f"""<?xml version="1.0"?>
 <document><scanner id="wf_als" accuracy_m="0.0" beamDivergence_rad="0.00015" name="wf_als" optics="oscillating"
- pulseFreqs_Hz="{RATE:g}" pulseLength_ns="4" rangeMin_m="10" scanAngleMax_deg="30" scanFreqMin_Hz="0"
+ pulseFreqs_Hz="{rate:g}" pulseLength_ns="4" rangeMin_m="10" scanAngleMax_deg="30" scanFreqMin_Hz="0"
  scanFreqMax_Hz="200" wavelength_nm="1064" maxNOR="0" receivedEnergyMin_W="1e-15">
  <FWFSettings binSize_ns="0.25" beamSampleQuality="{q}" winSize_ns="1"/></scanner></document>
 """)
@@ -124,7 +127,7 @@ def helios_files(d: Path, obj: Path, q: int, length: float) -> Path:
     (d / "survey.xml").write_text(f"""<?xml version="1.0"?>
 <document>
 <platformSettings id="p" movePerSec_m="{SPEED:g}" z="{ALTITUDE:g}" onGround="false"/>
-<scannerSettings id="s" active="true" pulseFreq_hz="{RATE:g}" scanAngle_deg="0.0001" scanFreq_hz="50"
+<scannerSettings id="s" active="true" pulseFreq_hz="{rate:g}" scanAngle_deg="0.0001" scanFreq_hz="50"
  beamDivergence_rad="0.00015"/>
 <survey name="cmp" platform="{d / 'platform.xml'}#sr22" scanner="{d / 'scanner.xml'}#wf_als"
  scene="{d / 'scene.xml'}#s">
@@ -159,12 +162,12 @@ def run_helios(helios: str, survey: Path, out: Path) -> tuple[np.ndarray, np.nda
     return np.array(origins), np.array(energy), np.array(centroid), cpu
 
 
-def run_waveforest(d: Path, obj: Path, rays: int, orders: int, length: float):
+def run_waveforest(d: Path, obj: Path, rays: int, orders: int, length: float, rate: float = RATE):
     """The same flight through `waveforest survey`; per pulse: origin, energy (order 1), one-way centroid (ns)."""
     (d / "SCENE.yaml").write_text(yaml.safe_dump({"objects": [{"file": str(obj)}], "ground": {"type": "none"}}))
     doc = {"seed": 1, "platform": {"legs": [{"start": [0.0, -length / 2], "end": [0.0, length / 2],
                                              "altitude_m": ALTITUDE + 0.7, "speed_m_s": SPEED}]},
-           "scanner": {"preset": "als60", "pulse_rate_hz": RATE, "scan_angle_deg": 0.0, "divergence_mrad": 0.15},
+           "scanner": {"preset": "als60", "pulse_rate_hz": rate, "scan_angle_deg": 0.0, "divergence_mrad": 0.15},
            "quality": {"rays_per_pulse": rays, "max_order": orders, "tile_m": 100.0}, "output": {"truth": True}}
     (d / "SURVEY.yaml").write_text(yaml.safe_dump(doc))
     cfg = config.load(None)
@@ -194,6 +197,7 @@ def main(argv=None) -> None:
     ap.add_argument("--quality", type=int, default=98, help="HELIOS beamSampleQuality (subrays = waveforest rays)")
     ap.add_argument("--length", type=float, default=4.0, help="leg length over the scenes, m")
     ap.add_argument("--tilt", type=float, default=1.0, help="tilt of both scenes, deg (>= 0.5)")
+    ap.add_argument("--rate", type=float, default=RATE, help=f"pulse rate, Hz (default {RATE:g})")
     a = ap.parse_args(argv)
     rays = subrays(a.quality)
     print(f"rays_per_pulse: {rays} rays")
@@ -213,8 +217,8 @@ def main(argv=None) -> None:
             for length, into in ((a.length, short), (3 * a.length, found)):
                 sub = d / f"{length:g}"
                 sub.mkdir()
-                h = run_helios(a.helios, helios_files(sub, obj, a.quality, length), sub / "helios")
-                w = run_waveforest(sub, obj, rays, 1, length)
+                h = run_helios(a.helios, helios_files(sub, obj, a.quality, length, a.rate), sub / "helios")
+                w = run_waveforest(sub, obj, rays, 1, length, a.rate)
                 into[name] = (h, w)
             print(f"{name}_pulses_helios: {len(found[name][0][1])} pulses")
             print(f"{name}_pulses_waveforest: {len(found[name][1][1])} pulses")
@@ -246,9 +250,11 @@ def main(argv=None) -> None:
         cpu10 = []
         for length in (a.length, 3 * a.length):
             sub = tmp / "canopy" / f"{length:g}"
-            _, e, _, r = run_waveforest(sub, tmp / "canopy" / "canopy.obj", rays, 10, length)
+            _, e, _, r = run_waveforest(sub, tmp / "canopy" / "canopy.obj", rays, 10, length, a.rate)
             cpu10.append((r["cpu_s"], len(e)))
         w10 = 1000 * (cpu10[1][0] - cpu10[0][0]) / (cpu10[1][1] - cpu10[0][1])
+        print(f"canopy_marginal_pulses_helios: {len(hc[1]) - len(hs[1])} pulses")
+        print(f"canopy_marginal_pulses_waveforest: {len(wc[1]) - len(ws[1])} pulses")
         print(f"helios_cpu_ms_per_pulse: {h_cpu:.1f} ms")
         print(f"helios_cpu_s_short_leg: {hs[3]:.1f} s")
         print(f"waveforest_cpu_ms_per_pulse_order1: {w1:.1f} ms")

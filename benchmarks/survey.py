@@ -164,7 +164,7 @@ def stand(tmp: Path, area_ha: float, rays, orders) -> None:
     print(f"stand_area_ha: {area_ha:g} ha")
     print(f"stand_pulses: {n} pulses")
     print(f"stand_returns: {res['returns']} returns")
-    print(f"stand_rays_per_pulse: {res['rays_per_pulse']} rays")
+    print(f"stand_rays_per_pulse: {res['rays'] / n:.0f} rays")  # mean: the adaptive budget varies them
     print(f"stand_max_order: {res['max_order']} orders")
     print(f"stand_prototypes: {res['prototypes']} prototypes")
     print(f"stand_prototype_build_s: {res['prototype_build_s']:.1f} s")
