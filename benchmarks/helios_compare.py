@@ -25,8 +25,8 @@ range) and then applied to the canopy. Figures (``name: value unit``):
 * ``helios_cpu_ms_per_pulse``, ``waveforest_cpu_ms_per_pulse_order1``,
   ``waveforest_cpu_ms_per_pulse_order10`` (the canopy, equal rays; the marginal CPU time per
   pulse between a leg of ``--length`` and one three times as long (``canopy_marginal_pulses_*``
-  pulses more), so that scene loading and BVH builds cancel: HELIOS's whole process on one thread, waveforest's tiles: trace and sensor
-  twin) and ``speedup_order1``, ``order10_over_helios``; ``waveforest_run_cpu_ms_per_pulse_order1``
+  pulses more), so that scene loading and BVH builds cancel: HELIOS's whole process on one
+  thread, waveforest's tiles: trace and sensor twin) and ``speedup_order1``, ``order10_over_helios``; ``waveforest_run_cpu_ms_per_pulse_order1``
   and ``speedup_order1_whole_run`` count waveforest's whole survey call (tiles and the merge into
   the LAS, ``.wdp`` and truth files), as HELIOS's figure counts its writing. Energies and centroids are those of the
   long leg.
@@ -62,9 +62,9 @@ HELIOS = "/work/helios/build-helios/helios++"
 ALTITUDE = 1100.0
 SPEED = 40.0
 RATE = 2000.0
-"""Pulse rate, Hz: at 40 m/s a pulse every 2 cm along the leg, so that the long leg adds ~200
+"""Pulse rate, Hz: at 40 m/s a pulse every 2 cm along the leg, so that the long leg adds 116
 pulses over the canopy and its marginal CPU is several times the noise of loading the scene and
-building its BVH (at 250 Hz the ~27 added pulses left the figure within that noise)."""
+building its BVH (at 250 Hz the 15 added pulses left the figure within that noise)."""
 
 
 def ply2obj(ply: Path, obj: Path) -> Path:
