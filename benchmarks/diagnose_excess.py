@@ -15,9 +15,12 @@ pulses are simulated under the base model with the diagnosis's own seed four way
   so the simulation carries the Monte Carlo noise of the campaign's "real" waveforms;
 * ``both``.
 
-For each: the first echo's total gap G with its 95 % interval and the bootstrap floor F
-(``<variant>_gap: G [low, high]``, ``<variant>_floor: F``) and per feature
-``<variant>_<feature>: G / F``. Then, per dataset x species of the ``diagnosed`` variant, the
+Each variant is simulated with ``--sims`` seeds (the diagnosis's own first, then those of
+``diagnose_floor.py``): one simulation's G moves by about its floor from seed to seed, so a
+variant's effect is the difference of the means. For each: the first echo's total gap G of
+the first seed with its 95 % interval and the bootstrap floor F (``<variant>_gap: G [low,
+high]``, ``<variant>_floor: F``), per feature ``<variant>_<feature>: G / F`` (first seed), and
+``<variant>_mean_gap: mean [min, max] over the seeds``. Then, per dataset x species of the ``diagnosed`` variant, the
 correlation of the mean first-echo height H (real minus simulated) with the cell's mean recorded
 minus true sensor z (``h_vs_strip_z_corr``), and the wall time.
 """
@@ -79,6 +82,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("results", type=Path, help="results folder of a campaign without hidden effects")
     p.add_argument("--rays", type=int, default=None, help="rays of the campaign_rays variants "
                                                           "(default: the campaign's campaign.n_rays)")
+    p.add_argument("--sims", type=int, default=4, help="simulation seeds per variant (default 4)")
     a = p.parse_args(argv)
     t0 = time.perf_counter()
     truth = position_errors(a.results)
@@ -91,18 +95,27 @@ def main(argv: list[str] | None = None) -> None:
         settings, keys, real, simulate = study_inputs(a.results, None, overrides, geometry)
         s = settings.search
         _, s_after, s_boot = named_seeds("missing_effects", int(settings.seed), n=3)
-        sim = simulate_all(simulate, keys, {}, int(s_after), s.replicates)
-        universe = sample_universe(real, sim)
-        rep = gap_report(real, sim, n_boot=s.n_boot, alpha=s.alpha, wasserstein=False, universe=universe,
-                         weights=bootstrap_weights(universe, s.n_boot, int(s_boot)), features=FEATURES)
-        tot = rep.summary.loc["total"]
-        print(f"{name}_gap: {tot['gap']:.4f} [{tot['ci_low']:.4f}, {tot['ci_high']:.4f}] squared pooled SDs")
-        print(f"{name}_floor: {tot['noise_floor']:.4f} squared pooled SDs")
-        for f in FEATURES:
-            r = rep.summary.loc[f]
-            print(f"{name}_{f}: {r['gap']:.4f} / {r['noise_floor']:.4f} gap / floor")
-        if first is None:
-            first = (keys, real, sim)
+        seeds = [int(s_after)] + [int(x) for x in named_seeds("missing_effects", int(settings.seed) + 1000,
+                                                                n=a.sims - 1)]
+        gaps = []
+        for k, seed in enumerate(seeds):
+            sim = simulate_all(simulate, keys, {}, seed, s.replicates)
+            universe = sample_universe(real, sim)
+            rep = gap_report(real, sim, n_boot=s.n_boot, alpha=s.alpha, wasserstein=False, universe=universe,
+                             weights=bootstrap_weights(universe, s.n_boot, int(s_boot)), features=FEATURES)
+            tot = rep.summary.loc["total"]
+            gaps.append(float(tot["gap"]))
+            if k:
+                continue
+            print(f"{name}_gap: {tot['gap']:.4f} [{tot['ci_low']:.4f}, {tot['ci_high']:.4f}] squared pooled SDs")
+            print(f"{name}_floor: {tot['noise_floor']:.4f} squared pooled SDs")
+            for f in FEATURES:
+                r = rep.summary.loc[f]
+                print(f"{name}_{f}: {r['gap']:.4f} / {r['noise_floor']:.4f} gap / floor")
+            if first is None:
+                first = (keys, real, sim)
+        print(f"{name}_mean_gap: {np.mean(gaps):.4f} [{min(gaps):.4f}, {max(gaps):.4f}] over {len(gaps)} seeds",
+              flush=True)
     keys, real, sim = first
     dz = strip_z(a.results, keys, truth)
     cells = (real.merge(dz, on=["dataset", "pulse_id"]).groupby(["dataset", "species"])
