@@ -76,9 +76,9 @@ noise SDs (``<m>_wave_err_rms``, ``_p95``, ``_frac_below_third``), the Monte Car
 and FWHM over their SD between :data:`INSTANCES` plant instances, rays and CPU per pulse, and
 each efficiency against ``random_30k`` with a bootstrap 95 % interval over the seeds.
 
-The virtual campaign's Monte Carlo noise (``--sections campaign``; :func:`bench_campaign`): its
-fixed 256 rays and its adaptive budget at ``--campaign-tolerances``, against the true sensor's
-digitiser noise.
+The virtual campaign's Monte Carlo noise (``--sections campaign``; :func:`bench_campaign`): fixed
+ray counts (``--campaign-rays``) and its adaptive budget at ``--campaign-tolerances``, against the
+true sensor's digitiser noise.
 
 The speed section traces with the settings of ``--method`` (default :data:`RECOMMENDED`, the
 tracer's default in the study config; the flat ``ms_per_pulse_amortised_1`` uses the method's
@@ -621,8 +621,8 @@ def bench_campaign(prefix: str, scene, beams, args) -> None:
     The field-sample pulses of ``beams`` on a fixed instance, traced as the campaign traces them
     (:func:`waveforest.campaign.site_trace.site_budget`, the true sensor of
     :data:`CAMPAIGN_DATASET`, R = :data:`RANGE_M`, recorded at the gain the budget assumes,
-    :data:`waveforest.campaign.site_trace.AGC_HIGH_SD` SDs of the terrain level above its mean) over ``--seeds`` seeds, with the fixed 256 rays of before and the adaptive budget at
-    each of ``--campaign-tolerances``: ``campaign_<tol>_wave_err_rms`` (RMS over pulses and seeds
+    :data:`waveforest.campaign.site_trace.AGC_HIGH_SD` SDs of the terrain level above its mean) over ``--seeds`` seeds, with each fixed count of
+    ``--campaign-rays`` and the adaptive budget (from 256 rays) at each of ``--campaign-tolerances``: ``campaign_<tol>_wave_err_rms`` (RMS over pulses and seeds
     of the recorded waveform's error against a reference of :data:`REF_RAYS` rays, RMS over the
     samples with signal, in noise SDs), ``..._p95``, ``..._rays_per_pulse``, ``..._cpu_ms_per_pulse``.
     """
@@ -647,22 +647,22 @@ def bench_campaign(prefix: str, scene, beams, args) -> None:
                        max_order=MAX_ORDER))
     support = w_ref >= 0.1 * sensor.noise_sd_dn
     print(f"{prefix}campaign_peak_dn: {w_ref.max(axis=1).mean():.1f} DN")
-    for tol in [None] + list(args.campaign_tolerances):
-        st = TraceSettings(seed=0, n_rays=256, max_order=MAX_ORDER, viewed_diameter_m=5.0, specular=0.0,
+    for fixed, tol in [(k, None) for k in args.campaign_rays] + [(256, t) for t in args.campaign_tolerances]:
+        st = TraceSettings(seed=0, n_rays=fixed, max_order=MAX_ORDER, viewed_diameter_m=5.0, specular=0.0,
                            hotspot=1.0, trigger_loss=0.0, ground_rho=0.3, lai_jitter=0.0, vegetation_effects=(),
                            sensors=(sensor,), bvh_quality="medium", sampler="sobol", roulette=0.5,
                            tolerance=tol, max_rays=32768)
         errs, cpu, rays = [], [], []
         for seed in range(args.seeds):
             c = time.thread_time()
-            res = trace(prepared, beams, n_rays=256, max_order=MAX_ORDER, seed=seed, sampler="sobol", roulette=0.5,
+            res = trace(prepared, beams, n_rays=fixed, max_order=MAX_ORDER, seed=seed, sampler="sobol", roulette=0.5,
                         threads=1, **site_budget(job, st))
             cpu.append(time.thread_time() - c)
             rays.append(res.rays.mean())
             d = np.where(support, (wave(res) - w_ref) ** 2, 0.0).sum(axis=1) / np.maximum(support.sum(axis=1), 1)
             errs.extend((np.sqrt(d) / sensor.noise_sd_dn).tolist())
         e = np.array(errs)
-        name = "campaign_fixed256" if tol is None else f"campaign_{tol:g}"
+        name = f"campaign_fixed{fixed}" if tol is None else f"campaign_{tol:g}"
         print(f"{prefix}{name}_wave_err_rms: {np.sqrt(np.mean(e**2)):.3f} noise_sd")
         print(f"{prefix}{name}_wave_err_p95: {np.percentile(e, 95):.3f} noise_sd")
         print(f"{prefix}{name}_rays_per_pulse: {np.mean(rays):.0f} rays")
@@ -676,7 +676,9 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--species", nargs="*", default=list(SPECIES), help="species to benchmark (none: canopy only)")
     ap.add_argument("--sections", nargs="+", default=["speed", "error"], choices=["speed", "error", "sensor", "campaign"])
-    ap.add_argument("--campaign-tolerances", type=float, nargs="+", default=[0.33, 0.2, 0.1],
+    ap.add_argument("--campaign-rays", type=int, nargs="+", default=[256, 1024],
+                    help="campaign section: fixed ray counts (default 256 1024)")
+    ap.add_argument("--campaign-tolerances", type=float, nargs="*", default=[0.33, 0.2, 0.1],
                     help="adaptive tolerances of the campaign section")
     ap.add_argument("--method", default=RECOMMENDED, choices=list(METHODS),
                     help="tracer settings of the speed section (default: the study's default)")
