@@ -2,11 +2,11 @@
 
 Usage::
 
-    python benchmarks/diagnose_excess.py RESULTS [--rays N]
+    python benchmarks/diagnose_excess.py RESULTS [--rays N] [--sims 4]
 
 RESULTS is a study's results folder on a virtual campaign without hidden effects (as for
 ``diagnose_floor.py``), with the campaign's ``campaign/truth_pulses.parquet``. The diagnosed
-pulses are simulated under the base model with the diagnosis's own seed four ways:
+pulses are simulated under the base model four ways:
 
 * ``diagnosed``: as the diagnosis does (recorded sensor positions, ``diagnose.n_rays``);
 * ``true_positions``: at the campaign's true sensor positions (the recorded minus the true
@@ -16,12 +16,13 @@ pulses are simulated under the base model with the diagnosis's own seed four way
 * ``both``.
 
 Each variant is simulated with ``--sims`` seeds (the diagnosis's own first, then those of
-``diagnose_floor.py``): one simulation's G moves by about its floor from seed to seed, so a
-variant's effect is the difference of the means. For each: the first echo's total gap G of
+``diagnose_floor.py``): one simulation's G moves by up to half its floor from seed to seed, so a
+variant's effect is the difference of the means, and the excess is a mean against the twins'
+mean gap (the diagnosis's ``verdict.json``, ``floor_calibration.off_gap``). For each: the first echo's total gap G of
 the first seed with its 95 % interval and the bootstrap floor F (``<variant>_gap: G [low,
 high]``, ``<variant>_floor: F``), per feature ``<variant>_<feature>: G / F`` (first seed), and
-``<variant>_mean_gap: mean [min, max] over the seeds``. Then, per dataset x species of the ``diagnosed`` variant, the
-correlation of the mean first-echo height H (real minus simulated) with the cell's mean recorded
+``<variant>_mean_gap: mean [min, max] over the seeds``. Then, per dataset x species of the
+``diagnosed`` variant, the correlation of the mean first-echo height H (real minus simulated) with the cell's mean recorded
 minus true sensor z (``h_vs_strip_z_corr``), and the wall time.
 """
 
