@@ -13,7 +13,7 @@ pulses are simulated under the base model four ways:
   position of each pulse: the campaign's per-strip positioning errors undone);
 * ``campaign_rays``: with ``--rays`` rays per pulse (default the campaign's ``campaign.n_rays``),
   so the simulation carries the Monte Carlo noise of the campaign's "real" waveforms;
-* ``both``.
+* ``both`` (the last two only when ``--rays`` differs from the diagnosis's ray count).
 
 Each variant is simulated with ``--sims`` seeds (the diagnosis's own first, then those of
 ``diagnose_floor.py``): one simulation's G moves by up to half its floor from seed to seed, so a
@@ -46,7 +46,7 @@ from waveforest.stats.bootstrap import bootstrap_weights
 AXES = "xyz"
 
 
-def position_errors(results: Path) -> pd.DataFrame:
+def true_sensor_positions(results: Path) -> pd.DataFrame:
     """Per recorded pulse (dataset, gps_time): the true sensor position of the campaign's truth."""
     return pd.read_parquet(results / "campaign" / "truth_pulses.parquet",
                            columns=["dataset", "gps_time"] + [f"sensor_{a}" for a in AXES])
@@ -86,11 +86,15 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--sims", type=int, default=4, help="simulation seeds per variant (default 4)")
     a = p.parse_args(argv)
     t0 = time.perf_counter()
-    truth = position_errors(a.results)
-    rays = a.rays or int(config.load(a.results / "config" / "diagnose.yaml")["campaign"]["n_rays"])
-    variants = {"diagnosed": ({}, None), "true_positions": ({}, at_true_positions(truth)),
-                "campaign_rays": ({"diagnose": {"n_rays": rays}}, None),
-                "both": ({"diagnose": {"n_rays": rays}}, at_true_positions(truth))}
+    truth = true_sensor_positions(a.results)
+    cfg = config.load(a.results / "config" / "diagnose.yaml")
+    rays = a.rays or int(cfg["campaign"]["n_rays"])
+    variants = {"diagnosed": ({}, None), "true_positions": ({}, at_true_positions(truth))}
+    if rays != int(cfg["diagnose"]["n_rays"] or cfg["mcrt"]["n_rays"]):  # else the same simulations again
+        variants.update({"campaign_rays": ({"diagnose": {"n_rays": rays}}, None),
+                         "both": ({"diagnose": {"n_rays": rays}}, at_true_positions(truth))})
+    else:
+        print(f"campaign_rays: {rays} rays, as the diagnosis traces (variants campaign_rays and both skipped)")
     first = None
     for name, (overrides, geometry) in variants.items():
         settings, keys, real, simulate = study_inputs(a.results, None, overrides, geometry)

@@ -26,7 +26,8 @@ range) and then applied to the canopy. Figures (``name: value unit``):
   ``waveforest_cpu_ms_per_pulse_order10`` (the canopy, equal rays; the marginal CPU time per
   pulse between a leg of ``--length`` and one three times as long (``canopy_marginal_pulses_*``
   pulses more), so that scene loading and BVH builds cancel: HELIOS's whole process on one
-  thread, waveforest's tiles: trace and sensor twin) and ``speedup_order1``, ``order10_over_helios``; ``waveforest_run_cpu_ms_per_pulse_order1``
+  thread, waveforest's tiles: trace and sensor twin) and ``speedup_order1``,
+  ``order10_over_helios``; ``waveforest_run_cpu_ms_per_pulse_order1``
   and ``speedup_order1_whole_run`` count waveforest's whole survey call (tiles and the merge into
   the LAS, ``.wdp`` and truth files), as HELIOS's figure counts its writing. Energies and centroids are those of the
   long leg.
