@@ -30,15 +30,22 @@ range) and then applied to the canopy. Figures (``name: value unit``):
   ``order10_over_helios``; ``waveforest_run_cpu_ms_per_pulse_order1``
   and ``speedup_order1_whole_run`` count waveforest's whole survey call (tiles and the merge into
   the LAS, ``.wdp`` and truth files), as HELIOS's figure counts its writing. Energies and centroids are those of the
-  long leg.
+  long leg;
+* with ``--baseline-src SRC`` (the ``src`` folder of another checkout, e.g. a ``git worktree``
+  of an earlier commit), waveforest's first order is also flown with that code, in a
+  subprocess, on the same legs in the same run: ``baseline_waveforest_cpu_ms_per_pulse_order1``
+  and ``speedup_order1_over_baseline``.
 
-    python benchmarks/helios_compare.py [--quality 98] [--length 4] [--tilt 1] [--rate 2000]
+    python benchmarks/helios_compare.py [--quality 98] [--length 4] [--tilt 1] [--rate 8000]
+        [--baseline-src SRC]
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import math
+import os
 import resource
 import subprocess
 import sys
@@ -62,10 +69,37 @@ from waveforest.vegetation import build
 HELIOS = "/work/helios/build-helios/helios++"
 ALTITUDE = 1100.0
 SPEED = 40.0
-RATE = 2000.0
-"""Pulse rate, Hz: at 40 m/s a pulse every 2 cm along the leg, so that the long leg adds 116
-pulses over the canopy and its marginal CPU is several times the noise of loading the scene and
-building its BVH (at 250 Hz the 15 added pulses left the figure within that noise)."""
+RATE = 8000.0
+"""Pulse rate, Hz: at 40 m/s a pulse every 5 mm along the leg, so that the long leg adds 464
+pulses over the canopy and its marginal CPU is many times the noise of loading the scene and
+building its BVH (at 250 Hz the 15 added pulses left the figure within that noise; at 2000 Hz
+the 116 added pulses still moved waveforest's figure by up to 50 % between runs)."""
+
+
+BASELINE = """import json, sys
+from pathlib import Path
+sys.path.insert(0, {bench!r})
+from helios_compare import run_waveforest
+cpu = []
+for k, (sub, length) in enumerate({legs!r}):  # the first flight warms Numba's caches up
+    d = Path(sub) / f"baseline{{k}}"
+    d.mkdir()
+    _, e, _, r = run_waveforest(d, Path({obj!r}), {rays}, 1, length, {rate})
+    cpu.append((r["cpu_s"], len(e)))
+print(json.dumps(cpu[1:]))
+"""
+
+
+def baseline_marginal(src: str, legs: list[tuple[Path, float]], obj: Path, rays: int, rate: float) -> float:
+    """waveforest's marginal first-order CPU per pulse (ms) between the last two of ``legs``
+    (short, long; the first flown only to load Numba's caches, as the plane does in this
+    process) with the code of ``src`` (a checkout's ``src`` folder), in a subprocess."""
+    code = BASELINE.format(bench=str(Path(__file__).parent), legs=[(str(d), length) for d, length in legs],
+                           obj=str(obj), rays=rays, rate=rate)
+    env = {**os.environ, "PYTHONPATH": str(Path(src).resolve())}
+    done = subprocess.run([sys.executable, "-c", code], env=env, check=True, capture_output=True, text=True)
+    (c0, n0), (c1, n1) = json.loads(done.stdout.strip().splitlines()[-1])
+    return 1000 * (c1 - c0) / (n1 - n0)
 
 
 def ply2obj(ply: Path, obj: Path) -> Path:
@@ -199,6 +233,7 @@ def main(argv=None) -> None:
     ap.add_argument("--length", type=float, default=4.0, help="leg length over the scenes, m")
     ap.add_argument("--tilt", type=float, default=1.0, help="tilt of both scenes, deg (>= 0.5)")
     ap.add_argument("--rate", type=float, default=RATE, help=f"pulse rate, Hz (default {RATE:g})")
+    ap.add_argument("--baseline-src", help="src folder of another checkout, flown beside this one (first order)")
     a = ap.parse_args(argv)
     rays = subrays(a.quality)
     print(f"rays_per_pulse: {rays} rays")
@@ -264,6 +299,11 @@ def main(argv=None) -> None:
         print(f"speedup_order1: {h_cpu / w1:.1f} x")
         print(f"speedup_order1_whole_run: {h_cpu / w1_run:.1f} x")
         print(f"order10_over_helios: {w10 / h_cpu:.2f}")
+        if a.baseline_src:
+            legs = [(tmp / "canopy" / f"{length:g}", length) for length in (a.length, a.length, 3 * a.length)]
+            base = baseline_marginal(a.baseline_src, legs, tmp / "canopy" / "canopy.obj", rays, a.rate)
+            print(f"baseline_waveforest_cpu_ms_per_pulse_order1: {base:.1f} ms")
+            print(f"speedup_order1_over_baseline: {base / w1:.2f} x")
 
 if __name__ == "__main__":
     sys.exit(main())

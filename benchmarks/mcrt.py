@@ -122,9 +122,9 @@ class Recorder:
         self.inner, self.backend = inner, inner.backend
         self.intersects, self.occludes = [], []
 
-    def intersect(self, o, d, threads=None):
-        self.intersects.append((o.copy(), d.copy()))
-        return self.inner.intersect(o, d, threads=threads)
+    def intersect(self, o, d, threads=None, coherent=False):
+        self.intersects.append((o.copy(), d.copy(), coherent))
+        return self.inner.intersect(o, d, threads=threads, coherent=coherent)
 
     def occluded(self, o, d, t, threads=None):
         self.occludes.append((o.copy(), d.copy(), np.array(t, np.float32)))
@@ -298,19 +298,19 @@ def bench_scene(prefix: str, scene, beams, args, full: bool, bricks: bool = Fals
     traced = type(prepared)(prepared.scene, rec, prepared.shift, prepared.tri_data, prepared.bounds)
     res = trace(traced, beams, threads=threads, parallel="rays", **kw)
     out("traced_rays_per_pulse", float(res.rays.mean()), "rays")
-    n_isect = sum(len(o) for o, _ in rec.intersects)
+    n_isect = sum(len(o) for o, _, _ in rec.intersects)
     n_occl = sum(len(o) for o, _, _ in rec.occludes)
 
     def replay(inner, thr):
         """Replay every recorded call: on ``thr`` worker threads (one Numba thread each, calls
         dealt out in turn, as ``trace(parallel="pulses")`` runs its chunks), or serially."""
-        calls = [(inner.intersect, (o, d)) for o, d in rec.intersects]
-        calls += [(inner.occluded, (o, d, t)) for o, d, t in rec.occludes]
+        calls = [(inner.intersect, (o, d), {"coherent": c}) for o, d, c in rec.intersects]
+        calls += [(inner.occluded, (o, d, t), {}) for o, d, t in rec.occludes]
 
         def part(k):
             numba.set_num_threads(1)
-            for fn, a in calls[k::thr]:
-                fn(*a, threads=1)
+            for fn, a, kw in calls[k::thr]:
+                fn(*a, threads=1, **kw)
 
         def run():
             if thr == 1:
@@ -419,9 +419,9 @@ def bench_error(prefix: str, scene, beams, args, methods) -> dict:
         def __init__(self, inner):
             self.inner, self.backend, self.rays = inner, inner.backend, 0
 
-        def intersect(self, o, d, threads=None):
+        def intersect(self, o, d, threads=None, coherent=False):
             self.rays += len(o)
-            return self.inner.intersect(o, d, threads=threads)
+            return self.inner.intersect(o, d, threads=threads, coherent=coherent)
 
         def occluded(self, o, d, t, threads=None):
             self.rays += len(o)

@@ -60,6 +60,7 @@ from waveforest.mcrt.kernels import (
     beam_keys,
     compact,
     emit_rays,
+    first_hits,
     scatter,
     take_rays,
 )
@@ -356,9 +357,9 @@ def _wave(prepared: PreparedScene, frame: BeamFrame, footprint_m, range_m, plane
     for order in range(1, st.max_order + 1):
         if len(rays) == 0:
             break
-        tfar, prim = isect.intersect(rays.origin, rays.direction, threads=threads)
+        tfar, prim = isect.intersect(rays.origin, rays.direction, threads=threads, coherent=order == 1)
         if order == 1:
-            first = _first_hits(prepared, rays, prim, nb)
+            first = first_hits(rays.beam, prim, prepared.tri_data, nb)
         out = scatter(order, order == st.max_order, rays, tfar, prim, prepared, frame, st.n_bins, st.bin_ns,
                       st.viewed_diameter_m, st.specular, SPECULAR_PHONG_EXPONENT, st.hotspot, RAY_EPS_M,
                       out=work, sampler=st.sampler, survive=st.survive, floor_power=st.roulette / n_rays)
@@ -500,13 +501,6 @@ def waveform_error(replicates: np.ndarray, kernel: np.ndarray, noise, bin_ns: fl
     m = support.sum(axis=1)
     rms = np.sqrt(np.where(support, var, 0.0).sum(axis=1) / np.maximum(m, 1))
     return np.where(m > 0, rms / noise, 0.0)
-
-
-def _first_hits(prepared: PreparedScene, rays, prim: np.ndarray, nb: int) -> np.ndarray:
-    """(nb, 5) int64: rays of each beam whose first hit is of each kind, and misses (last column)."""
-    code = np.where(prim >= 0, prepared.kind_of(np.maximum(prim, 0)), MISS_KIND)
-    return np.bincount(rays.beam * (MISS_KIND + 1) + code,
-                       minlength=nb * (MISS_KIND + 1)).reshape(nb, MISS_KIND + 1)
 
 
 def _visible(isect, out: Scattered, counted: np.ndarray, threads: int | None) -> np.ndarray:

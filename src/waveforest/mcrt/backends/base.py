@@ -19,7 +19,8 @@ class Intersector(Protocol):
     backend: str
     n_triangles: int
 
-    def intersect(self, origins, directions, threads: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def intersect(self, origins, directions, threads: int | None = None,
+                  coherent: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """Nearest hit of each ray: ``tfar`` (m,) float32 in m (inf: miss), ``prim`` (m,) int32 (-1: miss)."""
 
     def occluded(self, origins, directions, tmax, threads: int | None = None) -> np.ndarray:
@@ -38,7 +39,7 @@ class RayQueries:
     """The scaffold every backend shares: ray checks, output arrays, the empty batch.
 
     A backend is built on ``triangles``: (n, 3, 3) float32, m, in the internal frame (a few
-    metres around the origin). It implements ``_intersect(o, d, tfar, prim, threads)`` and
+    metres around the origin). It implements ``_intersect(o, d, tfar, prim, threads, coherent)`` and
     ``_occluded(o, d, tmax, out, threads)``, which fill the arrays they are given for a
     non-empty batch; :attr:`tmax_dtype` is the precision of the occlusion lengths it compares.
     """
@@ -46,7 +47,7 @@ class RayQueries:
     backend = ""
     tmax_dtype = np.float32
 
-    def intersect(self, origins, directions, threads: int | None = None):
+    def intersect(self, origins, directions, threads: int | None = None, coherent: bool = False):
         """Nearest hit of each ray.
 
         Parameters
@@ -55,6 +56,9 @@ class RayQueries:
             Ray origins (internal frame, m) and directions (unit, so that t is in metres).
         threads : int, optional
             Threads of the call (default: Numba's thread count); a backend may ignore it.
+        coherent : bool
+            The rays already come in coherent runs (a beam's primary rays, all in one
+            footprint): a backend that reorders rays for speed may skip it. Same results.
 
         Returns
         -------
@@ -67,7 +71,7 @@ class RayQueries:
         tfar = np.empty(len(o), np.float32)
         prim = np.empty(len(o), np.int32)
         if len(o):
-            self._intersect(o, d, tfar, prim, threads)
+            self._intersect(o, d, tfar, prim, threads, coherent)
         return tfar, prim
 
     def occluded(self, origins, directions, tmax, threads: int | None = None):

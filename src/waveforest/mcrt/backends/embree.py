@@ -315,10 +315,14 @@ class DirectEmbreeIntersector(RayQueries):
         if scene:
             self._lib.rtcReleaseScene(scene)
 
-    def _intersect(self, o, d, tfar, prim, threads):
-        order = coherent_order(o, CELL_BITS)
-        ts, ps = np.full_like(tfar, np.inf), np.empty_like(prim)
+    def _intersect(self, o, d, tfar, prim, threads, coherent):
         with NumbaThreads(1 if len(o) < MIN_PARALLEL_RAYS else threads):
+            if coherent:  # a beam's primary rays: the Z-order would not speed Embree up
+                tfar[:] = np.inf
+                _query_kernel(self._scene, o, d, tfar, prim, False, *_slots(len(o)), self._offsets)
+                return
+            order = coherent_order(o, CELL_BITS)
+            ts, ps = np.full_like(tfar, np.inf), np.empty_like(prim)
             _query_kernel(self._scene, *take_rays(o, d, order), ts, ps, False, *_slots(len(o)), self._offsets)
         tfar[order], prim[order] = ts, ps
 

@@ -59,7 +59,7 @@ class EmbreeIntersector(RayQueries):
         for f in futures:
             f.result()
 
-    def _intersect(self, o, d, tfar, prim, threads):
+    def _intersect(self, o, d, tfar, prim, threads, coherent):
         run = self._scene.run
 
         def work(a: int, b: int) -> None:

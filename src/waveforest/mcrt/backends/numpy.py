@@ -53,7 +53,7 @@ class NumpyIntersector(RayQueries):
             b = min(len(o), a + step)
             yield a, b, self._all_t(o[a:b], d[a:b])
 
-    def _intersect(self, o, d, tfar, prim, threads):
+    def _intersect(self, o, d, tfar, prim, threads, coherent):
         for a, b, t in self._blocks(o, d):
             j = np.argmin(t, axis=1)
             tj = t[np.arange(b - a), j]
