@@ -137,6 +137,10 @@ def test_direct_embree_results_do_not_depend_on_the_tracing_order(monkeypatch):
     plain = isect.intersect(o, d), isect.occluded(o, d, tm)
     assert np.array_equal(sorted_[0][0], plain[0][0]) and np.array_equal(sorted_[0][1], plain[0][1])
     assert np.array_equal(sorted_[1], plain[1])
+    monkeypatch.undo()
+    as_given = isect.intersect(o, d, coherent=True)  # no Z-order sort at all
+    assert np.array_equal(sorted_[0][0], as_given[0]) and np.array_equal(sorted_[0][1], as_given[1])
+    assert (as_given[1] >= 0).sum() > 100  # hits exercised
 
 
 def test_prepare_shifts_to_box_centre_and_keeps_properties():
