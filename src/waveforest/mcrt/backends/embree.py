@@ -6,8 +6,9 @@ library is driven through its C API: the scene is built with ctypes (build quali
 the caller), and the per-ray ``rtcIntersect1`` / ``rtcOccluded1`` calls are made from one
 ``@njit(parallel=True, nogil=True)`` kernel over blocks of rays (``prange``, no Python
 threads, no GIL). Each call traces sorted copies of its rays, in Z-order of their origins
-(:func:`coherent_order`), and puts the results back in the caller's order; the hits are those
-of embreex's ``run``. Speed against embreex and of the ray order: docs/validation.md, "Speed"
+(:func:`coherent_order`), and puts the results back in the caller's order (a nearest-hit call
+on rays already coherent, ``coherent=True``, traces them as given); the hits are those of
+embreex's ``run``. Speed against embreex and of the ray order: docs/validation.md, "Speed"
 (``benchmarks/mcrt.py``).
 
 The library is the ``libembree4`` bundled with the installed embreex wheel
