@@ -76,11 +76,7 @@ class PreparedScene:
     @property
     def kind(self) -> np.ndarray:
         """(n,) int64 element kinds."""
-        return self.kind_of(slice(None))
-
-    def kind_of(self, prim) -> np.ndarray:
-        """int64 element kinds of the triangles ``prim`` (indices >= 0, or a slice)."""
-        return self.tri_data[prim, 5].astype(np.int64)
+        return self.tri_data[:, 5].astype(np.int64)
 
     @property
     def backend(self) -> str:
