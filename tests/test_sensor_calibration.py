@@ -183,3 +183,21 @@ def test_calibration_stage_errors(tmp_path):
     (tmp_path / "c.json").write_text(json.dumps({"dataset": "x"}))
     with pytest.raises(WaveforestError, match="noise_mean"):
         load_calibration(tmp_path / "c.json")
+
+
+def test_eq8_does_not_smooth_s_by_the_sampling_interval():
+    """Noise-free Gaussian pulses (FWHM 7.2 ns) sampled every 1 ns at random phases: S(t) by
+    equivalent-time sampling is smoothed by its kernel alone (variance KERNEL_NS^2 / 6: 7.215 ns);
+    each pulse interpolated linearly between its samples and then averaged gives
+    sqrt(7.2^2 + 2.3548^2 / 6) = 7.264 ns."""
+    rng = np.random.default_rng(5)
+    n, fwhm = 400, 7.2
+    te = 30.0 + rng.uniform(0.0, 1.0, n)  # echo (pulse centre) times after the first sample
+    k = np.arange(120)
+    x = 10.0 + 100.0 * np.exp(-0.5 * ((k[None, :] - te[:, None]) / (fwhm / FWHM_PER_SD)) ** 2)
+    args = (x, np.full(n, k.size), 1.0, te, np.full(n, 1000.0), np.full(n, 0.1), 10.0)
+    est = calibrate_system_waveform(*args, window_ns=(-15.0, 45.0))
+    assert est.fwhm_ns == pytest.approx(math.sqrt(fwhm**2 + (FWHM_PER_SD * cal_mod.KERNEL_NS)**2 / 6), rel=1e-3)
+    smoothed = np.mean([np.interp(est.t_ns + t, k, xi) for t, xi in zip(te, x)], axis=0)
+    assert SystemWaveform(est.t_ns, smoothed - 10.0).fwhm_ns == pytest.approx(math.sqrt(fwhm**2 + FWHM_PER_SD**2 / 6),
+                                                                            rel=1e-3)

@@ -5,10 +5,18 @@ power (times cos(incidence) if ``calibrate.cos_incidence``), so each target puls
 
     S_i(t) = (V_i(t) - c-bar) * R_i^2 / sigma_i                                      (8)
 
-with V_i the AGC-normalised waveform resampled to the 0.05-ns grid by linear interpolation,
-aligned so that t = 0 is the pulse's first DR echo time (``echo_time_ns[0]``), and R_i its
-range. S(t) is the mean of S_i over all pulses of all calibration targets (equal weight per
-pulse), its spread the SD over pulses. c-bar and the noise SD come from the last
+with V_i the AGC-normalised waveform, aligned so that t = 0 is the pulse's first DR echo time
+(``echo_time_ns[0]``), and R_i its range. S(t) on the 0.05-ns grid is the mean of S_i over all
+pulses of all calibration targets (equal weight per sample), its spread the SD of the pulses'
+samples about it, by equivalent-time sampling: each recorded sample lies at its own time after the echo (the
+pulses' echo times fall at random within a sample interval), and it counts towards the grid
+times within :data:`KERNEL_NS` of it with triangular weights. Interpolating each pulse linearly
+between its samples instead would smooth S(t) by a triangle of one sampling interval's
+half-width (variance dt^2 / 6 at dt = 1 ns: a 7.2-ns FWHM becomes 7.26 ns); the kernel's
+variance is KERNEL_NS^2 / 6, four times smaller (7.22 ns), and it averages enough samples per
+grid time to keep S(t)'s noise below that of the interpolated mean (docs/validation.md,
+Calibration). Grid times no sample comes near (pulses that share one phase) are
+interpolated linearly between their neighbours. c-bar and the noise SD come from the last
 ``calibrate.noise_tail`` samples of the same pulses, taken on the recorded values (the AGC
 normalisation is undone for the tails: the AGC does not change the noise).
 
@@ -53,7 +61,11 @@ from waveforest.sensor.params import CFD_CHECK_M, FINE_NS, RANGE_GATE_M, CFDPara
 from waveforest.sensor.system_waveform import SystemWaveform, load_system_waveform
 
 _CHUNK = 2048
-"""Pulses per block of the vectorised resampling (bounds memory to ~CHUNK x window samples)."""
+"""Pulses per block of the vectorised accumulation (bounds memory to ~CHUNK x samples x kernel)."""
+
+KERNEL_NS = 0.5
+"""Half-width of the triangular kernel by which a recorded sample counts towards S(t)'s grid
+times (module docstring), ns: smoothing variance KERNEL_NS^2 / 6."""
 
 
 def calibration_grid(window_ns=(-20.0, 60.0)) -> np.ndarray:
@@ -62,34 +74,6 @@ def calibration_grid(window_ns=(-20.0, 60.0)) -> np.ndarray:
     if not lo < 0 < hi:
         raise ValueError(f"window_ns must straddle 0 (lo < 0 < hi), got {window_ns}")
     return FINE_NS * np.arange(math.ceil(lo / FINE_NS - 1e-9), math.floor(hi / FINE_NS + 1e-9) + 1)
-
-
-def resample_aligned(samples, lengths, sampling_ns, echo_time_ns, t_grid) -> np.ndarray:
-    """Waveforms linearly resampled at ``echo_time + t_grid`` (NaN outside each record).
-
-    Parameters
-    ----------
-    samples : (n, n_s) DN.  lengths : (n,).  sampling_ns, echo_time_ns : (n,) ns.  t_grid : (K,) ns.
-
-    Returns
-    -------
-    (n, K) float64
-    """
-    x, lens = checks.waveforms(samples, lengths)
-    n = x.shape[0]
-    dt = checks.per_pulse(sampling_ns, n, "sampling_ns", positive=True)
-    te = checks.per_pulse(echo_time_ns, n, "echo_time_ns")
-    pos = (te[:, None] + np.asarray(t_grid)[None, :]) / dt[:, None]
-    k = np.floor(pos).astype(np.int64)
-    last = (lens - 1)[:, None]
-    ok = (pos >= 0) & (pos <= last)
-    k = np.clip(k, 0, np.maximum(last - 1, 0))
-    f = pos - k
-    rows = np.arange(n)[:, None]
-    x0 = x[rows, k].astype(np.float64)
-    x1 = x[rows, np.minimum(k + 1, x.shape[1] - 1)].astype(np.float64)
-    out = (1.0 - f) * x0 + f * x1
-    return np.where(ok & (lens[:, None] >= 2), out, np.nan)
 
 
 LINEARISE_MAX = 3.0
@@ -135,7 +119,7 @@ def calibrate_system_waveform(samples, lengths, sampling_ns, echo_time_ns, range
 
     Returns
     -------
-    SystemWaveform with s = mean over pulses and s_sd = SD over pulses (NaN with < 2 pulses);
+    SystemWaveform with s = mean over pulses and s_sd = SD of their samples about it (NaN with < 2 pulses);
     meta n_pulses.
     """
     x, lens = checks.waveforms(samples, lengths)
@@ -148,28 +132,43 @@ def calibrate_system_waveform(samples, lengths, sampling_ns, echo_time_ns, range
     sg = checks.per_pulse(sigma, n, "sigma", positive=True)
     level = checks.per_pulse(nonlinearity, n, "nonlinearity", nonnegative=True)
     t = calibration_grid(window_ns)
-    s1 = np.zeros(t.size)
-    s2 = np.zeros(t.size)
-    cnt = np.zeros(t.size)
-    for start in range(0, n, _CHUNK):  # blocks of pulses, each vectorised
-        sl = slice(start, start + _CHUNK)
-        v = resample_aligned(x[sl], lens[sl], dt[sl], te[sl], t)
-        si = linearise(v - noise_mean, level[sl, None], trigger_loss) * (r[sl] ** 2 / sg[sl])[:, None]
-        ok = np.isfinite(si)
-        si = np.where(ok, si, 0.0)
-        s1 += si.sum(axis=0)
-        s2 += (si**2).sum(axis=0)
-        cnt += ok.sum(axis=0)
-    if (cnt == 0).any():
+    span = (te.max() >= -t[0]) & (np.max((lens - 1) * dt - te) >= t[-1])
+    if not span:
         raise ValueError("calibrate_system_waveform: some times of the window lie outside every record; "
                          "narrow calibrate.window_ns")
-    mean = s1 / cnt
-    var = np.where(cnt > 1, (s2 - cnt * mean**2) / np.maximum(cnt - 1, 1), np.nan)
-    sd = np.sqrt(np.maximum(var, 0.0))
+    sums = np.zeros((3, t.size))
+    for start in range(0, n, _CHUNK):  # blocks of pulses, each vectorised
+        sl = slice(start, start + _CHUNK)
+        k = np.arange(x.shape[1])
+        tau = k[None, :] * dt[sl, None] - te[sl, None]  # each sample's time after the echo, ns
+        ok = k[None, :] < lens[sl, None]
+        si = linearise(x[sl] - noise_mean, level[sl, None], trigger_loss) * (r[sl] ** 2 / sg[sl])[:, None]
+        ok &= np.isfinite(si) & (tau > t[0] - KERNEL_NS) & (tau < t[-1] + KERNEL_NS)
+        _accumulate(sums, tau[ok], si[ok], t[0])
+    w, s1, s2 = sums
+    cov = w > 0
+    mean = np.interp(t, t[cov], s1[cov] / w[cov])
+    var = np.interp(t, t[cov], np.maximum(s2[cov] / w[cov] - (s1[cov] / w[cov]) ** 2, 0.0))
+    sd = np.sqrt(var) if n >= 2 else np.full(t.size, np.nan)
     meta = {"n_pulses": int(n)}
     if level.any() or trigger_loss:
         meta.update(nonlinearity=float(np.median(level)), trigger_loss=float(trigger_loss))
     return SystemWaveform(t, mean, sd, meta)
+
+
+def _accumulate(sums: np.ndarray, tau: np.ndarray, v: np.ndarray, t0: float) -> None:
+    """Add samples ``v`` at times ``tau`` (ns after the echo) to ``sums`` ((3, K): weight,
+    weighted sum, weighted sum of squares over the grid ``t0 + FINE_NS * j``), each with the
+    triangular weight max(0, 1 - |t_j - tau| / KERNEL_NS)."""
+    m = int(math.ceil(KERNEL_NS / FINE_NS))
+    size = sums.shape[1]
+    j0 = np.rint((tau - t0) / FINE_NS).astype(np.int64)
+    for o in range(-m, m + 1):
+        j = j0 + o
+        w = np.maximum(0.0, 1.0 - np.abs(t0 + j * FINE_NS - tau) / KERNEL_NS)
+        keep = (j >= 0) & (j < size) & (w > 0)
+        for row, val in enumerate((w, w * v, w * v * v)):
+            sums[row] += np.bincount(j[keep], val[keep], minlength=size)
 
 
 def cfd_check(dr_minus_cfd_m) -> dict:
