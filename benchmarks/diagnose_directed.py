@@ -18,14 +18,16 @@ off replicates (divided by their RMS) and a data set is *detected* when the cali
 candidate exceeds ``--threshold`` (default 2.576: one-sided 0.05 over 10 candidates, Bonferroni).
 
 ``limits`` runs the diagnosis's power analysis design (its pool, seeds and replicates:
-:mod:`waveforest.diagnose.power`), every ladder value evaluated, and prints per candidate the
-power of four tests at each value: ``omnibus_fe`` (the diagnosis's: the first echo's gap above
-its calibrated floor), ``directed_fe`` and ``directed_ww`` (the directed test on the first
-echo's and the whole waveform's terms), ``combined`` (omnibus_fe or directed_ww), and each
-test's limit (the strength where its power, interpolated linearly in strength between the
-values, reaches the required power; NaN: not reached), and ``limit_ratio_<test>_<effect>``
-against ``omnibus_fe`` (distances from off: 0.5 = halved). Writes DIR/signatures.parquet
-and DIR/replicates.csv.
+:mod:`waveforest.diagnose.power`) with every ladder value evaluated (``--values``, default 3:
+1/4, 1/2 and all of the way to the bound) and prints per candidate the power at off and at each
+value of three tests: ``omnibus_fe`` (the diagnosis's: the first echo's gap above its calibrated
+floor), ``directed_fe`` and ``directed_ww`` (the directed test on the first echo's and on the
+whole waveform's terms); then each test's limit and that of ``combined`` (omnibus_fe or
+directed_ww): per replicate the strength above which it detects every value tried (the margin
+interpolated between values, in strength squared for the gap, linearly for z), the limit the
+ceil(power x replicates)-th smallest; ``limit_ratio_<test>_<effect>`` against ``omnibus_fe``
+(distances from off: 0.5 = halved). Writes DIR/signatures.parquet and DIR/replicates.csv
+(signatures are reused when present).
 
 ``campaigns`` applies the directed test to campaigns' own data (the diagnosis's base
 simulation, seed and bootstrap) with signatures from ``limits`` and each campaign's own
@@ -103,6 +105,7 @@ def signatures(keys, simulate, search, candidates, seed, values) -> pd.DataFrame
 
 
 def sig_table(sigs: pd.DataFrame) -> dict:
+    """(effect, feature set) -> its signature's terms, from :func:`signatures`' table."""
     return {(e, fs): g.set_index("term")["s"] for (e, fs), g in sigs.groupby(["effect", "features"])}
 
 
