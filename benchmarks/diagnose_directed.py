@@ -76,16 +76,14 @@ def pooled_terms(real, sim, universe, weights, search, features):
     return v, pd.DataFrame(vb, columns=idx)
 
 
-def directed_z(v: pd.Series, vb: pd.DataFrame, sig: pd.Series) -> float:
-    """z of the projection of ``v`` on ``sig`` (module docstring)."""
+def directed_z(v: pd.Series, vb: np.ndarray, sd: np.ndarray, sig: pd.Series) -> float:
+    """z of the projection of ``v`` on ``sig`` (module docstring); ``vb`` the bootstrap replicates
+    of ``v`` with NaN as 0, ``sd`` their robust SDs."""
     s = sig.reindex(v.index).to_numpy()
-    sd = robust_sd(vb.to_numpy())
     x = v.to_numpy()
     ok = np.isfinite(x) & np.isfinite(s) & np.isfinite(sd) & (sd > 0)
     w = np.where(ok, s / np.where(ok, sd, 1.0) ** 2, 0.0)
-    t = float(np.where(ok, x, 0.0) @ w)
-    tb = np.nan_to_num(vb.to_numpy()) @ w
-    return t / float(robust_sd(tb))
+    return float(np.where(ok, x, 0.0) @ w) / float(robust_sd(vb @ w))
 
 
 def signatures(keys, simulate, search, candidates, seed, values) -> pd.DataFrame:
@@ -114,8 +112,9 @@ def evaluate(real, sim, universe, weights, search, sigs: dict, candidates) -> di
     out = {}
     for fs, feats in SETS.items():
         v, vb = pooled_terms(real, sim, universe, weights, search, feats)
+        sd, vb = robust_sd(vb.to_numpy()), np.nan_to_num(vb.to_numpy())  # once for all candidates
         for c in candidates:
-            out[f"z_{fs}_{c}"] = directed_z(v, vb, sigs[(c, fs)])
+            out[f"z_{fs}_{c}"] = directed_z(v, vb, sd, sigs[(c, fs)])
     return out
 
 

@@ -8,8 +8,8 @@ power (times cos(incidence) if ``calibrate.cos_incidence``), so each target puls
 with V_i the AGC-normalised waveform, aligned so that t = 0 is the pulse's first DR echo time
 (``echo_time_ns[0]``), and R_i its range. S(t) on the 0.05-ns grid is the mean of S_i over all
 pulses of all calibration targets (equal weight per sample), its spread the SD of the pulses'
-samples about it, by equivalent-time sampling: each recorded sample lies at its own time after the echo (the
-pulses' echo times fall at random within a sample interval), and it counts towards the grid
+samples about it, by equivalent-time sampling: each recorded sample lies at its own time after
+the echo (the pulses' echo times fall at random within a sample interval), and it counts towards the grid
 times within :data:`KERNEL_NS` of it with triangular weights. Interpolating each pulse linearly
 between its samples instead would smooth S(t) by a triangle of one sampling interval's
 half-width (variance dt^2 / 6 at dt = 1 ns: a 7.2-ns FWHM becomes 7.26 ns); the kernel's
@@ -132,14 +132,13 @@ def calibrate_system_waveform(samples, lengths, sampling_ns, echo_time_ns, range
     sg = checks.per_pulse(sigma, n, "sigma", positive=True)
     level = checks.per_pulse(nonlinearity, n, "nonlinearity", nonnegative=True)
     t = calibration_grid(window_ns)
-    span = (te.max() >= -t[0]) & (np.max((lens - 1) * dt - te) >= t[-1])
-    if not span:
+    if not (te.max() >= -t[0] and np.max((lens - 1) * dt - te) >= t[-1]):
         raise ValueError("calibrate_system_waveform: some times of the window lie outside every record; "
                          "narrow calibrate.window_ns")
     sums = np.zeros((3, t.size))
+    k = np.arange(x.shape[1])
     for start in range(0, n, _CHUNK):  # blocks of pulses, each vectorised
         sl = slice(start, start + _CHUNK)
-        k = np.arange(x.shape[1])
         tau = k[None, :] * dt[sl, None] - te[sl, None]  # each sample's time after the echo, ns
         ok = k[None, :] < lens[sl, None]
         si = linearise(x[sl] - noise_mean, level[sl, None], trigger_loss) * (r[sl] ** 2 / sg[sl])[:, None]
