@@ -156,9 +156,13 @@ def test_plants_are_instances_of_a_bounded_set_of_prototypes(tmp_path):
     scene = load_scene(tmp_path / "SCENE.yaml")
     assert len(scene.plants) == 20 and len(scene.plants.prototypes) == 2  # one height, two seeds
     assert np.allclose(scene.plants.translation[:, :2], [[i % 5, i // 5] for i in range(20)])
-    (tmp_path / "plants.csv").write_text("species,x,y,height,seed\nbirch,0,0,nan,1\n")
-    with pytest.raises(SurveyError, match="column height, row 2: expected a finite number"):
-        load_scene(tmp_path / "SCENE.yaml")
+    for row, expect in (("birch,0,0,nan,1", "column height, row 2: expected a finite number"),
+                        ("birch,0,0,-5,1", "column height, row 2: expected a height above 0 m, got -5"),
+                        ("birch,0,0,0.2,1", "row 2: height 0.2 m for birch: expected 0.5 to 12 m"),
+                        ("birch,0,0,5,1.5", "column seed, row 2: expected a non-negative integer, got '1.5'")):
+        (tmp_path / "plants.csv").write_text(f"species,x,y,height,seed\n{row}\n")
+        with pytest.raises(SurveyError, match=expect):
+            load_scene(tmp_path / "SCENE.yaml")
 
 
 def test_the_cache_key_follows_the_scene_content(tmp_path):
@@ -263,6 +267,16 @@ def test_obj_faces_materials_and_indices(tmp_path):
     assert list(np.asarray(sc.kind) * np.ones(4, int)) == [3, 3, 3, 1]
     with pytest.raises(SurveyError, match="material 'leaf' has no optical properties"):
         read_obj(tmp_path / "a.obj", {"default": {"rho": 0.1}}, "S")
+    (tmp_path / "a.mtl").write_text("newmtl\tbark\nhelios_reflectance\t0.25\n")  # tabs separate too
+    assert np.allclose(read_obj(tmp_path / "a.obj", props, "S").rho[1], 0.25)
+    for bad, got in (("1.5", "'1.5'"), ("abc", "'abc'"), ("", "no value")):
+        (tmp_path / "a.mtl").write_text(f"newmtl bark\nhelios_reflectance {bad}\n")
+        with pytest.raises(SurveyError, match=f"a.mtl: line 2: helios_reflectance of material 'bark': "
+                                              f"expected a number in \\[0, 1\\], got {got}"):
+            read_obj(tmp_path / "a.obj", props, "S")
+    (tmp_path / "a.mtl").unlink()
+    with pytest.raises(SurveyError, match="material 'bark' has no .*; its MTL file a.mtl does not exist"):
+        read_obj(tmp_path / "a.obj", props, "S")
 
 
 def test_a_scanner_without_preset_needs_every_value(tmp_path, capsys):

@@ -15,7 +15,7 @@ from fixtures.survey import tilted_plane, write_obj
 from waveforest import config
 from waveforest.settings import reference_system, sensor_settings
 from waveforest.survey import SurveyError, load_survey
-from waveforest.survey.scan import concat, fly, fly_blocks, leg_tracks
+from waveforest.survey.scan import concat, fly, fly_blocks, leg_tracks, trajectory_table
 
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
 
@@ -72,6 +72,26 @@ def test_legs_follow_each_other_and_a_trajectory_turns_the_beam(tmp_path):
     (tmp_path / "traj.csv").write_text("gps_time,x,y,z\n0,0,0,500\n")
     with pytest.raises(SurveyError, match="missing column"):
         fly(sv, leg_tracks(sv))
+    (tmp_path / "traj.csv").write_text("gps_time,x,y,z,roll_deg,pitch_deg,heading_deg\n"
+                                       "0,0,0,500,0,0,0\n1,0,10,500,abc,0,0\n")
+    with pytest.raises(SurveyError, match="column roll_deg, row 3: expected a finite number, got 'abc'"):
+        leg_tracks(sv)
+
+
+def test_a_trajectory_heading_through_north_turns_the_short_way(tmp_path):
+    """359 -> 1 deg interpolates through 0 (not through 180), and the written heading stays in [0, 360)."""
+    (tmp_path / "traj.csv").write_text("gps_time,x,y,z,roll_deg,pitch_deg,heading_deg\n"
+                                       "0,0,0,500,10,0,359\n1,0,10,500,10,0,1\n")
+    sv = _survey(tmp_path, {"platform": {"trajectory": "traj.csv"},
+                            "scanner": {"pulse_rate_hz": 10.0, "scan_angle_deg": 0.0}})
+    tracks = leg_tracks(sv)
+    p = fly(sv, tracks)
+    # roll 10 deg leans the nadir beam 10 deg to the left of the heading: azimuth heading - 90
+    azimuth = np.degrees(np.arctan2(p.direction[:, 0], p.direction[:, 1]))
+    assert np.allclose(np.mod(azimuth - (np.linspace(-1, 1, 11) - 90) + 180, 360) - 180, 0, atol=1e-9)
+    assert np.allclose(np.degrees(np.arccos(-p.direction[:, 2])), 10.0)
+    table = trajectory_table(tracks, 10.0)["heading_deg"].to_numpy()
+    assert np.all((table >= 0) & (table < 360)) and np.allclose(np.mod(table + 1, 360), np.linspace(0, 2, 11))
 
 
 def test_las13_internal_packets_and_laz(tmp_path):

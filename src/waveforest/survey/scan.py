@@ -61,11 +61,20 @@ def leg_tracks(survey: Survey) -> list[Track]:
         if missing:
             raise SurveyError(f"{survey.trajectory}: missing column(s) {', '.join(missing)} "
                               f"(expected {', '.join(TRAJECTORY_ATTITUDE)})")
-        t = df["gps_time"].to_numpy(np.float64)
+        values = {}
+        for c in TRAJECTORY_ATTITUDE:
+            v = pd.to_numeric(df[c], errors="coerce").to_numpy(np.float64)
+            bad = np.flatnonzero(~np.isfinite(v))
+            if bad.size:
+                raise SurveyError(f"{survey.trajectory}: column {c}, row {int(bad[0]) + 2}: expected a finite "
+                                  f"number, got {str(df[c].iloc[bad[0]])!r}")
+            values[c] = v
+        t = values["gps_time"]
         if len(t) < 2 or np.any(np.diff(t) <= 0):
             raise SurveyError(f"{survey.trajectory}: gps_time: expected at least 2 strictly increasing times")
-        return [Track(t, df[["x", "y", "z"]].to_numpy(np.float64),
-                      df[["roll_deg", "pitch_deg", "heading_deg"]].to_numpy(np.float64))]
+        # angles unwrapped, so that 359.9 -> 0.1 deg interpolates through 0, not through 180
+        att = np.column_stack([np.unwrap(values[c], period=360.0) for c in TRAJECTORY_ATTITUDE[4:]])
+        return [Track(t, np.column_stack([values[c] for c in "xyz"]), att)]
     out, t = [], survey.start_gps_time_s
     for g in survey.legs:
         a, b = np.array([*g.start, g.altitude_m]), np.array([*g.end, g.altitude_m])
@@ -142,7 +151,8 @@ def trajectory_table(tracks: list[Track], hz: float) -> pd.DataFrame:
         for k, c in enumerate("xyz"):
             cols[c] = np.interp(t, tr.gps_time, tr.xyz[:, k])
         for k, c in enumerate(("roll_deg", "pitch_deg", "heading_deg")):
-            cols[c] = np.interp(t, tr.gps_time, tr.attitude[:, k])
+            a = np.interp(t, tr.gps_time, tr.attitude[:, k])
+            cols[c] = np.mod(a, 360.0) if c == "heading_deg" else (a + 180.0) % 360.0 - 180.0
         cols["leg"] = i
         parts.append(pd.DataFrame(cols))
     return pd.concat(parts, ignore_index=True)

@@ -8,6 +8,7 @@ its BVH once (:func:`waveforest.mcrt.prepare_prototypes`), copied by transform o
 
 from __future__ import annotations
 
+import math
 import re
 import time
 import warnings
@@ -21,7 +22,7 @@ from waveforest.constants import KIND_GROUND
 from waveforest.errors import WaveforestError
 from waveforest.scene import Scene, SceneError, read_ply
 from waveforest.survey.spec import SCENE_SCHEMA, SurveyError, read_document
-from waveforest.vegetation import build
+from waveforest.vegetation import build, species_params
 
 KINDS = {"ground": 0, "leaf": 1, "wood": 2, "other": 3}
 
@@ -132,8 +133,12 @@ def read_obj(path: Path, materials: dict, source: str) -> Scene:
     which = np.repeat(np.arange(len(bodies)) - 1, [len(fs) for fs in per_body])  # -1: before any usemtl
     names = [DEFAULT_MATERIAL if w < 0 else used[w] for w in np.unique(which)]
     mtl: dict[str, float] = {}
-    for lib in _MTLLIB.findall(text):
-        mtl.update(_read_mtl(path.parent / lib))
+    missing = []
+    for lib in _mtl_files(path, _MTLLIB.findall(text)):
+        if lib.exists():
+            mtl.update(_read_mtl(lib, source))
+        else:
+            missing.append(lib.name)
     props = np.zeros((len(used) + 1, 3))
     for w, m in zip(np.unique(which), names):
         if m in materials:
@@ -145,23 +150,45 @@ def read_obj(path: Path, materials: dict, source: str) -> Scene:
         elif m in mtl:
             props[w + 1] = (mtl[m], 0.0, KINDS["other"])
         else:
+            why = f"; its MTL file {', '.join(missing)} does not exist" if missing else ""
             raise SurveyError(f"{source}: {path}: material {m!r} has no optical properties (expected "
-                              f"objects/materials/{m}/rho in the scene file or helios_reflectance in its MTL)")
+                              f"objects/materials/{m}/rho in the scene file or helios_reflectance in its MTL){why}")
     table = props[which[face] + 1]
     return Scene(xyz[idx].astype(np.float32), table[:, 0], table[:, 1], table[:, 2].astype(np.uint8))
 
 
-def _read_mtl(path: Path) -> dict[str, float]:
-    """name -> helios_reflectance of an MTL file (materials without it are left out)."""
+def _mtl_files(obj: Path, libs: list[str]) -> list[Path]:
+    """The MTL files of ``mtllib`` statements: one name, or several separated by blanks (the
+    OBJ specification) unless the whole statement names an existing file."""
+    out = []
+    for lib in libs:
+        whole = obj.parent / lib
+        out += [whole] if whole.exists() else [obj.parent / name for name in lib.split()]
+    return out
+
+
+def _read_mtl(path: Path, source: str) -> dict[str, float]:
+    """name -> helios_reflectance (in [0, 1]) of an MTL file (materials without it are left out);
+    SurveyError naming the file, line and material for a value that is not a reflectance."""
+    try:
+        lines = path.read_text(errors="replace").splitlines()
+    except OSError as exc:
+        raise SurveyError(f"{source}: {path}: cannot read ({exc.strerror or exc})") from None
     out, name = {}, None
-    if not path.exists():
-        return out
-    for line in path.read_text(errors="replace").splitlines():
-        head, _, rest = line.strip().partition(" ")
+    for number, line in enumerate(lines, 1):
+        head, *rest = line.split(None, 1) or [""]
         if head == "newmtl":
-            name = rest.strip()
+            name = rest[0].strip() if rest else ""
         elif head == "helios_reflectance" and name is not None:
-            out[name] = float(rest.split()[0])
+            try:
+                rho = float(rest[0].split()[0]) if rest else math.nan
+            except ValueError:
+                rho = math.nan
+            if not 0.0 <= rho <= 1.0:
+                got = repr(rest[0].strip()) if rest else "no value"
+                raise SurveyError(f"{source}: {path}: line {number}: helios_reflectance of material {name!r}: "
+                                  f"expected a number in [0, 1], got {got}")
+            out[name] = rho
     return out
 
 
@@ -203,10 +230,29 @@ def plant_table(path: Path, source: str) -> pd.DataFrame:
             raise SurveyError(f"{path}: column {c}, row {int(np.flatnonzero(~np.isfinite(v))[0]) + 2}: "
                               "expected a finite number")
         df[c] = v
+    bad = np.flatnonzero(~(df["height"].to_numpy() > 0))
+    if bad.size:
+        raise SurveyError(f"{path}: column height, row {int(bad[0]) + 2}: expected a height above 0 m, got "
+                          f"{df['height'].iloc[bad[0]]:g}")
+    seed = pd.to_numeric(df["seed"], errors="coerce").to_numpy(np.float64)
+    bad = np.flatnonzero(~((seed >= 0) & (seed == np.round(seed))))
+    if bad.size:
+        raise SurveyError(f"{path}: column seed, row {int(bad[0]) + 2}: expected a non-negative integer, got "
+                          f"{str(df['seed'].iloc[bad[0]])!r}")
+    df["seed"] = seed.astype(np.int64)
     return df
 
 
 def _plants(df: pd.DataFrame, seeds: int, step: float, source: str, progress: bool = False) -> Plants:
+    for sp, heights in df.groupby(df["species"].astype(str))["height"]:
+        try:
+            p = species_params(sp)
+        except WaveforestError as exc:
+            raise SurveyError(f"{source}: plants/table: {exc}") from None
+        out = heights[(heights < p.h_min_ok) | (heights > p.h_max_ok)]
+        if len(out):
+            raise SurveyError(f"{source}: plants/table: row {int(out.index[0]) + 2}: height {out.iloc[0]:g} m for "
+                              f"{sp}: expected {p.h_min_ok:g} to {p.h_max_ok:g} m")
     h = np.maximum(step, np.round(df["height"].to_numpy() / step) * step)
     s = df["seed"].to_numpy(np.int64) % seeds
     keys = list(zip(df["species"].astype(str), h.round(6), s))
