@@ -124,6 +124,47 @@ def test_the_outputs_read_back(tmp_path, capsys):
         assert np.allclose(pulses[f"sensor_{c}"] + pulses["range_m"] * pulses[f"dir_{c}"], first, atol=2e-3)
 
 
+def test_an_independent_reader_puts_the_returns_on_the_plane(tmp_path):
+    """The survey's LAS and .wdp read with the struct reader written from the LAS 1.4 R15 text
+    (tests/reference_io.py): the waveforms are the pulse reader's, and every discrete return
+    and each waveform's anchor-and-direction line meet the tilted plane flown (z = x tan 1 deg)."""
+    from reference_io import RANGE_PER_NS, reference_pulses
+
+    from waveforest.io.las.read import read_waveform_las
+
+    write_obj(tmp_path / "plane.obj", tilted_plane(20.0, 1.0))
+    scanner = {**SURVEY["scanner"], "pulse_rate_hz": 400.0, "gain": 0.08}  # 300 m: below full scale
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        result, table, _, _ = fly(tmp_path, PLANE, scanner, altitude=300.0, length=6.0,
+                                  quality={"rays_per_pulse": 256, "max_order": 1})
+    assert result["saturated_pulses"] == 0
+    las = tmp_path / "out" / "survey.las"
+    ref = reference_pulses(las)
+    ours = read_waveform_las(las)
+    assert len(ref) == ours.num_rows == table.num_rows > 10
+    tilt = np.tan(np.radians(1.0))
+    for pulse, samples in zip(ref, ours.column("samples").to_pylist()):
+        assert pulse["samples"] == [int(v) for v in samples]
+        for x, y, z, t, _ in pulse["echoes"]:
+            assert abs(z - x * tilt) < 0.03  # the discriminator's range on a plane: within 3 cm
+            along = np.asarray(pulse["anchor"]) + np.asarray(pulse["dir"]) * t * RANGE_PER_NS
+            assert np.allclose(along, (x, y, z), atol=1e-3)  # the point lies on its waveform's line
+
+
+def test_clipped_waveforms_are_counted_and_named(tmp_path, capsys):
+    """At 300 m the preset's gain drives the plane's echoes past 255 DN: the summary counts the
+    pulses and the command says what to change, once, after its result line."""
+    sc, sv = _files(tmp_path)
+    code, lines = _run(["survey", sc, sv, "--out", tmp_path / "out", "--no-progress"], capsys)
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert code == 0 and summary["saturated_pulses"] == summary["pulses_traced"] > 0
+    warn = [ln for ln in lines if ln.startswith("waveforest: warning:")]
+    assert warn == [f"waveforest: warning: {summary['pulses_traced']} of {summary['pulses_traced']} pulses (100%) "
+                    "reach the digitiser's full scale (255 DN): their waveforms are clipped and their discrete "
+                    "returns early; lower scanner.gain (now 1) or fly higher"]
+
+
 def test_resume_keeps_completed_tiles_and_parts_merge(tmp_path):
     """Part 0/2 leaves its tiles in the cache and no DIR; the full run then traces only the rest
     and writes the same files as a run from scratch."""

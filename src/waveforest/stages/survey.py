@@ -7,11 +7,12 @@ overrides the ray budget's tolerance, or fixes the rays per pulse, and the highe
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import replace
 
 import click
 
-from waveforest.cliutil import EXISTING_FILE, OUT_DIR, force_option, stage_options
+from waveforest.cliutil import EXISTING_FILE, OUT_DIR, force_option, stage_options, warnings_to_stderr
 from waveforest.settings import mcrt_setup, reference_system, sensor_settings
 from waveforest.survey import load_scene, load_survey, run_survey, sensor_setup, survey_mcrt
 
@@ -50,6 +51,12 @@ def survey(scene_file, survey_file, out, part, progress, force, cfg):
     \b
     waveforest survey examples/survey/SCENE.yaml examples/survey/SURVEY.yaml --out my_survey
     """
+    with warnings_to_stderr():
+        _run(scene_file, survey_file, out, part, progress, force, cfg)
+
+
+def _run(scene_file, survey_file, out, part, progress, force, cfg):
+    """The command's work (warnings shown as ``waveforest: warning: ...``)."""
     sensor = sensor_settings(cfg)
     sv = load_survey(survey_file, sensor, reference_system(cfg))
     seed = click.get_current_context().params.get("seed")
@@ -65,3 +72,8 @@ def survey(scene_file, survey_file, out, part, progress, force, cfg):
     else:
         click.echo(f"{out}: {result['pulses_traced']} pulses, {result['returns']} returns, "
                    f"{result['cpu_ms_per_pulse']:.1f} ms CPU per pulse, peak {result['peak_memory_mb']:.0f} MB")
+        n, n_sat = result["pulses_traced"], result["saturated_pulses"]
+        if n_sat:
+            warnings.warn(f"{n_sat} of {n} pulses ({n_sat / n:.0%}) reach the digitiser's full scale "
+                          f"({setup.digitizer_max} DN): their waveforms are clipped and their discrete returns "
+                          f"early; lower scanner.gain (now {sv.scanner.gain:g}) or fly higher", stacklevel=2)

@@ -275,6 +275,8 @@ class TileResult:
     returns: int = 0
     rays: int = 0
     cpu_s: float = 0.0
+    saturated: int = 0
+    """Pulses whose waveform reaches the digitiser's full scale (``setup.digitizer_max``)."""
 
 
 def run_tile(k: int, plan_: Plan, scenes: TileScenes, survey: Survey, mcrt: MCRTSetup, setup: SensorSetup,
@@ -285,7 +287,7 @@ def run_tile(k: int, plan_: Plan, scenes: TileScenes, survey: Survey, mcrt: MCRT
     p = plan_.pulses.take(rows)
     prepared = scenes.build(plan_.tile_xy[k], len(rows), mcrt.n_rays, plan_.tile_m)
     rng = named_generator("survey", survey.seed, int(k))
-    tables, truths, rays = [], [], 0
+    tables, truths, rays, saturated = [], [], 0, 0
     s = (plan_.ground_z - p.origin[:, 2]) / p.direction[:, 2]
     if prepared is not None:
         win = window_ns(prepared, p.origin, p.direction, mcrt.max_order)
@@ -296,6 +298,7 @@ def run_tile(k: int, plan_: Plan, scenes: TileScenes, survey: Survey, mcrt: MCRT
                         **mcrt.kwargs(), **mcrt.budget(setup.system, setup.noise_sd, s[sl]))
             rays += int(res.rays.sum())
             sim = render_sigma(res.sigma, res.t0_ns, s[sl], setup, rng, sigma_total=res.total)
+            saturated += int(np.count_nonzero(np.nanmax(sim.samples, axis=1, initial=-np.inf) >= setup.digitizer_max))
             tables.append(pulse_table(p.take(np.arange(len(rows))[sl]), rows[sl], sim, s[sl], survey.scanner.agc))
             if survey.truth:
                 truths.append(truth_table(rows[sl], p.gps_time[sl], res))
@@ -312,7 +315,7 @@ def run_tile(k: int, plan_: Plan, scenes: TileScenes, survey: Survey, mcrt: MCRT
             empty = pa.table({"pulse_id": pa.array([], pa.int64())})
             pq.write_table(pa.concat_tables(truths) if truths else empty, tmp)
     returns = int(table.column("n_echoes").to_numpy().astype(np.int64).sum())
-    return TileResult(len(rows), returns, rays, time.process_time() - cpu)
+    return TileResult(len(rows), returns, rays, time.process_time() - cpu, saturated)
 
 
 def _empty_sim() -> SimPulses:
@@ -344,6 +347,7 @@ def summary(plan_: Plan, results: list[TileResult], wall_s: float, peak_mb: floa
     cpu = sum(r.cpu_s for r in results)
     n = sum(r.pulses for r in results)
     return {"pulses_flown": plan_.n_flown, "pulses_traced": n, "returns": sum(r.returns for r in results),
+            "saturated_pulses": sum(r.saturated for r in results),
             "tiles": len(plan_.tiles), "rays_per_pulse": mcrt.n_rays if mcrt.tolerance is None else None,
             "tolerance": mcrt.tolerance, "max_order": mcrt.max_order,
             "rays": sum(r.rays for r in results), "cpu_s": cpu, "wall_s": wall_s,
