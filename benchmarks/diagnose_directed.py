@@ -29,6 +29,11 @@ ceil(power x replicates)-th smallest; ``limit_ratio_<test>_<effect>`` against ``
 (distances from off: 0.5 = halved). Writes DIR/signatures.parquet and DIR/replicates.csv
 (signatures are reused when present).
 
+Each directed test is also printed as ``quasi_<set>``: z further divided by sqrt(phi / mean phi of
+the off replicates) where that exceeds 1, phi the mean square of the standardised terms once the
+candidate's signature is fitted out (an over-dispersion scale: a misfit in every other direction
+weakens the candidate's evidence); ``combined_quasi`` is omnibus_fe or quasi_ww.
+
 ``campaigns`` applies the directed test to campaigns' own data (the diagnosis's base
 simulation, seed and bootstrap) with signatures from ``limits`` and each campaign's own
 calibration (its off replicates): on campaigns without effects, a z above the threshold is a
