@@ -298,7 +298,7 @@ def run_tile(k: int, plan_: Plan, scenes: TileScenes, survey: Survey, mcrt: MCRT
                         **mcrt.kwargs(), **mcrt.budget(setup.system, setup.noise_sd, s[sl]))
             rays += int(res.rays.sum())
             sim = render_sigma(res.sigma, res.t0_ns, s[sl], setup, rng, sigma_total=res.total)
-            saturated += int(np.count_nonzero(np.nanmax(sim.samples, axis=1, initial=-np.inf) >= setup.digitizer_max))
+            saturated += int(np.count_nonzero((sim.samples >= setup.digitizer_max).any(axis=1)))  # NaN pads: False
             tables.append(pulse_table(p.take(np.arange(len(rows))[sl]), rows[sl], sim, s[sl], survey.scanner.agc))
             if survey.truth:
                 truths.append(truth_table(rows[sl], p.gps_time[sl], res))
