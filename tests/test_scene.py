@@ -84,6 +84,23 @@ def test_ply_without_optical_properties_is_a_clear_error(tmp_path):
         read_ply(p)
 
 
+def test_a_bare_ply_takes_a_default_material_and_its_polygons_fan(tmp_path):
+    """A PLY without rho, tau, kind (any other tool's mesh) with ``default``: a triangle, a quad
+    and a pentagon fanned from their first vertex, in file order, every face the default's."""
+    p = tmp_path / "bare.ply"
+    p.write_text(
+        "ply\nformat ascii 1.0\nelement vertex 6\nproperty float x\nproperty float y\nproperty float z\n"
+        "element face 3\nproperty list uchar int vertex_indices\nend_header\n"
+        "0 0 0\n1 0 0\n1 1 0\n0 1 0\n0 2 1\n2 2 1\n3 0 1 2\n4 0 1 2 3\n5 1 2 5 4 3\n"
+    )
+    s = read_ply(p, default=(0.25, 0.5, 1))
+    v = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 2, 1], [2, 2, 1]], np.float32)
+    want = v[[[0, 1, 2], [0, 1, 2], [0, 2, 3], [1, 2, 5], [1, 5, 4], [1, 4, 3]]]
+    np.testing.assert_array_equal(s.triangles, want)
+    assert np.all(np.broadcast_to(s.rho, 6) == np.float32(0.25)) and np.all(np.broadcast_to(s.kind, 6) == 1)
+    assert np.all(np.broadcast_to(s.tau, 6) == np.float32(0.5))
+
+
 def test_energy_conservation_is_enforced():
     tri = np.zeros((1, 3, 3), np.float32)
     with pytest.raises(SceneError, match="rho"):

@@ -320,6 +320,22 @@ def test_obj_faces_materials_and_indices(tmp_path):
         read_obj(tmp_path / "a.obj", props, "S")
 
 
+def test_a_bare_ply_needs_its_default_material(tmp_path, capsys):
+    """A PLY from another tool (no per-face rho, tau, kind): an error that names the fix, and with
+    the object's material ``default`` every face takes it."""
+    (tmp_path / "bare.ply").write_text(
+        "ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\nproperty float y\nproperty float z\n"
+        "element face 1\nproperty list uchar int vertex_indices\nend_header\n"
+        "-20 -20 0\n20 -20 0.7\n20 20 0.7\n-20 20 0\n4 0 1 2 3\n")
+    scene = {"objects": [{"file": "bare.ply"}], "ground": {"type": "none"}}
+    _fails(tmp_path, capsys, scene=scene, expect="bare.ply: face property rho, tau, kind missing (expected rho, "
+                                                  "tau, kind); or set this object's materials/default/rho")
+    scene["objects"][0]["materials"] = {"default": {"rho": 0.35, "kind": "ground"}}
+    (tmp_path / "SCENE.yaml").write_text(yaml.safe_dump(scene))
+    sc = load_scene(tmp_path / "SCENE.yaml").static
+    assert len(sc) == 2 and np.allclose(sc.rho, 0.35) and np.all(np.asarray(sc.kind) == 0)
+
+
 def test_a_scanner_without_preset_needs_every_value(tmp_path, capsys):
     survey = {**SURVEY, "scanner": {"preset": None, "pulse_rate_hz": 40.0}}
     _fails(tmp_path, capsys, survey=survey, expect="SURVEY.yaml: scanner/pattern: expected a value")

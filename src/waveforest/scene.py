@@ -142,8 +142,12 @@ def write_ply(scene: Scene, path: str | Path) -> Path:
     return path
 
 
-def read_ply(path: str | Path) -> Scene:
-    """Read a PLY whose faces carry ``rho``, ``tau`` and ``kind`` (polygons are fanned)."""
+def read_ply(path: str | Path, default: tuple[float, float, int] | None = None) -> Scene:
+    """Read a PLY whose faces carry ``rho``, ``tau`` and ``kind`` (polygons are fanned).
+
+    A PLY without them (a mesh from any other tool) takes ``default`` (rho, tau, kind) for
+    every face when it is given; else SceneError.
+    """
 
     path = Path(path)
     if not path.exists():
@@ -159,7 +163,7 @@ def read_ply(path: str | Path) -> Scene:
         raise SceneError(f"{path}: not a readable PLY with vertex and face elements ({exc})") from exc
     names = face.dtype.names or ()
     missing = [p for p in ("rho", "tau", "kind") if p not in names]
-    if missing:
+    if missing and default is None:
         raise SceneError(f"{path}: face property {', '.join(missing)} missing (expected rho, tau, kind)")
     idx_name = "vertex_indices" if "vertex_indices" in names else "vertex_index"
     if idx_name not in names:
@@ -169,15 +173,18 @@ def read_ply(path: str | Path) -> Scene:
     if polys.dtype != object and polys.ndim == 2 and polys.shape[1] == 3:
         idx = polys.astype(np.int64)
         owner = np.arange(len(idx))
-    else:  # variable-length polygons: fan-triangulate
-        tris, owner_l = [], []
-        for i, p in enumerate(polys):
-            p = np.asarray(p, dtype=np.int64)
-            for k in range(1, len(p) - 1):
-                tris.append((p[0], p[k], p[k + 1]))
-                owner_l.append(i)
-        idx = np.asarray(tris, dtype=np.int64).reshape(-1, 3)
-        owner = np.asarray(owner_l, dtype=np.int64)
+    else:  # variable-length polygons: fan-triangulated, (v0, vk, vk+1)
+        n = np.fromiter((len(p) for p in polys), np.int64, len(polys))
+        if n.size and n.min() < 3:
+            raise SceneError(f"{path}: a face with fewer than 3 vertices")
+        flat = np.concatenate([np.asarray(p, np.int64) for p in polys]) if len(polys) else np.zeros(0, np.int64)
+        starts = np.concatenate([[0], np.cumsum(n)[:-1]])
+        owner = np.repeat(np.arange(len(n)), n - 2)
+        k = np.arange(len(owner)) - np.repeat(np.cumsum(n - 2) - (n - 2), n - 2)
+        idx = np.stack([flat[starts[owner]], flat[starts[owner] + k + 1], flat[starts[owner] + k + 2]], axis=1)
     if idx.size and (idx.min() < 0 or idx.max() >= len(xyz)):
         raise SceneError(f"{path}: face vertex index out of range (0..{len(xyz) - 1})")
+    if missing:
+        rho, tau, kind = default
+        return Scene(xyz[idx], np.float32(rho), np.float32(tau), np.uint8(kind))
     return Scene(xyz[idx], face["rho"][owner], face["tau"][owner], face["kind"][owner])

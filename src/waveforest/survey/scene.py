@@ -142,11 +142,7 @@ def read_obj(path: Path, materials: dict, source: str) -> Scene:
     props = np.zeros((len(used) + 1, 3))
     for w, m in zip(np.unique(which), names):
         if m in materials:
-            p = materials[m]
-            rho, tau = float(p["rho"]), float(p.get("tau", 0.0))
-            if rho + tau > 1.0 + 1e-9:
-                raise SurveyError(f"{source}: materials/{m}: expected rho + tau <= 1, got {rho + tau:g}")
-            props[w + 1] = (rho, tau, KINDS[p.get("kind", "other")])
+            props[w + 1] = _material(materials, m, source)
         elif m in mtl:
             props[w + 1] = (mtl[m], 0.0, KINDS["other"])
         else:
@@ -155,6 +151,15 @@ def read_obj(path: Path, materials: dict, source: str) -> Scene:
                               f"objects/materials/{m}/rho in the scene file or helios_reflectance in its MTL){why}")
     table = props[which[face] + 1]
     return Scene(xyz[idx].astype(np.float32), table[:, 0], table[:, 1], table[:, 2].astype(np.uint8))
+
+
+def _material(materials: dict, name: str, source: str) -> tuple[float, float, int]:
+    """(rho, tau, kind) of SCENE.yaml's material ``name``; SurveyError for rho + tau > 1."""
+    p = materials[name]
+    rho, tau = float(p["rho"]), float(p.get("tau", 0.0))
+    if rho + tau > 1.0 + 1e-9:
+        raise SurveyError(f"{source}: materials/{name}: expected rho + tau <= 1, got {rho + tau:g}")
+    return rho, tau, KINDS[p.get("kind", "other")]
 
 
 def _mtl_files(obj: Path, libs: list[str]) -> list[Path]:
@@ -193,15 +198,19 @@ def _read_mtl(path: Path, source: str) -> dict[str, float]:
 
 
 def read_mesh(path: Path, materials: dict, source: str) -> Scene:
-    """A PLY (rho, tau, kind per face) or OBJ + MTL mesh; SurveyError naming the file."""
+    """A PLY (rho, tau, kind per face, or the material ``default`` of ``materials`` for a PLY
+    without them) or OBJ + MTL mesh; SurveyError naming the file."""
     if not path.exists():
         raise SurveyError(f"{source}: {path}: no such file")
     if path.suffix.lower() == ".obj":
         return read_obj(path, materials, source)
+    default = _material(materials, DEFAULT_MATERIAL, source) if DEFAULT_MATERIAL in materials else None
     try:
-        return read_ply(path)
+        return read_ply(path, default)
     except SceneError as exc:
-        raise SurveyError(f"{source}: {exc}") from None
+        hint = f"; or set this object's materials/{DEFAULT_MATERIAL}/rho for every face" if (
+            default is None and "face property" in str(exc)) else ""
+        raise SurveyError(f"{source}: {exc}{hint}") from None
 
 
 def _place(scene: Scene, scale: float, rotate_deg: float, translate) -> Scene:
