@@ -334,6 +334,9 @@ def test_a_bare_ply_needs_its_default_material(tmp_path, capsys):
     (tmp_path / "SCENE.yaml").write_text(yaml.safe_dump(scene))
     sc = load_scene(tmp_path / "SCENE.yaml").static
     assert len(sc) == 2 and np.allclose(sc.rho, 0.35) and np.all(np.asarray(sc.kind) == 0)
+    (tmp_path / "SCENE.yaml").write_text(yaml.safe_dump({"ground": {"type": "mesh", "file": "bare.ply", "rho": 0.2}}))
+    sc = load_scene(tmp_path / "SCENE.yaml").static  # a bare terrain mesh takes ground/rho
+    assert len(sc) == 2 and np.allclose(sc.rho, 0.2) and np.all(np.asarray(sc.kind) == 0)
 
 
 def test_a_scanner_without_preset_needs_every_value(tmp_path, capsys):

@@ -310,7 +310,8 @@ def load_scene(path: str | Path, progress: bool = False) -> SurveyScene:
     if g["type"] == "mesh":
         if g["file"] is None:
             raise SurveyError(f"{src}: ground/file: expected a mesh file for ground type mesh")
-        mesh = read_mesh(base / g["file"], {}, f"{src}: ground")
+        # faces without properties of their own (a bare PLY, OBJ faces before any usemtl) take ground/rho
+        mesh = read_mesh(base / g["file"], {DEFAULT_MATERIAL: {"rho": float(g["rho"])}}, f"{src}: ground")
         parts.append(Scene(mesh.triangles, mesh.rho, mesh.tau, KIND_GROUND))  # every face is ground
     plant_box = [] if plants is None else [np.stack([plants.box[:, 0].min(axis=0), plants.box[:, 1].max(axis=0)])]
     boxes = [p.bounds for p in parts] + plant_box
