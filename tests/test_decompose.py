@@ -70,8 +70,8 @@ def test_bad_waveforms_are_flagged_and_never_nan():
     x = np.full((4, 64), np.nan, np.float32)
     x[0, :] = 10.0  # flat
     x[1, :3] = [10, 40, 10]  # too short
-    x[2, :] = _waveforms([[(200.0, 30.0)]], n_samples=64)[0]
-    x[2] = np.minimum(x[2], 120.0)  # clipped
+    x[2, :] = np.round(_waveforms([[(400.0, 30.0)]], n_samples=64)[0])
+    x[2] = np.minimum(x[2], 255.0)  # an 8-bit digitiser clipped
     x[3, :] = _waveforms([[]], n_samples=64, seed=5)[0]
     lens = np.array([64, 3, 64, 64])
     d = decompose(x, lens, 1.0, 10.0, SD, pulse_fwhm_ns=FWHM)
@@ -82,6 +82,22 @@ def test_bad_waveforms_are_flagged_and_never_nan():
     for i in range(4):
         k = d.n_echoes[i]
         assert np.isfinite(d.time_ns[i, :k]).all() and np.isfinite(d.amplitude[i, :k]).all()
+
+
+def test_equal_top_samples_are_clipped_only_at_full_scale():
+    """An integer echo whose peak lies midway between two samples, or a wide echo with a flat top,
+    holds its maximum over several samples: not clipped (its top keeps its weight); held at 255
+    (8-bit) or 4095 (12-bit) it is."""
+    x = np.round(_waveforms([[(a, 60.5)] for a in (20.0, 45.0, 80.0, 150.0)], noise=0.0))
+    x = np.vstack([x, np.round(_waveforms([[(60.0, 58.0), (60.0, 63.0)]], noise=0.0))])  # a flat-topped pair
+    assert all((row == row.max()).sum() >= 2 for row in x)
+    d = decompose(x, None, 1.0, 10.0, SD, pulse_fwhm_ns=FWHM)
+    assert not np.any(d.flags & FLAG_CLIPPED) and np.all(d.n_echoes[:4] == 1)
+    np.testing.assert_allclose(d.time_ns[:4, 0], 60.5, atol=0.05)
+    full = np.round(_waveforms([[(260.0, 60.5)], [(5000.0, 60.5)]], noise=0.0))
+    full[0], full[1] = np.minimum(full[0], 255.0), np.minimum(full[1], 4095.0)
+    assert full[0, 60] == full[0, 61] == 255 and full[1, 60] == full[1, 61] == 4095
+    assert np.all(decompose(full, None, 1.0, 10.0, SD, pulse_fwhm_ns=FWHM).flags & FLAG_CLIPPED)
 
 
 def test_fixed_width_keeps_the_system_pulse_width():

@@ -24,7 +24,8 @@ fitted by weighted least squares over the samples within 4 s of any component:
    dropped and components closer than ``merge_sd`` widths merged, then the fit is repeated;
    a smoothed residual above the detection level adds a component there (at most three times).
 
-Samples at the record's maximum that repeat (a clipped digitiser) get zero weight. A
+Samples at the record's maximum get zero weight where the digitiser clipped: the maximum held
+over two samples or more at a full-scale value 2^k - 1 (:data:`FULL_SCALE_BITS`). A
 waveform that is flat, shorter than five samples, or has no candidate above the detection
 level gets no echo and a flag (:data:`FLAGS`); no output is ever NaN for a found echo.
 """
@@ -537,6 +538,28 @@ def _prunable(p, k, level, merge_sd):
     return False
 
 
+FULL_SCALE_BITS = (8, 16)
+"""A record maximum held over two samples or more is a clipped digitiser only at a full-scale
+value 2^k - 1, k in this range (8-bit to 16-bit digitisers, 12- and 14-bit ones in 16-bit
+words): equal top samples at other values are common (an echo whose peak lies midway between
+two samples; a canopy echo wider than the pulse: 20 % and 2 % of the virtual campaign's
+waveforms, none of them at 255, docs/validation.md)."""
+
+
+@njit(cache=True)
+def _clipped(x, n, hi_v):
+    """Whether the record ``x[:n]`` with maximum ``hi_v`` was clipped (:data:`FULL_SCALE_BITS`)."""
+    full = False
+    for k in range(FULL_SCALE_BITS[0], FULL_SCALE_BITS[1] + 1):
+        full = full or hi_v == 2.0 ** k - 1.0
+    if not full:
+        return False
+    for i in range(n - 1):
+        if x[i] == hi_v and x[i + 1] == hi_v:
+            return True
+    return False
+
+
 @njit(cache=True)
 def decompose_row(x, n, dt, mean, sd, s_min_ns, s_max_ns, min_snr, merge_sd, fixed_width, g, var_smooth,
                   max_iter, ws, out_p):
@@ -556,10 +579,8 @@ def decompose_row(x, n, dt, mean, sd, s_min_ns, s_max_ns, min_snr, merge_sd, fix
     if not (hi_v - lo_v > 1e-9):
         return 0, FLAG_FLAT, np.nan
     flags = 0
-    for i in range(n - 1):  # a repeated record maximum: the digitiser clipped
-        if x[i] == hi_v and x[i + 1] == hi_v:
-            flags |= FLAG_CLIPPED
-            break
+    if _clipped(x, n, hi_v):
+        flags |= FLAG_CLIPPED
     if flags & FLAG_CLIPPED:
         for i in range(n):
             if x[i] == hi_v:
