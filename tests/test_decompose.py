@@ -100,6 +100,18 @@ def test_equal_top_samples_are_clipped_only_at_full_scale():
     assert np.all(decompose(full, None, 1.0, 10.0, SD, pulse_fwhm_ns=FWHM).flags & FLAG_CLIPPED)
 
 
+def test_a_clipped_record_is_found_after_agc_normalisation():
+    """AGC-normalised samples ((V - n0) / g + n0, Eq. 1) of a record clipped at 255: with its gain
+    the top is found clipped and left out, and the echo's amplitude is the unclipped one's / g."""
+    g, true_a = 1.6, 400.0
+    raw = np.minimum(np.round(_waveforms([[(true_a, 60.5)]], noise=0.0)), 255.0)
+    norm = (raw - 10.0) / g + 10.0
+    plain = decompose(norm, None, 1.0, 10.0, SD, pulse_fwhm_ns=FWHM)
+    d = decompose(norm, None, 1.0, 10.0, SD, pulse_fwhm_ns=FWHM, agc_gain=g)
+    assert not plain.flags[0] & FLAG_CLIPPED and d.flags[0] & FLAG_CLIPPED
+    assert abs(d.amplitude[0, 0] / (true_a / g) - 1) < 0.02 < abs(plain.amplitude[0, 0] / (true_a / g) - 1)
+
+
 def test_fixed_width_keeps_the_system_pulse_width():
     x = _waveforms([[(30.0, 50.0), (20.0, 75.0)]], seed=2)
     d = decompose(x, None, 1.0, 10.0, SD, pulse_fwhm_ns=FWHM, fixed_width=True)

@@ -547,11 +547,14 @@ waveforms, none of them at 255, docs/validation.md)."""
 
 
 @njit(cache=True)
-def _clipped(x, n, hi_v):
-    """Whether the record ``x[:n]`` with maximum ``hi_v`` was clipped (:data:`FULL_SCALE_BITS`)."""
+def _clipped(x, n, hi_v, mean, agc_gain):
+    """Whether the record ``x[:n]`` with maximum ``hi_v`` was clipped (:data:`FULL_SCALE_BITS`):
+    the raw maximum ``(hi_v - mean) agc_gain + mean`` (the samples of an AGC-normalised table
+    are (V - n0) / g + n0, Eq. 1) within half a DN of 2^k - 1, held over two samples or more."""
+    raw = (hi_v - mean) * agc_gain + mean
     full = False
     for k in range(FULL_SCALE_BITS[0], FULL_SCALE_BITS[1] + 1):
-        full = full or hi_v == 2.0 ** k - 1.0
+        full = full or abs(raw - (2.0 ** k - 1.0)) < 0.5
     if not full:
         return False
     for i in range(n - 1):
@@ -561,9 +564,10 @@ def _clipped(x, n, hi_v):
 
 
 @njit(cache=True)
-def decompose_row(x, n, dt, mean, sd, s_min_ns, s_max_ns, min_snr, merge_sd, fixed_width, g, var_smooth,
-                  max_iter, ws, out_p):
-    """Decompose one waveform (module docstring) with the smoothing kernel ``g`` (variance
+def decompose_row(x, n, dt, mean, sd, agc_gain, s_min_ns, s_max_ns, min_snr, merge_sd, fixed_width, g,
+                  var_smooth, max_iter, ws, out_p):
+    """Decompose one waveform (module docstring; ``agc_gain`` the gain its samples were divided
+    by, 1 for raw samples) with the smoothing kernel ``g`` (variance
     ``var_smooth``, samples^2; :func:`_kernel`) and the work
     arrays ``ws`` (:func:`scratch`); echoes into ``out_p`` ((max_k, 3): A DN, mu ns, s ns).
     Returns (echo count, flags, RMS residual DN)."""
@@ -579,7 +583,7 @@ def decompose_row(x, n, dt, mean, sd, s_min_ns, s_max_ns, min_snr, merge_sd, fix
     if not (hi_v - lo_v > 1e-9):
         return 0, FLAG_FLAT, np.nan
     flags = 0
-    if _clipped(x, n, hi_v):
+    if _clipped(x, n, hi_v, mean, agc_gain):
         flags |= FLAG_CLIPPED
     if flags & FLAG_CLIPPED:
         for i in range(n):
@@ -640,7 +644,7 @@ def decompose_row(x, n, dt, mean, sd, s_min_ns, s_max_ns, min_snr, merge_sd, fix
 
 
 @njit(parallel=True, cache=True)
-def _decompose_kernel(samples, lengths, dt, mean, sd, s_min_ns, s_max_ns, min_snr, merge_sd, fixed_width,
+def _decompose_kernel(samples, lengths, dt, mean, sd, agc_gain, s_min_ns, s_max_ns, min_snr, merge_sd, fixed_width,
                       smooth_ns, max_iter, out_p, out_k, out_flags, out_rms):
     n_rows = samples.shape[0]
     n_blocks = (n_rows + BLOCK - 1) // BLOCK
@@ -653,14 +657,14 @@ def _decompose_kernel(samples, lengths, dt, mean, sd, s_min_ns, s_max_ns, min_sn
             if s_smooth != s_prev:
                 g, var = _kernel(s_smooth)
                 s_prev = s_smooth
-            k, f, rms = decompose_row(samples[i], lengths[i], dt[i], mean[i], sd[i], s_min_ns, s_max_ns, min_snr,
-                                      merge_sd, fixed_width, g, var, max_iter, ws, out_p[i])
+            k, f, rms = decompose_row(samples[i], lengths[i], dt[i], mean[i], sd[i], agc_gain[i], s_min_ns, s_max_ns,
+                                      min_snr, merge_sd, fixed_width, g, var, max_iter, ws, out_p[i])
             out_k[i], out_flags[i], out_rms[i] = k, f, rms
 
 
 def decompose(samples, lengths, sampling_ns, noise_mean, noise_sd, *, pulse_fwhm_ns: float | None = None,
               fixed_width: bool = False, min_snr: float = 3.0, max_echoes: int = 8, merge_sd: float = 1.0,
-              max_width_factor: float = 6.0, max_iter: int = 30) -> Decomposition:
+              max_width_factor: float = 6.0, max_iter: int = 30, agc_gain=None) -> Decomposition:
     """Gaussian decomposition of every waveform of a table (module docstring, Eq. F1).
 
     Parameters
@@ -672,6 +676,8 @@ def decompose(samples, lengths, sampling_ns, noise_mean, noise_sd, *, pulse_fwhm
     min_snr : detection level, noise SDs of amplitude.  max_echoes : most echoes per waveform.
     merge_sd : components closer than this many widths are one echo.
     max_width_factor : widest echo, in units of s_min (or of two samples without a pulse).
+    agc_gain : float or (n,), the AGC gain g each waveform was divided by ((V - n0) / g + n0,
+        Eq. 1, n0 = ``noise_mean``; NaN or None: 1, raw samples): the clipped test's raw values.
     """
     x, lens = checks.waveforms(samples, lengths)
     n = x.shape[0]
@@ -682,6 +688,7 @@ def decompose(samples, lengths, sampling_ns, noise_mean, noise_sd, *, pulse_fwhm
     dt = checks.per_pulse(sampling_ns, n, "sampling_ns", positive=True)
     mean = checks.per_pulse(noise_mean, n, "noise_mean")
     sd = checks.per_pulse(noise_sd, n, "noise_sd", nonnegative=True)
+    gain = np.ones(n) if agc_gain is None else checks.gain_or_one(np.broadcast_to(np.asarray(agc_gain, float), (n,)))
     fwhm_to_sd = 1.0 / (2.0 * math.sqrt(2.0 * math.log(2.0)))
     s_min = float(pulse_fwhm_ns) * fwhm_to_sd if pulse_fwhm_ns else 0.5 * float(np.min(dt, initial=1.0))
     s_max = max_width_factor * (s_min if pulse_fwhm_ns else 2.0 * float(np.max(dt, initial=1.0)))
@@ -691,6 +698,6 @@ def decompose(samples, lengths, sampling_ns, noise_mean, noise_sd, *, pulse_fwhm
     flags = np.zeros(n, np.int64)
     rms = np.full(n, np.nan)
     if n:
-        _decompose_kernel(x, lens, dt, mean, sd, s_min, s_max, float(min_snr), float(merge_sd), bool(fixed_width),
+        _decompose_kernel(x, lens, dt, mean, sd, np.ascontiguousarray(gain, np.float64), s_min, s_max, float(min_snr), float(merge_sd), bool(fixed_width),
                           smooth_ns, int(max_iter), out, k, flags, rms)
     return Decomposition(out[:, :, 0], out[:, :, 1], out[:, :, 2], k.astype(np.int16), flags.astype(np.uint8), rms)

@@ -39,6 +39,7 @@ import waveforest.sensor.checks as checks
 from waveforest.constants import RANGE_PER_NS
 from waveforest.errors import WaveforestWarning
 from waveforest.io.pulses import PULSE_SCHEMA, list_to_padded
+from waveforest.sensor.agc import GAIN_COLUMN
 from waveforest.sensor.cfd import detect_echoes
 from waveforest.sensor.decompose import decompose
 from waveforest.sensor.noise import NoiseStats
@@ -209,10 +210,10 @@ first to the last echo along z (m, 0 for one echo) and the last echo's height ab
 A pulse without an echo has count 0 and the others 0, except gd_last_H (NaN)."""
 
 
-def decomposition_columns(samples, lens, dt, mean, sd, fwhm_ns, anchor_z, dir_z, ground) -> dict:
+def decomposition_columns(samples, lens, dt, mean, sd, fwhm_ns, anchor_z, dir_z, ground, agc_gain=None) -> dict:
     """:data:`DECOMPOSITION_FEATURES` of a table of waveforms ((n,) arrays each; ``fwhm_ns``:
-    the system pulse FWHM or None)."""
-    d = decompose(samples, lens, dt, mean, sd, pulse_fwhm_ns=fwhm_ns)
+    the system pulse FWHM or None; ``agc_gain``: the gains of AGC-normalised waveforms, or None)."""
+    d = decompose(samples, lens, dt, mean, sd, pulse_fwhm_ns=fwhm_ns, agc_gain=agc_gain)
     k = d.n_echoes.astype(np.int64)
     has = k > 0
     rows = np.arange(len(k))
@@ -302,10 +303,11 @@ def feature_table(pulses: pa.Table, noise: Mapping, params: FeatureParams | None
     })
     if params.decomposition:
         gd = {f: np.zeros(n, np.int16 if f == "gd_n" else np.float64) for f in DECOMPOSITION_FEATURES}
+        gain = col(GAIN_COLUMN) if GAIN_COLUMN in pulses.column_names else np.ones(n)
         for name, fwhm in widths.items():
             m = np.flatnonzero(datasets == name)
             cols = decomposition_columns(samples[m], lens[m], dt[m], mean[m], sd[m], fwhm, col("anchor_z")[m],
-                                         col("dir_z")[m], ground[m])
+                                         col("dir_z")[m], ground[m], gain[m])
             for f in DECOMPOSITION_FEATURES:
                 gd[f][m] = cols[f]
         out.update(gd)
