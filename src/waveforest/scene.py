@@ -142,6 +142,17 @@ def write_ply(scene: Scene, path: str | Path) -> Path:
     return path
 
 
+def fan_triangles(flat: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Polygons fanned from their first vertex: ``flat`` (sum n,) vertex indices of polygons of
+    ``n`` (p,) >= 3 vertices each, in order -> (triangles (sum(n - 2), 3) as (v0, vk, vk+1),
+    the polygon of each triangle (sum(n - 2),))."""
+    starts = np.concatenate([[0], np.cumsum(n)[:-1]]).astype(np.int64)
+    owner = np.repeat(np.arange(len(n)), n - 2)
+    k = np.arange(len(owner)) - np.repeat(np.cumsum(n - 2) - (n - 2), n - 2)
+    first = starts[owner]
+    return np.stack([flat[first], flat[first + k + 1], flat[first + k + 2]], axis=1), owner
+
+
 def read_ply(path: str | Path, default: tuple[float, float, int] | None = None) -> Scene:
     """Read a PLY whose faces carry ``rho``, ``tau`` and ``kind`` (polygons are fanned).
 
@@ -178,10 +189,7 @@ def read_ply(path: str | Path, default: tuple[float, float, int] | None = None) 
         if n.size and n.min() < 3:
             raise SceneError(f"{path}: a face with fewer than 3 vertices")
         flat = np.concatenate([np.asarray(p, np.int64) for p in polys]) if len(polys) else np.zeros(0, np.int64)
-        starts = np.concatenate([[0], np.cumsum(n)[:-1]])
-        owner = np.repeat(np.arange(len(n)), n - 2)
-        k = np.arange(len(owner)) - np.repeat(np.cumsum(n - 2) - (n - 2), n - 2)
-        idx = np.stack([flat[starts[owner]], flat[starts[owner] + k + 1], flat[starts[owner] + k + 2]], axis=1)
+        idx, owner = fan_triangles(flat, n)
     if idx.size and (idx.min() < 0 or idx.max() >= len(xyz)):
         raise SceneError(f"{path}: face vertex index out of range (0..{len(xyz) - 1})")
     if missing:

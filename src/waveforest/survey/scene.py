@@ -20,7 +20,7 @@ import pandas as pd
 
 from waveforest.constants import KIND_GROUND
 from waveforest.errors import WaveforestError
-from waveforest.scene import Scene, SceneError, read_ply
+from waveforest.scene import Scene, SceneError, fan_triangles, read_ply
 from waveforest.survey.spec import SCENE_SCHEMA, SurveyError, read_document
 from waveforest.vegetation import build, species_params
 
@@ -126,10 +126,7 @@ def read_obj(path: Path, materials: dict, source: str) -> Scene:
         flat = flat - 1
     if flat.min() < 0 or flat.max() >= len(xyz):
         raise SurveyError(f"{source}: {path}: face vertex index out of range (1..{len(xyz)})")
-    starts = np.concatenate([[0], np.cumsum(n)[:-1]])
-    face = np.repeat(np.arange(len(n)), n - 2)                        # fan: (v0, vk, vk+1)
-    k = np.arange(len(face)) - np.repeat(np.cumsum(n - 2) - (n - 2), n - 2)
-    idx = np.stack([flat[starts[face]], flat[starts[face] + k + 1], flat[starts[face] + k + 2]], axis=1)
+    idx, face = fan_triangles(flat, n)
     which = np.repeat(np.arange(len(bodies)) - 1, [len(fs) for fs in per_body])  # -1: before any usemtl
     names = [DEFAULT_MATERIAL if w < 0 else used[w] for w in np.unique(which)]
     mtl: dict[str, float] = {}
