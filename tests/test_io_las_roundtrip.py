@@ -246,4 +246,18 @@ def test_writer_rejects_what_las_cannot_hold(tmp_path):
         write_waveform_las(tmp_path / "d.las", dup)
     with pytest.raises(LasWaveformError, match=r"\[0, 255\]"):
         write_waveform_las(tmp_path / "b.las", synthetic_pulses(5, bits=16), bits=8)
+    late = t.set_column(t.schema.get_field_index("gps_time"), "gps_time", pa.array(t["gps_time"].to_numpy() + 7e5))
+    with pytest.raises(LasWaveformError, match="GPS week time"):
+        write_waveform_las(tmp_path / "w.las", late)
     assert list(tmp_path.iterdir()) == []  # nothing left behind by the failures
+
+
+def test_adjusted_standard_gps_time_is_declared(tmp_path):
+    """gps_time_type 'standard': global encoding bit 0 set (LAS 1.4 R15: adjusted standard GPS
+    time), the times written as given; 'week' (default) leaves it clear."""
+    t = synthetic_pulses(20, seed=9)
+    late = t.set_column(t.schema.get_field_index("gps_time"), "gps_time", pa.array(t["gps_time"].to_numpy() + 3e8))
+    std = laspy.read(write_waveform_las(tmp_path / "std.las", late, gps_time_type="standard"))
+    week = laspy.read(write_waveform_las(tmp_path / "week.las", t))
+    assert int(std.header.global_encoding.value) & 1 and not int(week.header.global_encoding.value) & 1
+    assert np.allclose(np.unique(std.gps_time), np.sort(late["gps_time"].to_numpy()))

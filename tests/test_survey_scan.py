@@ -94,6 +94,98 @@ def test_a_trajectory_heading_through_north_turns_the_short_way(tmp_path):
     assert np.all((table >= 0) & (table < 360)) and np.allclose(np.mod(table + 1, 360), np.linspace(0, 2, 11))
 
 
+def test_the_next_leg_starts_turn_s_after_the_end_of_the_last(tmp_path):
+    """start_gps_time_s + duration + turn_s exactly (docs/survey.md: legs flown turn_s apart)."""
+    two = {"legs": [{"start": [0, 0], "end": [0, 31], "speed_m_s": 62.0}, {"start": [5, 31], "end": [5, 0]}],
+           "turn_s": 5.0, "start_gps_time_s": 1000.25}
+    sv = _survey(tmp_path, {"platform": two, "scanner": {"pulse_rate_hz": 100.0, "scan_angle_deg": 0.0}})
+    tracks = leg_tracks(sv)
+    assert tracks[0].gps_time.tolist() == [1000.25, 1000.75]
+    assert tracks[1].gps_time[0] == pytest.approx(1005.75, abs=1e-9)
+
+
+def test_legs_without_a_turn_share_no_gps_time(tmp_path):
+    """turn_s 0 and a whole number of pulse periods per leg: the next leg's first pulse would fall
+    on the last one's GPS time (which the LAS writer refuses); it is not flown."""
+    two = {"legs": [{"start": [0, 0], "end": [0, 62], "speed_m_s": 62.0},
+                    {"start": [0, 62], "end": [0, 0], "speed_m_s": 62.0}], "turn_s": 0.0}
+    sv = _survey(tmp_path, {"platform": two, "scanner": {"pulse_rate_hz": 100.0, "scan_angle_deg": 0.0}})
+    p = fly(sv, leg_tracks(sv))
+    assert len(np.unique(p.gps_time)) == len(p) == 201 and np.allclose(p.gps_time, np.arange(201) / 100.0)
+
+
+def test_a_flight_past_a_gps_week_is_written_in_adjusted_standard_time(tmp_path):
+    """start_gps_time_s beyond 604,800 s cannot be week time: the LAS file declares adjusted
+    standard GPS time (global encoding bit 0); a flight within the week leaves the bit clear."""
+    scene = {"ground": {"type": "plane", "z": 0.0, "rho": 0.3, "extent": [-100, -100, 100, 100]}}
+    for start, bit in ((1000.0, 0), (3.2e8, 1)):
+        out = f"out_{bit}"
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            fly_survey(tmp_path, scene, {"pulse_rate_hz": 20.0, "scan_angle_deg": 0.0}, out=out,
+                       quality={"rays_per_pulse": 64}, platform={"start_gps_time_s": start})
+        las = laspy.read(tmp_path / out / "survey.las")
+        assert int(las.header.global_encoding.value) & 1 == bit
+        assert las.gps_time.min() >= start
+
+
+@pytest.mark.parametrize("pattern", ["oscillating", "polygon", "conic"])
+def test_scan_direction_and_edge_flags_follow_the_mirror(tmp_path, pattern):
+    """LAS 1.4 R15: scan direction flag 1 while the beam sweeps left to right across track, edge
+    of flight line on the last pulse before the sweep turns (or the facet changes); in the LAS
+    points as in the pulses."""
+    from waveforest.survey.scan import EDGE_OF_LINE, SCAN_POSITIVE
+
+    scanner = {"pulse_rate_hz": 1000.0, "scan_frequency_hz": 10.0, "scan_angle_deg": 10.0, "pattern": pattern}
+    long_leg = {"legs": [{"start": [0, 0], "end": [0, 62], "speed_m_s": 62.0}]}
+    sv = _survey(tmp_path, {"platform": long_leg, "scanner": scanner})
+    p = fly(sv, leg_tracks(sv))
+    step = np.diff(p.scan_angle_deg)  # level flight: the scan angle follows the mirror
+    positive = (p.scan_flags & SCAN_POSITIVE) > 0
+    edge = (p.scan_flags & EDGE_OF_LINE) > 0
+    if pattern == "polygon":  # every facet left to right; a line ends where the angle jumps back
+        assert positive.all() and np.array_equal(edge[:-1], step < -10.0)
+    else:
+        assert np.array_equal(positive[:-1], step > 0)
+        assert np.array_equal(edge[:-2], (step[:-1] > 0) != (step[1:] > 0))
+    lines = {"oscillating": 20, "polygon": 10, "conic": 20}[pattern]  # sweeps in 1 s of flight
+    assert abs(int(edge.sum()) - lines) <= 1
+    scene = {"ground": {"type": "plane", "z": 0.0, "rho": 0.3, "extent": [-300, -300, 300, 300]}}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        _, table, _, _ = fly_survey(tmp_path, scene, scanner, length=6.2, quality={"rays_per_pulse": 16})
+    las = laspy.read(tmp_path / "out" / "survey.las")
+    flags = dict(zip(p.gps_time.round(9), p.scan_flags))
+    want = np.array([flags[t] for t in np.asarray(las.gps_time).round(9)])
+    assert len(want) >= 50 and edge[:len(want)].any()
+    assert np.array_equal(np.asarray(las.scan_direction_flag), (want & SCAN_POSITIVE) > 0)
+    assert np.array_equal(np.asarray(las.edge_of_flight_line), (want & EDGE_OF_LINE) > 0)
+    assert np.all(np.asarray(las.point_source_id) == 1)  # leg 0: flight line 1
+
+
+def test_the_written_heading_never_reads_360(tmp_path):
+    """A heading interpolated to just below 360 deg (359 -> 1 between 100.0 and 100.2 s, at 100.1 s)
+    is written 0.000000, not 360.000000 (docs/survey.md: heading 0 to 360 deg)."""
+    (tmp_path / "traj.csv").write_text("gps_time,x,y,z,roll_deg,pitch_deg,heading_deg\n"
+                                       "100.0,0,-10,900,0,0,359\n100.2,0,0,900,0,0,1\n")
+    sv = _survey(tmp_path, {"platform": {"trajectory": "traj.csv"}, "scanner": {"pulse_rate_hz": 10.0}})
+    text = trajectory_table(leg_tracks(sv), 10.0).to_csv(index=False, float_format="%.6f")
+    heading = [line.split(",")[6] for line in text.splitlines()[1:]]
+    assert heading == ["359.000000", "0.000000", "1.000000"]
+
+
+def test_positive_pitch_raises_the_nose_and_leans_the_nadir_beam_forward(tmp_path):
+    """Nose up (positive pitch, as the module docstring and HELIOS++ state) turns the body's
+    down axis forward: heading north, pitch 5 deg puts the nadir beam 5 deg ahead (+y)."""
+    (tmp_path / "traj.csv").write_text("gps_time,x,y,z,roll_deg,pitch_deg,heading_deg\n"
+                                       "0,0,0,500,0,5,0\n1,0,10,500,0,5,0\n")
+    sv = _survey(tmp_path, {"platform": {"trajectory": "traj.csv"},
+                            "scanner": {"pulse_rate_hz": 10.0, "scan_angle_deg": 0.0}})
+    d = fly(sv, leg_tracks(sv)).direction
+    assert np.allclose(d[:, 0], 0.0, atol=1e-12) and np.allclose(d[:, 1], np.sin(np.radians(5.0)))
+    assert np.allclose(d[:, 2], -np.cos(np.radians(5.0)))
+
+
 def test_las13_internal_packets_and_laz(tmp_path):
     write_obj(tmp_path / "plane.obj", tilted_plane(20.0, 1.0))
     scene = {"objects": [{"file": "plane.obj", "materials": {"m": {"rho": 0.4}}}], "ground": {"type": "none"}}

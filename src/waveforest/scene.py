@@ -30,8 +30,11 @@ class Scene:
 
     Attributes
     ----------
-    triangles : (n, 3, 3) float32, m
-        Vertex coordinates; the normal follows the right-hand rule of the vertex order.
+    triangles : (n, 3, 3) float32, or float64 when given float64, m
+        Vertex coordinates; the normal follows the right-hand rule of the vertex order. Meshes
+        read from files keep float64: float32 steps are 0.5 m at map-grid coordinates
+        (10^6-10^7 m), and :func:`waveforest.mcrt.prepare` shifts to the scene's centre
+        before it rounds to float32.
     rho, tau : (n,) float32
         Reflectance and transmittance, 0 <= rho + tau <= 1.
     kind : (n,) uint8
@@ -44,7 +47,8 @@ class Scene:
     kind: np.ndarray
 
     def __post_init__(self) -> None:
-        tri = np.ascontiguousarray(self.triangles, dtype=np.float32)
+        tri = np.asarray(self.triangles)
+        tri = np.ascontiguousarray(tri, dtype=np.float64 if tri.dtype == np.float64 else np.float32)
         n = tri.shape[0] if tri.ndim == 3 else -1
         if tri.ndim != 3 or tri.shape[1:] != (3, 3):
             raise SceneError(f"triangles: expected shape (n, 3, 3), got {tri.shape}")
@@ -88,7 +92,7 @@ class Scene:
 
     def translated(self, offset) -> Scene:
         """The scene moved by ``offset`` (3,), m."""
-        off = np.asarray(offset, dtype=np.float32).reshape(1, 1, 3)
+        off = np.asarray(offset, dtype=self.triangles.dtype).reshape(1, 1, 3)
         return Scene(self.triangles + off, self.rho, self.tau, self.kind)
 
     def subset(self, mask) -> Scene:
@@ -179,7 +183,7 @@ def read_ply(path: str | Path, default: tuple[float, float, int] | None = None) 
     idx_name = "vertex_indices" if "vertex_indices" in names else "vertex_index"
     if idx_name not in names:
         raise SceneError(f"{path}: faces have no vertex_indices")
-    xyz = np.stack([vert["x"], vert["y"], vert["z"]], axis=1).astype(np.float32)
+    xyz = np.stack([vert["x"], vert["y"], vert["z"]], axis=1).astype(np.float64)
     polys = face[idx_name]
     if polys.dtype != object and polys.ndim == 2 and polys.shape[1] == 3:
         idx = polys.astype(np.int64)

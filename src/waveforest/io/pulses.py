@@ -27,6 +27,9 @@ echo_time_ns              list<float64>   DR echo times from the first sample, n
 echo_intensity            list<float32>   DR echo intensity, DN
 ========================  ==============  ==========================================
 
+Optional, written by ``survey``: scan_flags (uint8: bit 0 the scan direction flag, bit 1 edge of
+flight line, as the LAS point records them) and point_source_id (uint16: the flight line, leg + 1).
+
 After ``select`` a pulse table also has: sample_id (string), species (string),
 functional_group (string), ground_z (float64, m: GNSS ground elevation of the sample).
 """

@@ -9,14 +9,16 @@ diameter, the horizontal reach of the most oblique beam through the scene's heig
 pulse table is kept as a Parquet file in a cache folder beside the output; an interrupted run
 resumes from the tiles already there, and :func:`merge` streams them into the LAS file.
 
-Radiometry (docs/method.md Eq. 7): waveform = S(t) * sigma(t) / R^2 with R the range to where
-the axis crosses the scene's lowest level; a Gaussian S(t) is scaled so that a nadir
+Radiometry (docs/method.md Eq. 7): waveform = S(t) * sigma(t) / R(t)^2 with R(t) = c t / 2 the
+range of each sigma bin (:func:`at_range`: relief and tall objects under a survey lie at ranges
+far apart); a Gaussian S(t) is scaled so that a nadir
 Lambertian plane of HDRF ``plane_hdrf`` at 1200 m peaks at ``plane_dn`` DN (times ``gain``),
 and its CFD time is the echo time, so a planar target's discrete return is at its range.
 """
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import math
@@ -233,7 +235,9 @@ def pulse_table(p: Pulses, pulse_id: np.ndarray, sim, range_m: np.ndarray, agc: 
         "dir_x": pa.array(d[:, 0]), "dir_y": pa.array(d[:, 1]), "dir_z": pa.array(d[:, 2]),
         "anchor_x": pa.array(anchor[:, 0]), "anchor_y": pa.array(anchor[:, 1]), "anchor_z": pa.array(anchor[:, 2]),
         "range_m": pa.array((first + et[:, 0]) * RANGE_PER_NS),
-        "scan_angle_deg": pa.array(p.scan_angle_deg[keep]), "agc": pa.array(np.full(n, float(agc))),
+        "scan_angle_deg": pa.array(p.scan_angle_deg[keep]), "scan_flags": pa.array(p.scan_flags[keep], pa.uint8()),
+        "point_source_id": pa.array(p.leg[keep] + 1, pa.uint16()),
+        "agc": pa.array(np.full(n, float(agc))),
         "sampling_ns": pa.array(np.full(n, sim.sampling_ns)),
         "digitizer_gain": pa.array(np.ones(n)), "digitizer_offset": pa.array(np.zeros(n)),
         "samples": padded_to_list(sim.samples[keep], sim.lengths[keep], pa.float32()),
@@ -279,6 +283,14 @@ class TileResult:
     """Pulses whose waveform reaches the digitiser's full scale (``setup.digitizer_max``)."""
 
 
+def at_range(res, range_m: np.ndarray) -> np.ndarray:
+    """sigma of a TraceResult with each bin's 1/R^2 referred to ``range_m`` (n,), m:
+    sigma(t) (range_m / R(t))^2, R(t) = c t / 2 at the bin's centre, so that the waveform
+    rendered at ``range_m`` gives every contribution the 1/R^2 of its own range (Eq. 7)."""
+    r = (res.times_ns() + 0.5 * res.bin_ns) * RANGE_PER_NS
+    return res.sigma * (np.asarray(range_m, np.float64)[:, None] / r) ** 2
+
+
 def run_tile(k: int, plan_: Plan, scenes: TileScenes, survey: Survey, mcrt: MCRTSetup, setup: SensorSetup,
              out: Path, threads: int | None = None, progress=None) -> TileResult:
     """Trace and render tile ``k`` of the plan; write ``out`` (pulse table) and, with truth, its sibling."""
@@ -297,7 +309,7 @@ def run_tile(k: int, plan_: Plan, scenes: TileScenes, survey: Survey, mcrt: MCRT
             res = trace(prepared, beams, seed=rng, threads=threads, window_ns=win, by_order=survey.truth,
                         **mcrt.kwargs(), **mcrt.budget(setup.system, setup.noise_sd, s[sl]))
             rays += int(res.rays.sum())
-            sim = render_sigma(res.sigma, res.t0_ns, s[sl], setup, rng, sigma_total=res.total)
+            sim = render_sigma(at_range(res, s[sl]), res.t0_ns, s[sl], setup, rng, sigma_total=res.total)
             saturated += int(np.count_nonzero((sim.samples >= setup.digitizer_max).any(axis=1)))  # NaN pads: False
             tables.append(pulse_table(p.take(np.arange(len(rows))[sl]), rows[sl], sim, s[sl], survey.scanner.agc))
             if survey.truth:
@@ -324,10 +336,21 @@ def _empty_sim() -> SimPulses:
                      np.zeros((0, 4)), np.zeros(0, np.int16), z, np.zeros((0, 5), np.int64))
 
 
-def run_key(scene: SurveyScene, survey: Survey, mcrt: MCRTSetup, setup_text: str) -> str:
-    """A hash of everything the tile files depend on: the scene's triangles and plant copies,
-    the survey (its trajectory and S(t) files' bytes) and the settings."""
+@functools.cache
+def code_digest() -> bytes:
+    """SHA-256 of the installed package's Python sources: a tile cached by other code is not reused."""
     h = hashlib.sha256()
+    root = Path(__file__).resolve().parents[1]
+    for path in sorted(root.rglob("*.py")):
+        h.update(path.relative_to(root).as_posix().encode())
+        h.update(path.read_bytes())
+    return h.digest()
+
+
+def run_key(scene: SurveyScene, survey: Survey, mcrt: MCRTSetup, setup_text: str) -> str:
+    """A hash of everything the tile files depend on: the code, the scene's triangles and plant
+    copies, the survey (its trajectory and S(t) files' bytes) and the settings."""
+    h = hashlib.sha256(code_digest())
     if scene.static is not None:
         for a in (scene.static.triangles, scene.static.rho, scene.static.tau, scene.static.kind):
             h.update(np.ascontiguousarray(a).tobytes())

@@ -23,7 +23,7 @@ import numpy as np
 import pyarrow.parquet as pq
 
 from waveforest.atomic import OutputFolder, atomic_path
-from waveforest.io.las.write import WaveformLasWriter
+from waveforest.io.las.write import GPS_WEEK_S, WaveformLasWriter
 from waveforest.model.forward import MCRTSetup, SensorSetup
 from waveforest.survey.engine import (
     ADAPTIVE_TILE_PULSES,
@@ -107,9 +107,11 @@ def merge(pl: Plan, cache: Path, scene: SurveyScene, survey: Survey, out_dir: Pa
     results = [TileResult(**json.loads((cache / f"tile_{k:06d}.json").read_text())) for k in range(len(pl.tiles))]
     with folder as tmp:
         las = tmp / "survey.las"
+        last = max(float(tr.gps_time[-1]) for tr in pl.tracks)
         with WaveformLasWriter(las, version=survey.las_version, bits=survey.scanner.bits,
                                storage=survey.waveforms, agc_attribute="user_data", wkt=survey.crs_wkt or LOCAL_WKT,
-                               generating_software="waveforest survey") as w:
+                               generating_software="waveforest survey",
+                               gps_time_type="week" if last < GPS_WEEK_S else "standard") as w:
             for k in range(len(pl.tiles)):
                 t = pq.read_table(cache / f"tile_{k:06d}.parquet")
                 if t.num_rows:

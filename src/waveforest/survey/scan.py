@@ -44,13 +44,21 @@ class Pulses:
     origin: np.ndarray     # (n, 3) m
     direction: np.ndarray  # (n, 3) unit
     scan_angle_deg: np.ndarray
+    scan_flags: np.ndarray  # (n,) uint8: SCAN_POSITIVE, EDGE_OF_LINE (LAS 1.4 R15 point flags)
 
     def __len__(self) -> int:
         return len(self.gps_time)
 
     def take(self, idx) -> Pulses:
-        return Pulses(self.leg[idx], self.gps_time[idx], self.origin[idx], self.direction[idx],
-                      self.scan_angle_deg[idx])
+        return Pulses(*(getattr(self, f)[idx] for f in PULSE_FIELDS))
+
+
+PULSE_FIELDS = ("leg", "gps_time", "origin", "direction", "scan_angle_deg", "scan_flags")
+
+SCAN_POSITIVE, EDGE_OF_LINE = 1, 2
+"""Bits of :attr:`Pulses.scan_flags`: the mirror moves left to right across track (LAS scan
+direction flag 1), and the pulse is the last of its scan line before the mirror turns or the
+facet changes (edge of flight line)."""
 
 
 def leg_tracks(survey: Survey) -> list[Track]:
@@ -81,7 +89,7 @@ def leg_tracks(survey: Survey) -> list[Track]:
         duration = float(np.hypot(*(b - a)[:2])) / g.speed_m_s
         heading = float(np.degrees(np.arctan2(b[0] - a[0], b[1] - a[1])))
         out.append(Track(np.array([t, t + duration]), np.stack([a, b]), np.array([[0.0, 0.0, heading]] * 2)))
-        t = float(np.ceil(t + duration + survey.turn_s))
+        t = t + duration + survey.turn_s
     return out
 
 
@@ -103,7 +111,7 @@ def world_directions(body: np.ndarray, attitude: np.ndarray) -> np.ndarray:
     r, p, h = (np.radians(attitude[:, k]) for k in range(3))
     x, y, z = body[:, 0], body[:, 1], body[:, 2]
     x, z = x * np.cos(r) + z * np.sin(r), -x * np.sin(r) + z * np.cos(r)   # roll about fwd
-    y, z = y * np.cos(p) + z * np.sin(p), -y * np.sin(p) + z * np.cos(p)   # pitch about right
+    y, z = y * np.cos(p) - z * np.sin(p), y * np.sin(p) + z * np.cos(p)    # pitch about right (nose up)
     fwd = np.stack([np.sin(h), np.cos(h)], axis=1)
     right = np.stack([np.cos(h), -np.sin(h)], axis=1)
     xy = x[:, None] * right + y[:, None] * fwd
@@ -113,11 +121,16 @@ def world_directions(body: np.ndarray, attitude: np.ndarray) -> np.ndarray:
 
 def fly_blocks(survey: Survey, tracks: list[Track], block: int = 1_000_000):
     """Every pulse of every track in blocks of at most ``block`` pulses, in time order (pulse k
-    of a track at ``t0 + k / pulse_rate``), so that a long flight never sits in memory whole."""
+    of a track at ``t0 + k / pulse_rate``), so that a long flight never sits in memory whole.
+    A track's pulses at or before the previous track's last pulse (``turn_s`` 0: a leg starting
+    when the last ends) are not flown, so no two pulses share a GPS time."""
     sc = survey.scanner
+    last = -np.inf
     for i, tr in enumerate(tracks):
         n = int(np.floor((tr.gps_time[-1] - tr.gps_time[0]) * sc.pulse_rate_hz)) + 1
-        for a in range(0, n, block):
+        first = int(np.floor((last - tr.gps_time[0]) * sc.pulse_rate_hz)) + 1 if last >= tr.gps_time[0] else 0
+        last = tr.gps_time[0] + (n - 1) / sc.pulse_rate_hz
+        for a in range(first, n, block):
             dt = np.arange(a, min(n, a + block)) / sc.pulse_rate_hz
             t = tr.gps_time[0] + dt
             xyz = np.stack([np.interp(t, tr.gps_time, tr.xyz[:, k]) for k in range(3)], axis=1)
@@ -127,13 +140,26 @@ def fly_blocks(survey: Survey, tracks: list[Track], block: int = 1_000_000):
             h = np.radians(att[:, 2])
             across = d[:, 0] * np.cos(h) - d[:, 1] * np.sin(h)
             scan = np.degrees(np.arctan2(across, -d[:, 2]))
-            yield Pulses(np.full(len(t), i, np.int64), t, xyz, d, scan)
+            yield Pulses(np.full(len(t), i, np.int64), t, xyz, d, scan, scan_flags(sc, dt))
+
+
+def scan_flags(scanner: Scanner, dt: np.ndarray) -> np.ndarray:
+    """(n,) uint8 :data:`SCAN_POSITIVE` | :data:`EDGE_OF_LINE` of pulses ``dt`` s into their leg,
+    from the mirror alone (not the platform's attitude): a polygon sweeps left to right on every
+    facet, its line ending where the phase wraps; an oscillating or conic mirror's across-track
+    angle at this pulse, the next and the one after give its direction and its turns."""
+    step, f = 1.0 / scanner.pulse_rate_hz, scanner.scan_frequency_hz
+    phase = [np.mod((dt + k * step) * f, 1.0) for k in range(3)]
+    if scanner.pattern == "polygon":
+        return (SCAN_POSITIVE + (phase[1] < phase[0]) * EDGE_OF_LINE).astype(np.uint8)
+    ang = [np.arctan2(b[:, 0], -b[:, 2]) for b in (body_directions(scanner, ph) for ph in phase)]
+    now, then = ang[1] > ang[0], ang[2] > ang[1]
+    return (now * SCAN_POSITIVE + (now != then) * EDGE_OF_LINE).astype(np.uint8)
 
 
 def concat(parts: list[Pulses]) -> Pulses:
     """The pulses of ``parts`` one after the other."""
-    return Pulses(*(np.concatenate([getattr(p, f) for p in parts])
-                    for f in ("leg", "gps_time", "origin", "direction", "scan_angle_deg")))
+    return Pulses(*(np.concatenate([getattr(p, f) for p in parts]) for f in PULSE_FIELDS))
 
 
 def fly(survey: Survey, tracks: list[Track]) -> Pulses:
@@ -152,6 +178,7 @@ def trajectory_table(tracks: list[Track], hz: float) -> pd.DataFrame:
             cols[c] = np.interp(t, tr.gps_time, tr.xyz[:, k])
         for k, c in enumerate(("roll_deg", "pitch_deg", "heading_deg")):
             a = np.interp(t, tr.gps_time, tr.attitude[:, k])
+            a = np.round(a, 6)  # as written (6 decimals), so that a heading just below 360 is written 0
             cols[c] = np.mod(a, 360.0) if c == "heading_deg" else (a + 180.0) % 360.0 - 180.0
         cols["leg"] = i
         parts.append(pd.DataFrame(cols))

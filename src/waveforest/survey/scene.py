@@ -147,7 +147,7 @@ def read_obj(path: Path, materials: dict, source: str) -> Scene:
             raise SurveyError(f"{source}: {path}: material {m!r} has no optical properties (expected "
                               f"objects/materials/{m}/rho in the scene file or helios_reflectance in its MTL){why}")
     table = props[which[face] + 1]
-    return Scene(xyz[idx].astype(np.float32), table[:, 0], table[:, 1], table[:, 2].astype(np.uint8))
+    return Scene(xyz[idx].astype(np.float64), table[:, 0], table[:, 1], table[:, 2].astype(np.uint8))
 
 
 def _material(materials: dict, name: str, source: str) -> tuple[float, float, int]:
@@ -213,7 +213,7 @@ def read_mesh(path: Path, materials: dict, source: str) -> Scene:
 def _place(scene: Scene, scale: float, rotate_deg: float, translate) -> Scene:
     r = rotation_z(rotate_deg)[0]
     tri = (scene.triangles.astype(np.float64) * scale) @ r.T + np.asarray(translate, np.float64)
-    return Scene(tri.astype(np.float32), scene.rho, scene.tau, scene.kind)
+    return Scene(tri, scene.rho, scene.tau, scene.kind)
 
 
 def plant_table(path: Path, source: str) -> pd.DataFrame:
@@ -336,4 +336,4 @@ def load_scene(path: str | Path, progress: bool = False) -> SurveyScene:
 def ground_plane(x0: float, y0: float, x1: float, y1: float, z: float, rho: float) -> Scene:
     """Two upward-facing triangles covering [x0, x1] x [y0, y1] at height z."""
     a, b, c, d = (x0, y0, z), (x1, y0, z), (x1, y1, z), (x0, y1, z)
-    return Scene(np.array([[a, b, c], [a, c, d]], np.float32), rho, 0.0, KIND_GROUND)
+    return Scene(np.array([[a, b, c], [a, c, d]], np.float64), rho, 0.0, KIND_GROUND)

@@ -303,13 +303,22 @@ def point_dtype(point_format: int, extra: list[tuple[str, str]] | None = None) -
     return np.dtype(core + list(extra or []))
 
 
-def pack_return_bits(point_format: int, return_number: np.ndarray, number_of_returns: np.ndarray) -> np.ndarray:
-    """The packed return-number byte of a point format (scan direction and edge = 0)."""
+def pack_return_bits(point_format: int, return_number: np.ndarray, number_of_returns: np.ndarray,
+                     scan_flags: np.ndarray | int = 0) -> np.ndarray:
+    """The packed return-number byte of a point format; in point formats 4 and 5 it also holds
+    the scan direction flag and edge of flight line (``scan_flags`` bits 0 and 1), which point
+    formats 9 and 10 keep in :func:`pack_scan_bits`'s byte."""
     rn = np.asarray(return_number, dtype=np.uint8)
     nr = np.asarray(number_of_returns, dtype=np.uint8)
     if point_format in (4, 5):
-        return (rn & 0x07) | ((nr & 0x07) << 3)
+        return (rn & 0x07) | ((nr & 0x07) << 3) | ((np.asarray(scan_flags, np.uint8) & 0x03) << 6)
     return (rn & 0x0F) | ((nr & 0x0F) << 4)
+
+
+def pack_scan_bits(scan_flags: np.ndarray) -> np.ndarray:
+    """The classification-flags byte of point formats 9 and 10 with the scan direction flag
+    (bit 6) and edge of flight line (bit 7) from ``scan_flags`` bits 0 and 1 (other flags 0)."""
+    return ((np.asarray(scan_flags, np.uint8) & 0x03) << 6).astype(np.uint8)
 
 
 def text_field(value: str, size: int) -> bytes:

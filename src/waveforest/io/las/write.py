@@ -10,7 +10,9 @@ Per echo ``i`` (return order) of a pulse the point carries
 - X, Y, Z = ``echo_x/_y/_z[i]`` (quantised by the header scales), ``gps_time`` of the pulse,
   return number ``i + 1`` and number of returns = ``n_echoes``;
 - intensity = ``echo_intensity[i]`` (rounded, clipped to 0..65535), scan angle of the pulse
-  (whole degrees in formats 4/5, 0.006 deg units in 9/10), classification 0;
+  (whole degrees in formats 4/5, 0.006 deg units in 9/10), classification 0; the scan
+  direction flag and edge of flight line from the optional column ``scan_flags``, the point
+  source ID from ``point_source_id`` (else 0);
 - the AGC of the pulse in ``user_data`` (rounded, clipped to 0..255; NaN -> 0) or, when
   ``agc_attribute`` names anything else, in a float64 extra-bytes dimension of that name;
 - the wave packet of the pulse: descriptor index, byte offset, size, return point
@@ -60,6 +62,7 @@ from waveforest.io.las.format import (
     EXTRA_BYTES_FLOAT64,
     EXTRA_BYTES_RECORD_ID,
     FORMATS_BY_VERSION,
+    GE_GPS_STANDARD,
     GE_WAVEFORM_EXTERNAL,
     GE_WAVEFORM_INTERNAL,
     GE_WKT,
@@ -78,6 +81,7 @@ from waveforest.io.las.format import (
     LasWaveformError,
     WavePacketDescriptor,
     pack_return_bits,
+    pack_scan_bits,
     point_dtype,
     text_field,
 )
@@ -114,6 +118,8 @@ class _Chunk:
     gain: np.ndarray  # (n,)
     dig_offset: np.ndarray  # (n,)
     scan: np.ndarray  # (n,) deg
+    scan_flags: np.ndarray  # (n,) uint8: bit 0 scan direction flag, bit 1 edge of flight line
+    source_id: np.ndarray  # (n,) uint16 point source ID (flight line)
     agc: np.ndarray  # (n,)
     samples: np.ndarray  # flat samples of every pulse
     s_off: np.ndarray  # (n + 1,) offsets into samples
@@ -126,6 +132,13 @@ class _Chunk:
     has_wf: np.ndarray  # (n,) bool: the pulse has samples
     pulse_of_echo: np.ndarray  # (m,) pulse row of each echo
     wf_echo: np.ndarray  # (m,) bool: the echo's pulse has samples
+
+
+def _optional(table: pa.Table, name: str, dtype) -> np.ndarray:
+    """Column ``name`` as ``dtype``, or zeros where the table has no such column."""
+    if name not in table.column_names:
+        return np.zeros(table.num_rows, dtype)
+    return table.column(name).to_numpy().astype(dtype)
 
 
 def _list_column(table: pa.Table, name: str) -> tuple[np.ndarray, np.ndarray]:
@@ -153,6 +166,13 @@ def _waveform_record_header(n_bytes: int) -> bytes:
     head["record_length"] = n_bytes
     head["description"] = text_field("Waveform data packets", 32)
     return head.tobytes()
+
+
+GPS_WEEK_S = 604800.0
+"""Seconds in a GPS week: GPS week time lies in [0, GPS_WEEK_S)."""
+
+GPS_TIME_TYPES = ("week", "standard")
+"""Values of :class:`WaveformLasWriter`'s ``gps_time_type``."""
 
 
 class WaveformLasWriter:
@@ -185,6 +205,9 @@ class WaveformLasWriter:
         Header file source id (e.g. the flight-line number).
     wkt : str, optional
         OGC WKT of the coordinate system (written as a ``LASF_Projection`` 2112 VLR).
+    gps_time_type : {"week", "standard"}
+        What ``gps_time`` holds: seconds into the GPS week (below 604,800), or adjusted
+        standard GPS time (GPS seconds - 1e9; global encoding bit 0).
 
     Examples
     --------
@@ -209,8 +232,11 @@ class WaveformLasWriter:
         creation: tuple[int, int] = DEFAULT_CREATION,
         file_source_id: int = 0,
         wkt: str | None = None,
+        gps_time_type: str = "week",
     ) -> None:
         version = str(version)
+        if gps_time_type not in GPS_TIME_TYPES:
+            raise ValueError(f"gps_time_type must be one of {', '.join(GPS_TIME_TYPES)}, got {gps_time_type!r}")
         if version not in FORMATS_BY_VERSION:
             raise ValueError(f"version must be '1.3' or '1.4', got {version!r}")
         if point_format is None:
@@ -243,6 +269,7 @@ class WaveformLasWriter:
         self.creation = (int(creation[0]), int(creation[1]))
         self.file_source_id = int(file_source_id)
         self.wkt = wkt
+        self.gps_time_type = gps_time_type
         extra = [(agc_attribute, "<f8")] if self.agc_extra else []
         self.dtype = point_dtype(self.point_format, extra)
         self._sample_dtype = np.dtype("u1") if bits == 8 else np.dtype("<u2")
@@ -387,6 +414,9 @@ class WaveformLasWriter:
             self._fail(f"pulse_id {pulse_id[bad]} has {n_echo[bad]} echoes; point format {self.point_format} stores at most {max_ret}")
         if not np.all(np.isfinite(gps)):
             self._fail("gps_time must be finite")
+        if self.gps_time_type == "week" and not np.all((gps >= 0) & (gps < GPS_WEEK_S)):
+            self._fail(f"gps_time {float(gps[(gps < 0) | (gps >= GPS_WEEK_S)][0])!r} is not GPS week time "
+                       f"(expected [0, {GPS_WEEK_S:g}) s, or gps_time_type 'standard')")
         sorted_gps = np.sort(gps)
         if np.any(sorted_gps[1:] == sorted_gps[:-1]):
             dup = sorted_gps[1:][sorted_gps[1:] == sorted_gps[:-1]][0]
@@ -410,6 +440,8 @@ class WaveformLasWriter:
             gain=col("digitizer_gain"),
             dig_offset=col("digitizer_offset"),
             scan=col("scan_angle_deg"),
+            scan_flags=_optional(t, "scan_flags", np.uint8),
+            source_id=_optional(t, "point_source_id", np.uint16),
             agc=col("agc"),
             samples=samples,
             s_off=s_off,
@@ -530,7 +562,10 @@ class WaveformLasWriter:
         rec["X"], rec["Y"], rec["Z"] = q[:, 0], q[:, 1], q[:, 2]
         inten = np.nan_to_num(np.round(c.ei.astype(np.float64)), nan=0.0)
         rec["intensity"] = np.clip(inten, 0, 65535).astype(np.uint16)
-        rec["bit_fields"] = pack_return_bits(self.point_format, return_number, c.n_echo[pulse_of_echo])
+        flags = c.scan_flags[pulse_of_echo]
+        rec["bit_fields"] = pack_return_bits(self.point_format, return_number, c.n_echo[pulse_of_echo], flags)
+        if self.point_format in (9, 10):
+            rec["classification_flags"] = pack_scan_bits(flags)
         scan_deg = np.nan_to_num(c.scan, nan=0.0)
         if self.point_format in (4, 5):
             rec["scan_angle_rank"] = np.clip(np.round(scan_deg), -90, 90).astype(np.int8)[pulse_of_echo]
@@ -542,6 +577,7 @@ class WaveformLasWriter:
         elif self.agc_extra:
             rec[self.agc_attribute] = c.agc[pulse_of_echo]
         rec["gps_time"] = c.gps[pulse_of_echo]
+        rec["point_source_id"] = c.source_id[pulse_of_echo]
         rec["wavepacket_index"] = desc_index[pulse_of_echo]
         rec["wavepacket_offset"] = packet_offset[pulse_of_echo]
         rec["wavepacket_size"] = np.where(c.has_wf, packet_size, 0)[pulse_of_echo]
@@ -576,6 +612,8 @@ class WaveformLasWriter:
         h["signature"] = LAS_SIGNATURE
         h["file_source_id"] = self.file_source_id
         ge = GE_WAVEFORM_INTERNAL if self.storage == "internal" else GE_WAVEFORM_EXTERNAL
+        if self.gps_time_type == "standard":
+            ge |= GE_GPS_STANDARD
         if is14 and (self.point_format >= 6 or self.wkt is not None):
             ge |= GE_WKT
         h["global_encoding"] = ge
