@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import warnings
+from pathlib import Path
 
 import laspy
 import numpy as np
@@ -63,6 +64,8 @@ def test_unknown_keys_in_either_file(tmp_path, capsys):
     _fails(tmp_path, capsys, survey=survey, expect="SURVEY.yaml: scanner/pulse_rate: unknown key")
     survey = {**SURVEY, "platform": {"legs": [{"start": [0, 0], "end": [0, 1], "speed": 3}]}}
     _fails(tmp_path, capsys, survey=survey, expect="platform/legs/0/speed: unknown key")
+    survey = {**SURVEY, "quality": {"tolerance": 0.2, "rays_per_pulse": 512}}  # which one would win?
+    _fails(tmp_path, capsys, survey=survey, expect="quality: expected tolerance (an adaptive budget) or rays_per_pulse")
 
 
 def test_a_mesh_that_cannot_be_read(tmp_path, capsys):
@@ -179,10 +182,14 @@ def test_resume_keeps_completed_tiles_and_parts_merge(tmp_path):
         assert len(cache) == 1
         done = sorted(p.name for p in cache[0].glob("tile_*.json"))
         assert done and all(int(n[5:11]) % 2 == 0 for n in done)
+        part = json.loads((cache[0] / "run_0_2_0.json").read_text())
         a, _, _, _ = fly(tmp_path, PLANE, scanner, **kw)
         assert not cache[0].exists()
         b, _, _, _ = fly(tmp_path, PLANE, scanner, out="again", **kw)
     assert a["tiles"] > 2 and a["pulses_traced"] == b["pulses_traced"]
+    # the summary counts the part's run too: its wall time, and its memory if that was larger
+    assert a["wall_s"] > part["wall_s"] > 0 and a["peak_memory_mb"] >= part["peak_memory_mb"] > 0
+    assert 0 <= a["sigma_after_window"] < 1e-3  # two orders on a plane: nothing arrives late
     las = [(tmp_path / d / "survey.las").read_bytes() for d in ("out", "again")]
     assert las[0] == las[1]
     assert (tmp_path / "out" / "survey.wdp").read_bytes() == (tmp_path / "again" / "survey.wdp").read_bytes()
@@ -204,6 +211,51 @@ def test_plants_are_instances_of_a_bounded_set_of_prototypes(tmp_path):
         (tmp_path / "plants.csv").write_text(f"species,x,y,height,seed\n{row}\n")
         with pytest.raises(SurveyError, match=expect):
             load_scene(tmp_path / "SCENE.yaml")
+
+
+def test_plants_without_z_stand_on_the_ground(tmp_path):
+    """No z column: each plant at the ground's height under it (a plane's z, a mesh's surface);
+    a plant beyond the ground mesh is an error naming its row."""
+    (tmp_path / "plants.csv").write_text("species,x,y,height,seed\nfireweed,0,0,1.0,1\nfireweed,10,-5,1.0,2\n")
+    plane = {"plants": {"table": "plants.csv"}, "ground": {"type": "plane", "z": 312.5}}
+    (tmp_path / "SCENE.yaml").write_text(yaml.safe_dump(plane))
+    assert np.allclose(load_scene(tmp_path / "SCENE.yaml").plants.translation[:, 2], 312.5)
+    write_obj(tmp_path / "slope.obj", tilted_plane(30.0, 20.0), material="default")  # z = x tan 20 deg
+    (tmp_path / "SCENE.yaml").write_text(yaml.safe_dump({"plants": {"table": "plants.csv"},
+                                                         "ground": {"type": "mesh", "file": "slope.obj"}}))
+    z = load_scene(tmp_path / "SCENE.yaml").plants.translation[:, 2]
+    assert np.allclose(z, [0.0, 10 * np.tan(np.radians(20.0))], atol=1e-4)
+    (tmp_path / "plants.csv").write_text("species,x,y,height,seed\nfireweed,0,0,1.0,1\nfireweed,90,0,1.0,2\n")
+    with pytest.raises(SurveyError, match="plants/table: row 3: .90, 0. lies beyond the ground mesh"):
+        load_scene(tmp_path / "SCENE.yaml")
+
+
+def test_the_workflow_inputs_are_the_files_the_yamls_name(tmp_path):
+    """input_files (the Snakemake target's inputs): every mesh, the plant table, the trajectory;
+    a YAML that cannot be read gives none."""
+    from waveforest.survey.spec import input_files
+
+    (tmp_path / "plants.csv").write_text("species,x,y,height,seed\nfireweed,0,0,1.0,1\n")
+    write_obj(tmp_path / "roof.obj", tilted_plane(5.0, 10.0))
+    write_obj(tmp_path / "dtm.obj", tilted_plane(50.0, 2.0), material="default")
+    (tmp_path / "traj.csv").write_text("gps_time,x,y,z,roll_deg,pitch_deg,heading_deg\n0,0,0,500,0,0,0\n1,0,9,500,0,0,0\n")
+    scene = {"objects": [{"file": "roof.obj", "materials": {"m": {"rho": 0.3}}}], "plants": {"table": "plants.csv"},
+             "ground": {"type": "mesh", "file": "dtm.obj"}}
+    (tmp_path / "SCENE.yaml").write_text(yaml.safe_dump(scene))
+    (tmp_path / "SURVEY.yaml").write_text(yaml.safe_dump({"platform": {"trajectory": "traj.csv"}}))
+    files = input_files(tmp_path / "SCENE.yaml", tmp_path / "SURVEY.yaml")
+    assert sorted(Path(f).name for f in files) == ["dtm.obj", "plants.csv", "roof.obj", "traj.csv"]
+    (tmp_path / "SURVEY.yaml").write_text("platform: [")
+    assert input_files(tmp_path / "SCENE.yaml", tmp_path / "SURVEY.yaml") == []
+
+
+def test_rounded_heights_stay_within_their_species_range(tmp_path):
+    """height_step_m rounds a height for its prototype, never past the species' range: a 3-m
+    fireweed (its tallest) at a 0.4-m step is a 3-m prototype, not an error about 3.2 m."""
+    (tmp_path / "plants.csv").write_text("species,x,y,height,seed\nfireweed,0,0,3.0,1\nfireweed,2,0,1.1,1\n")
+    (tmp_path / "SCENE.yaml").write_text(yaml.safe_dump({"plants": {"table": "plants.csv", "height_step_m": 0.4}}))
+    scene = load_scene(tmp_path / "SCENE.yaml")
+    assert sorted(scene.plants.labels) == ["fireweed 1.2 m seed 1", "fireweed 3 m seed 1"]
 
 
 def test_the_cache_key_follows_the_scene_content(tmp_path):

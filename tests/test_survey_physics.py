@@ -155,6 +155,35 @@ def test_a_slope_at_map_grid_coordinates_lies_where_it_does_at_the_origin(tmp_pa
     assert np.abs(offset["utm"] - offset["origin"]).max() < 0.002
 
 
+def test_a_ground_plane_far_beyond_the_flight_costs_nothing(tmp_path):
+    """The sigma window (truth bins) and start plane follow the tile's beams, not the extent of
+    a ground plane: a 6-km plane gives the same window and first-order sigma as a 60-m one."""
+    bins = {}
+    for half in (30.0, 3000.0):
+        scene = {"ground": {"type": "plane", "z": 0.0, "rho": 0.3, "extent": [-half, -half, half, half]}}
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            fly(tmp_path, scene, {**RECEIVER, "scan_angle_deg": 15.0, "gain": 0.01}, altitude=100.0,
+                quality={"rays_per_pulse": 64, "max_order": 3}, output={"truth": True}, out=f"out_{half:g}")
+        rows = pq.read_table(tmp_path / f"out_{half:g}" / "truth.parquet").to_pylist()
+        bins[half] = [(len(r["sigma_order_1"]), r["t0_ns"], sum(r["sigma_order_1"])) for r in rows]
+    assert len(bins[30.0]) >= 3 and bins[30.0] == bins[3000.0]
+
+
+def test_late_multiple_scattering_is_counted_in_the_summary(tmp_path):
+    """A translucent plate 5 m above the ground: light bounced plate -> ground -> plate ... arrives
+    after the window's 40 ns for some paths; summary.json says what share of sigma that is."""
+    plate = [[(-20, -20, 5), (20, -20, 5), (20, 20, 5), (-20, 20, 5)]]
+    write_obj(tmp_path / "plate.obj", plate)
+    scene = {"objects": [{"file": "plate.obj", "materials": {"m": {"rho": 0.5, "tau": 0.4, "kind": "leaf"}}}],
+             "ground": {"type": "plane", "z": 0.0, "rho": 0.3}}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        result, _, _, _ = fly(tmp_path, scene, {**RECEIVER, "scan_angle_deg": 0.0, "gain": 0.1}, altitude=300.0,
+                              quality={"rays_per_pulse": 4096, "max_order": 7})
+    assert 0 < result["sigma_after_window"] < 0.01
+
+
 def test_truth_joins_the_las_points_by_gps_time(tmp_path):
     """truth.parquet: one row per traced pulse, its GPS time that of the pulse's points, its
     sigma totals rho cos(theta) / pi on a plane."""

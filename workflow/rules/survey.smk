@@ -5,6 +5,8 @@
 # `rule all`. On SLURM: the existing profile (workflow/profiles/), one part per job.
 import os
 
+from waveforest.survey.spec import input_files
+
 SURVEY_PARTS = int(os.environ.get("WAVEFOREST_SURVEY_PARTS", "4"))
 
 
@@ -13,6 +15,8 @@ rule survey_part:
         config=stage_config("survey"),
         scene="surveys/{name}/SCENE.yaml",
         survey="surveys/{name}/SURVEY.yaml",
+        files=lambda wildcards: input_files(f"surveys/{wildcards.name}/SCENE.yaml",
+                                            f"surveys/{wildcards.name}/SURVEY.yaml"),
     output:
         touch(result("survey", ".parts", "{name}", "{part}.done")),
     params:

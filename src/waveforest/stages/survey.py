@@ -55,6 +55,10 @@ def survey(scene_file, survey_file, out, part, progress, force, cfg):
         _run(scene_file, survey_file, out, part, progress, force, cfg)
 
 
+next(p for p in survey.params if p.name == "seed").help = (
+    "Master seed of every random draw, an integer >= 0 (default: SURVEY_FILE's seed).")
+
+
 def _run(scene_file, survey_file, out, part, progress, force, cfg):
     """The command's work (warnings shown as ``waveforest: warning: ...``)."""
     sensor = sensor_settings(cfg)

@@ -46,7 +46,8 @@ REFERENCE_RANGE_M = 1200.0
 """Range at which the preset's reference plane peaks at ``plane_dn`` DN."""
 
 MULTIPLE_SCATTERING_NS = 40.0
-"""sigma window beyond the tile box's depth along the beam, ns (late multiple scattering)."""
+"""sigma window beyond the tile box's depth along the beam, ns (late multiple scattering: what
+arrives later is not recorded, and ``summary.json`` gives its share, ``sigma_after_window``)."""
 
 FIRST_ORDER_MARGIN_NS = 2.0
 """sigma window beyond the box's depth along the beam at first order only, ns (the tracer's
@@ -193,7 +194,7 @@ class TileScenes:
         if plants is not None:
             copies = np.flatnonzero(np.all((plants.box[:, 1] >= lo) & (plants.box[:, 0] <= hi), axis=1))
         if copies.size == 0:
-            return None if static is None else prepare(static, quality=bvh_quality(n_pulses, n_rays))
+            return None if static is None else _within(prepare(static, quality=bvh_quality(n_pulses, n_rays)), lo, hi)
         protos = self.protos
         which, rot, t = plants.which[copies], plants.rotation[copies], plants.translation[copies]
         if static is not None:  # the static part joins as one more prototype, placed as it is
@@ -203,7 +204,17 @@ class TileScenes:
             which = np.append(which, len(protos) - 1)
             rot = np.concatenate([rot, np.eye(3)[None]])
             t = np.concatenate([t, np.zeros((1, 3))])
-        return prepare_instances(protos, which, rot, t)
+        return _within(prepare_instances(protos, which, rot, t), lo, hi)
+
+
+def _within(prepared, lo: np.ndarray, hi: np.ndarray):
+    """``prepared`` with its box cut to [lo, hi] (world frame): the box that sets the tracer's
+    start plane and the sigma window holds the tile's beams through the scene's heights, not a
+    ground plane or mesh that reaches far beyond the tile (memory and time per pulse would grow
+    with the scene's area)."""
+    b = prepared.bounds + prepared.shift
+    box = np.stack([np.maximum(b[0], lo), np.minimum(b[1], hi)])
+    return replace(prepared, bounds=box - prepared.shift)
 
 
 def window_ns(prepared, origin: np.ndarray, direction: np.ndarray, max_order: int = 10) -> float:
@@ -281,6 +292,10 @@ class TileResult:
     cpu_s: float = 0.0
     saturated: int = 0
     """Pulses whose waveform reaches the digitiser's full scale (``setup.digitizer_max``)."""
+    sigma: float = 0.0
+    """Total sigma of the tile's pulses, all orders (sr^-1 per unit power)."""
+    sigma_late: float = 0.0
+    """The part of it that arrived after the sigma window (:func:`window_ns`), not recorded."""
 
 
 def at_range(res, range_m: np.ndarray) -> np.ndarray:
@@ -299,7 +314,7 @@ def run_tile(k: int, plan_: Plan, scenes: TileScenes, survey: Survey, mcrt: MCRT
     p = plan_.pulses.take(rows)
     prepared = scenes.build(plan_.tile_xy[k], len(rows), mcrt.n_rays, plan_.tile_m)
     rng = named_generator("survey", survey.seed, int(k))
-    tables, truths, rays, saturated = [], [], 0, 0
+    tables, truths, rays, saturated, sigma, late = [], [], 0, 0, 0.0, 0.0
     s = (plan_.ground_z - p.origin[:, 2]) / p.direction[:, 2]
     if prepared is not None:
         win = window_ns(prepared, p.origin, p.direction, mcrt.max_order)
@@ -309,6 +324,7 @@ def run_tile(k: int, plan_: Plan, scenes: TileScenes, survey: Survey, mcrt: MCRT
             res = trace(prepared, beams, seed=rng, threads=threads, window_ns=win, by_order=survey.truth,
                         **mcrt.kwargs(), **mcrt.budget(setup.system, setup.noise_sd, s[sl]))
             rays += int(res.rays.sum())
+            sigma, late = sigma + float(res.total.sum()), late + float(res.sigma_dropped.sum())
             sim = render_sigma(at_range(res, s[sl]), res.t0_ns, s[sl], setup, rng, sigma_total=res.total)
             saturated += int(np.count_nonzero((sim.samples >= setup.digitizer_max).any(axis=1)))  # NaN pads: False
             tables.append(pulse_table(p.take(np.arange(len(rows))[sl]), rows[sl], sim, s[sl], survey.scanner.agc))
@@ -327,7 +343,7 @@ def run_tile(k: int, plan_: Plan, scenes: TileScenes, survey: Survey, mcrt: MCRT
             empty = pa.table({"pulse_id": pa.array([], pa.int64())})
             pq.write_table(pa.concat_tables(truths) if truths else empty, tmp)
     returns = int(table.column("n_echoes").to_numpy().astype(np.int64).sum())
-    return TileResult(len(rows), returns, rays, time.process_time() - cpu, saturated)
+    return TileResult(len(rows), returns, rays, time.process_time() - cpu, saturated, sigma, late)
 
 
 def _empty_sim() -> SimPulses:
@@ -373,7 +389,9 @@ def summary(plan_: Plan, results: list[TileResult], wall_s: float, peak_mb: floa
             "saturated_pulses": sum(r.saturated for r in results),
             "tiles": len(plan_.tiles), "rays_per_pulse": mcrt.n_rays if mcrt.tolerance is None else None,
             "tolerance": mcrt.tolerance, "max_order": mcrt.max_order,
-            "rays": sum(r.rays for r in results), "cpu_s": cpu, "wall_s": wall_s,
+            "rays": sum(r.rays for r in results),
+            "sigma_after_window": sum(r.sigma_late for r in results) / max(sum(r.sigma for r in results), 1e-300),
+            "cpu_s": cpu, "wall_s": wall_s,
             "cpu_ms_per_pulse": 1000 * cpu / max(n, 1), "peak_memory_mb": peak_mb}
 
 

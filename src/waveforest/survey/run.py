@@ -79,7 +79,7 @@ def run_tiles(scene: SurveyScene, survey: Survey, mcrt: MCRTSetup, setup: Sensor
 
         bar = tqdm(total=int(counts[todo].sum()), initial=int(counts[todo].sum() - counts[missing].sum()),
                    unit="pulse", desc="survey", smoothing=0.1)
-    cpu = time.process_time()
+    cpu, wall = time.process_time(), time.perf_counter()
     scenes = TileScenes(scene, survey, mcrt.viewed_diameter_m, max_zenith_tan(pl.pulses)) if missing else None
     prepare_s = time.process_time() - cpu
     try:
@@ -90,15 +90,20 @@ def run_tiles(scene: SurveyScene, survey: Survey, mcrt: MCRTSetup, setup: Sensor
     finally:
         if bar is not None:
             bar.close()
-    if missing:  # the prototypes' build and BVHs of this run (a resumed run builds them anew)
-        with atomic_path(cache / f"build_{part[0]}_{part[1]}.json") as tmp:
-            tmp.write_text(json.dumps({"prototype_build_s": scene.build_s + prepare_s}))
+    if missing:  # this run's prototypes and BVHs (a resumed run builds them anew), wall time and memory
+        runs = len(list(cache.glob(f"run_{part[0]}_{part[1]}_*.json")))
+        with atomic_path(cache / f"run_{part[0]}_{part[1]}_{runs}.json") as tmp:
+            tmp.write_text(json.dumps({"prototype_build_s": scene.build_s + prepare_s,
+                                       "wall_s": time.perf_counter() - wall, "peak_memory_mb": peak_memory_mb()}))
     return pl, cache
 
 
 def merge(pl: Plan, cache: Path, scene: SurveyScene, survey: Survey, out_dir: Path, *, force: bool = False,
-          wall_s: float = 0.0, mcrt: MCRTSetup) -> dict:
-    """Write DIR from the cached tiles (all must be there); return the summary."""
+          mcrt: MCRTSetup) -> dict:
+    """Write DIR from the cached tiles (all must be there); return the summary: wall time the
+    sum of the runs that traced tiles (parts, resumed runs) and of this merge, peak memory the
+    largest of theirs."""
+    t0 = time.perf_counter()
     folder = OutputFolder(out_dir, COMMAND, force=force)
     missing = [k for k in range(len(pl.tiles)) if not (cache / f"tile_{k:06d}.json").exists()]
     if missing:
@@ -137,10 +142,11 @@ def merge(pl: Plan, cache: Path, scene: SurveyScene, survey: Survey, out_dir: Pa
             finally:
                 if writer is not None:
                     writer.close()
-        builds = [json.loads(f.read_text())["prototype_build_s"] for f in sorted(cache.glob("build_*.json"))]
-        out = summary(pl, results, wall_s, peak_memory_mb(), mcrt)
+        runs = [json.loads(f.read_text()) for f in sorted(cache.glob("run_*.json"))]
+        out = summary(pl, results, sum(r["wall_s"] for r in runs) + time.perf_counter() - t0,
+                      max([peak_memory_mb()] + [r["peak_memory_mb"] for r in runs]), mcrt)
         out["prototypes"] = 0 if scene.plants is None else len(scene.plants.prototypes)
-        out["prototype_build_s"] = float(sum(builds))
+        out["prototype_build_s"] = float(sum(r["prototype_build_s"] for r in runs))
         write_summary(out, tmp / "summary.json")
     for old in Path(out_dir).parent.glob(f".{Path(out_dir).name}.survey-*"):  # this run's and stale ones
         shutil.rmtree(old, ignore_errors=True)
@@ -152,7 +158,6 @@ def run_survey(scene: SurveyScene, survey: Survey, mcrt: MCRTSetup, setup: Senso
                part: tuple[int, int] | None = None) -> dict | None:
     """Trace (resuming) and merge; with ``part`` only that part's tiles are traced (no merge, None)."""
     OutputFolder(out_dir, COMMAND, force=force)  # refuse a foreign folder before any work
-    t0 = time.perf_counter()
     try:
         pl, cache = run_tiles(scene, survey, mcrt, setup, out_dir, part=part or (0, 1),
                               threads=threads, progress=progress)
@@ -162,7 +167,7 @@ def run_survey(scene: SurveyScene, survey: Survey, mcrt: MCRTSetup, setup: Senso
     if part is not None:
         return None
     try:
-        return merge(pl, cache, scene, survey, out_dir, force=force, wall_s=time.perf_counter() - t0, mcrt=mcrt)
+        return merge(pl, cache, scene, survey, out_dir, force=force, mcrt=mcrt)
     except OSError as exc:
         raise SurveyError(f"{exc.filename or out_dir}: cannot write the survey ({exc.strerror or exc}); "
                           "nothing was written to the output folder") from None

@@ -20,6 +20,7 @@ import pandas as pd
 
 from waveforest.constants import KIND_GROUND
 from waveforest.errors import WaveforestError
+from waveforest.mcrt import prepare
 from waveforest.scene import Scene, SceneError, fan_triangles, read_ply
 from waveforest.survey.spec import SCENE_SCHEMA, SurveyError, read_document
 from waveforest.vegetation import build, species_params
@@ -227,9 +228,11 @@ def plant_table(path: Path, source: str) -> pd.DataFrame:
     missing = [c for c in ("species", "x", "y", "height", "seed") if c not in df.columns]
     if missing:
         raise SurveyError(f"{path}: missing column(s) {', '.join(missing)} (expected species, x, y, height, seed)")
-    for c in ("z", "rotation_deg"):
-        if c not in df.columns:
-            df[c] = 0.0
+    if "rotation_deg" not in df.columns:
+        df["rotation_deg"] = 0.0
+    on_ground = "z" not in df.columns
+    if on_ground:  # placed on the ground by load_scene
+        df["z"] = 0.0
     for c in ("x", "y", "z", "height", "rotation_deg"):
         v = pd.to_numeric(df[c], errors="coerce").to_numpy(np.float64)
         if not np.all(np.isfinite(v)):
@@ -246,10 +249,13 @@ def plant_table(path: Path, source: str) -> pd.DataFrame:
         raise SurveyError(f"{path}: column seed, row {int(bad[0]) + 2}: expected a non-negative integer, got "
                           f"{str(df['seed'].iloc[bad[0]])!r}")
     df["seed"] = seed.astype(np.int64)
+    df.attrs["on_ground"] = on_ground
     return df
 
 
 def _plants(df: pd.DataFrame, seeds: int, step: float, source: str, progress: bool = False) -> Plants:
+    """Prototypes of the plant rows: heights rounded to ``step`` within their species' range."""
+    lo, hi = np.empty(len(df)), np.empty(len(df))
     for sp, heights in df.groupby(df["species"].astype(str))["height"]:
         try:
             p = species_params(sp)
@@ -259,7 +265,9 @@ def _plants(df: pd.DataFrame, seeds: int, step: float, source: str, progress: bo
         if len(out):
             raise SurveyError(f"{source}: plants/table: row {int(out.index[0]) + 2}: height {out.iloc[0]:g} m for "
                               f"{sp}: expected {p.h_min_ok:g} to {p.h_max_ok:g} m")
-    h = np.maximum(step, np.round(df["height"].to_numpy() / step) * step)
+        rows = df.index.get_indexer(heights.index)
+        lo[rows], hi[rows] = p.h_min_ok, p.h_max_ok
+    h = np.clip(np.round(df["height"].to_numpy() / step) * step, lo, hi)
     s = df["seed"].to_numpy(np.int64) % seeds
     keys = list(zip(df["species"].astype(str), h.round(6), s))
     uniq = sorted(set(keys))
@@ -285,6 +293,22 @@ def _plants(df: pd.DataFrame, seeds: int, step: float, source: str, progress: bo
     return Plants(tuple(protos), tuple(f"{a} {b:g} m seed {c}" for a, b, c in uniq), which, rot, t, box)
 
 
+def ground_height(ground: Scene, xy: np.ndarray, source: str) -> np.ndarray:
+    """(n,) height of the ground mesh's highest face above each point ``xy`` (n, 2), m: where
+    a vertical ray from above first meets it; SurveyError for a point beyond the mesh."""
+    prepared = prepare(ground, quality="low")
+    top = float(prepared.bounds[1, 2]) + 1.0
+    org = np.column_stack([xy - prepared.shift[:2], np.full(len(xy), top)]).astype(np.float32)
+    down = np.tile(np.float32([0.0, 0.0, -1.0]), (len(xy), 1))
+    t, prim = prepared.intersector.intersect(org, down)
+    miss = np.flatnonzero(prim < 0)
+    if miss.size:
+        x, y = xy[miss[0]]
+        raise SurveyError(f"{source}: row {int(miss[0]) + 2}: ({x:g}, {y:g}) lies beyond the ground mesh "
+                          "(expected a plant over the ground, or a z column)")
+    return prepared.shift[2] + top - t.astype(np.float64)
+
+
 def load_scene(path: str | Path, progress: bool = False) -> SurveyScene:
     """Read SCENE.yaml and everything it names (SurveyError: file, field, what was expected);
     ``progress``: a bar over the plant prototypes built."""
@@ -295,21 +319,26 @@ def load_scene(path: str | Path, progress: bool = False) -> SurveyScene:
     for i, o in enumerate(doc["objects"]):
         mesh = read_mesh(base / o["file"], o["materials"], f"{src}: objects/{i}")
         parts.append(_place(mesh, float(o["scale"]), float(o["rotate_deg"]), o["translate"]))
-    pl = doc["plants"]
-    plants, build_s = None, 0.0
-    if pl["table"] is not None:
-        df = plant_table(base / pl["table"], src)
-        if len(df):
-            cpu = time.process_time()
-            plants = _plants(df, int(pl["prototype_seeds"]), float(pl["height_step_m"]), src, progress)
-            build_s = time.process_time() - cpu
     g = doc["ground"]
+    ground = None
     if g["type"] == "mesh":
         if g["file"] is None:
             raise SurveyError(f"{src}: ground/file: expected a mesh file for ground type mesh")
         # faces without properties of their own (a bare PLY, OBJ faces before any usemtl) take ground/rho
         mesh = read_mesh(base / g["file"], {DEFAULT_MATERIAL: {"rho": float(g["rho"])}}, f"{src}: ground")
-        parts.append(Scene(mesh.triangles, mesh.rho, mesh.tau, KIND_GROUND))  # every face is ground
+        ground = Scene(mesh.triangles, mesh.rho, mesh.tau, KIND_GROUND)  # every face is ground
+        parts.append(ground)
+    pl = doc["plants"]
+    plants, build_s = None, 0.0
+    if pl["table"] is not None:
+        df = plant_table(base / pl["table"], src)
+        if len(df):
+            if df.attrs["on_ground"] and g["type"] != "none":
+                df["z"] = (np.full(len(df), float(g["z"])) if ground is None else
+                           ground_height(ground, df[["x", "y"]].to_numpy(), f"{src}: plants/table"))
+            cpu = time.process_time()
+            plants = _plants(df, int(pl["prototype_seeds"]), float(pl["height_step_m"]), src, progress)
+            build_s = time.process_time() - cpu
     plant_box = [] if plants is None else [np.stack([plants.box[:, 0].min(axis=0), plants.box[:, 1].max(axis=0)])]
     boxes = [p.bounds for p in parts] + plant_box
     if g["type"] == "plane":

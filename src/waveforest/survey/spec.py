@@ -67,6 +67,25 @@ def read_document(path: str | Path, which: str) -> dict:
     return validate_document(_schemas()[which], doc, str(path), SurveyError)
 
 
+def input_files(scene_path: str | Path, survey_path: str | Path) -> list[str]:
+    """The files SCENE.yaml and SURVEY.yaml name that exist (meshes, plant table, trajectory,
+    S(t); not an OBJ's MTL files): a workflow's inputs, so that editing one reruns the survey.
+    A file that cannot be read gives none (the survey's own run reports it)."""
+    out = []
+    try:
+        scene, survey = read_document(scene_path, SCENE_SCHEMA), read_document(survey_path, SURVEY_SCHEMA)
+    except SurveyError:
+        return out
+    names = ([(scene_path, o["file"]) for o in scene["objects"]]
+             + [(scene_path, scene["ground"]["file"]), (scene_path, scene["plants"]["table"]),
+                (survey_path, survey["platform"]["trajectory"]), (survey_path, survey["scanner"]["system_waveform"])])
+    for doc, name in names:
+        path = resolve(Path(doc).parent, name)
+        if path is not None and path.exists():
+            out.append(str(path))
+    return out
+
+
 def resolve(base: Path, name) -> Path | None:
     """``name`` relative to ``base`` (absolute and ``~`` names as given); None stays None."""
     if name is None:
@@ -207,6 +226,9 @@ def load_survey(path: str | Path, sensor: SensorSettings, reference: ReferenceSy
         raise SurveyError(f"{path}: platform/trajectory: {trajectory}: no such file")
     if o["laz"] and o["waveforms"] == "internal":
         raise SurveyError(f"{path}: output/laz: expected waveforms external with LAZ points")
+    if q["tolerance"] is not None and q["rays_per_pulse"] is not None:
+        raise SurveyError(f"{path}: quality: expected tolerance (an adaptive budget) or rays_per_pulse "
+                          "(a fixed one), not both")
     return Survey(
         source=path, seed=int(doc["seed"]), legs=legs, trajectory=trajectory,
         start_gps_time_s=float(p["start_gps_time_s"]), turn_s=float(p["turn_s"]),
