@@ -67,6 +67,7 @@ def run_tiles(scene: SurveyScene, survey: Survey, mcrt: MCRTSetup, setup: Sensor
     """Trace every tile of part ``part = (i, n)`` (tiles ``k`` with ``k % n == i``) not yet in the cache
     (under the adaptive ray budget, tiles of :data:`~waveforest.survey.engine.ADAPTIVE_TILE_PULSES`
     pulses on average)."""
+    wall = time.perf_counter()
     pl = plan(scene, survey, 1 if mcrt.tolerance is None else ADAPTIVE_TILE_PULSES)
     cache = cache_folder(out_dir, run_key(scene, survey, mcrt, repr(setup)))
     cache.mkdir(parents=True, exist_ok=True)
@@ -79,7 +80,7 @@ def run_tiles(scene: SurveyScene, survey: Survey, mcrt: MCRTSetup, setup: Sensor
 
         bar = tqdm(total=int(counts[todo].sum()), initial=int(counts[todo].sum() - counts[missing].sum()),
                    unit="pulse", desc="survey", smoothing=0.1)
-    cpu, wall = time.process_time(), time.perf_counter()
+    cpu = time.process_time()
     scenes = TileScenes(scene, survey, mcrt.viewed_diameter_m, max_zenith_tan(pl.pulses)) if missing else None
     prepare_s = time.process_time() - cpu
     try:
