@@ -161,6 +161,7 @@ def test_scan_direction_and_edge_flags_follow_the_mirror(tmp_path, pattern):
     assert np.array_equal(np.asarray(las.scan_direction_flag), (want & SCAN_POSITIVE) > 0)
     assert np.array_equal(np.asarray(las.edge_of_flight_line), (want & EDGE_OF_LINE) > 0)
     assert np.all(np.asarray(las.point_source_id) == 1)  # leg 0: flight line 1
+    assert np.all(np.diff(las.gps_time) >= 0)  # the swath's tiles merged in acquisition order
 
 
 def test_the_written_heading_never_reads_360(tmp_path):

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import laspy
 import numpy as np
+import pyarrow as pa
 import pyarrow.parquet as pq
 
 from waveforest.atomic import OutputFolder, atomic_path
@@ -99,6 +100,29 @@ def run_tiles(scene: SurveyScene, survey: Survey, mcrt: MCRTSetup, setup: Sensor
     return pl, cache
 
 
+def in_time_order(tiles: list[Path], window: int):
+    """The pulse tables of ``tiles`` as tables of about ``window`` pulses in GPS-time order, as a
+    sensor records them. A window reads the tiles that hold some of its pulses and keeps them
+    for the next (a tile is read about once per pass of the flight over it), so memory is that
+    of the tiles one window touches, not of the survey."""
+    times = [pq.read_table(f, columns=["gps_time"]).column(0).to_numpy() for f in tiles]
+    order = [np.argsort(t, kind="stable") for t in times]
+    times = [t[o] for t, o in zip(times, order)]
+    every = np.sort(np.concatenate(times)) if times else np.zeros(0)
+    edges = np.append(every[::window], np.inf)
+    loaded: dict[int, pa.Table] = {}
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        parts, touched = [], {}
+        for k, t in enumerate(times):
+            a, b = np.searchsorted(t, [lo, hi])
+            if b > a:
+                touched[k] = loaded[k] if k in loaded else pq.read_table(tiles[k])
+                parts.append(touched[k].take(order[k][a:b]))
+        loaded = touched
+        table = pa.concat_tables(parts)
+        yield table.take(np.argsort(table.column("gps_time").to_numpy(), kind="stable"))
+
+
 def merge(pl: Plan, cache: Path, scene: SurveyScene, survey: Survey, out_dir: Path, *, force: bool = False,
           mcrt: MCRTSetup) -> dict:
     """Write DIR from the cached tiles (all must be there); return the summary: wall time the
@@ -118,10 +142,9 @@ def merge(pl: Plan, cache: Path, scene: SurveyScene, survey: Survey, out_dir: Pa
                                storage=survey.waveforms, agc_attribute="user_data", wkt=survey.crs_wkt or LOCAL_WKT,
                                generating_software="waveforest survey",
                                gps_time_type="week" if last < GPS_WEEK_S else "standard") as w:
-            for k in range(len(pl.tiles)):
-                t = pq.read_table(cache / f"tile_{k:06d}.parquet")
-                if t.num_rows:
-                    w.write(t)
+            for t in in_time_order([cache / f"tile_{k:06d}.parquet" for k in range(len(pl.tiles))],
+                                   survey.chunk_pulses):
+                w.write(t)
             if w.n_pulses == 0:
                 raise SurveyError(f"{survey.source}: no pulse returned an echo (expected a scene the beams reach)")
         if survey.laz:  # points compressed chunk by chunk; header, VLRs and EVLRs as written
