@@ -159,8 +159,10 @@ FUNCTION_LEVEL_IMPORTS = {
 
 FUNCTION_LEVEL_EXCEPTIONS = {
     ("waveforest.stages.trace", "waveforest.vegetation"): "a PLY trace builds no plant (scipy, Numba kernels)",
+    ("waveforest.settings", "*"): "each builder loads its own stage's settings class, so a command starts "
+                                  "with the modules it runs, not every stage's (`trace --help` 0.86 -> 0.66 s)",
 }
-"""(importing module, imported module) pairs also allowed inside a function, each with its reason."""
+"""(importing module, imported module or ``*``) pairs also allowed inside a function, each with its reason."""
 
 
 def _package(module: str) -> str:
@@ -225,7 +227,8 @@ def test_function_level_imports_only_for_heavy_optional_modules():
     bad = []
     for name, path in _modules().items():
         for target, line in _imports_in_functions(ast.parse(path.read_text())):
-            if target.split(".")[0] in FUNCTION_LEVEL_IMPORTS or (name, target) in FUNCTION_LEVEL_EXCEPTIONS:
+            if (target.split(".")[0] in FUNCTION_LEVEL_IMPORTS or (name, target) in FUNCTION_LEVEL_EXCEPTIONS
+                    or (name, "*") in FUNCTION_LEVEL_EXCEPTIONS):
                 continue
             bad.append(f"{path.relative_to(SRC)}:{line}: {target}")
     assert not bad, bad

@@ -14,7 +14,8 @@ from waveforest import config
 from waveforest.cli import main
 from waveforest.mcrt import BeamSpec
 from waveforest.scene import write_ply
-from waveforest.settings import mcrt_setup
+from waveforest.sensor.reference import reference_sensor
+from waveforest.settings import mcrt_setup, reference_system
 from waveforest.stages.trace import SceneSpec, run
 
 
@@ -53,7 +54,8 @@ def test_trace_parquet_carries_metadata(plane_ply, tmp_path):
     mcrt = replace(mcrt_setup(cfg, n_rays=500, effects={"hotspot": 1.5}), max_order=2)
     scene = SceneSpec(path=plane_ply, species=None, height_m=None, ground_rho=0.3, lai_jitter=0.1)
     beam = BeamSpec(target=(0.0, 0.0, 0.0), range_m=800.0, scan_zenith_deg=0.0, azimuth_deg=0.0, divergence_mrad=0.2)
-    res = run(scene, beam, mcrt, out, seed=1, window_ns=cfg["mcrt"]["window_ns"])
+    sensor = reference_sensor(reference_system(cfg), range_m=800.0)
+    res, _ = run(scene, beam, mcrt, out, seed=1, window_ns=cfg["mcrt"]["window_ns"], sensor=sensor)
     t = pq.read_table(out)
     meta = json.loads(t.schema.metadata[b"waveforest.trace"])
     assert meta["footprint_m"] == pytest.approx(0.16)
@@ -93,7 +95,7 @@ def test_trace_bad_scene_files(tmp_path, capsys):
     code, cap = _run(["trace", str(bad), "--out", str(tmp_path / "s.csv")], capsys)
     assert code == 1 and "rho, tau, kind" in cap.err
     code, cap = _run(["trace", "--out", str(tmp_path / "s.csv")], capsys)
-    assert code == 1 and "either a scene PLY file or --species" in cap.err
+    assert code == 1 and "give a scene PLY file or --species (with --height)" in cap.err
     assert not (tmp_path / "s.csv").exists()
 
 
@@ -142,3 +144,63 @@ def test_trace_takes_the_sampler_and_roulette_from_the_config(plane_ply, tmp_pat
     meta = json.loads(t.schema.metadata[b"waveforest.trace"])
     assert meta["sampler"] == "sobol" and meta["roulette"] == 0.5
     assert t.column("sigma").to_numpy().sum() == pytest.approx(0.3 / math.pi, rel=1e-5)
+
+
+def test_trace_holds_the_plant_while_the_seed_varies_the_rays(tmp_path, capsys):
+    """--plant-seed fixes the --species instance: two ray seeds trace the same plant (same first
+    hits of the scene's elements up to Monte Carlo noise, same time grid), and the same seeds
+    give the same file; --height or --plant-seed with a PLY file is an error."""
+    outs = []
+    for seed in (1, 2, 1):
+        out = tmp_path / f"s{seed}_{len(outs)}.parquet"
+        try:
+            main(["trace", "--species", "birch", "--height", "3", "--plant-seed", "7", "--rays", "2048",
+                  "--orders", "2", "--seed", str(seed), "--out", str(out)])
+        except SystemExit as exc:
+            assert exc.code in (0, None)
+        outs.append(pq.read_table(out))
+    meta = [json.loads(t.schema.metadata[b"waveforest.trace"]) for t in outs]
+    assert [m["plant_seed"] for m in meta] == [7, 7, 7] and meta[0]["t0_ns"] == meta[1]["t0_ns"]
+    assert outs[0].equals(outs[2]) and not outs[0].equals(outs[1])
+    s0, s1 = (t.column("sigma").to_numpy().sum() for t in outs[:2])
+    assert s0 > 0.05 and abs(s0 / s1 - 1) < 0.05  # one plant, two ray streams
+    plane = write_ply(syn.plane(6.0, 0.0, rho=0.3), tmp_path / "plane.ply")
+    code, cap = _run(["trace", str(plane), "--plant-seed", "3", "--out", str(tmp_path / "x.csv")], capsys)
+    assert code == 1 and "--plant-seed build a --species instance" in cap.err
+
+
+def test_trace_reports_the_recorded_waveform_its_features_and_the_budget(plane_ply, tmp_path, capsys):
+    """A plane at the reference sensor's range: the noise-free waveform peaks at plane_dn x
+    rho / plane_hdrf (Eq. 7), Apeak and E on stdout and in the metadata agree with it; the
+    adaptive budget's estimated error is written and a budget capped above its tolerance warns."""
+    cfg = config.load()
+    ref = cfg["sensitivity"]["reference_system"]
+    out, wave = tmp_path / "s.parquet", tmp_path / "w.csv"
+    try:
+        main(["trace", str(plane_ply), "--out", str(out), "--waveform", str(wave), "--tolerance", "0.2"])
+    except SystemExit as exc:
+        assert exc.code in (0, None)
+    msg = capsys.readouterr().out
+    meta = json.loads(pq.read_table(out).schema.metadata[b"waveforest.trace"])
+    w = pd.read_csv(wave)
+    peak = ref["plane_dn"] * 0.3 / ref["plane_hdrf"]
+    assert w["waveform_dn"].max() == pytest.approx(peak, rel=0.01)
+    assert meta["features"]["Apeak"] == pytest.approx(peak, rel=0.02)
+    assert "adaptive, tolerance 0.2, estimated error" in msg and "Apeak" in msg
+    assert 0 <= meta["mc_error_noise_sd"] <= 0.2
+    small = tmp_path / "c.yaml"
+    small.write_text("mcrt: {min_rays: 1024, max_rays: 2048}\n")
+    err = _ok(["trace", "--species", "fireweed", "--height", "1", "--orders", "3", "--tolerance", "0.001",
+               "--config", str(small), "--out", str(tmp_path / "t.csv")], capsys)
+    assert "stopped at mcrt.max_rays (2048) with an estimated error of" in err
+    err = _ok(["trace", str(plane_ply), "--out", str(tmp_path / "m.csv"), "--rays", "64", "--target-x", "500"], capsys)
+    assert "the beam met nothing" in err
+
+
+def _ok(args, capsys) -> str:
+    """Run a command that succeeds; its stderr."""
+    try:
+        main(args)
+    except SystemExit as exc:
+        assert exc.code in (0, None)
+    return capsys.readouterr().err

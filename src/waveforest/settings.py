@@ -11,29 +11,29 @@ from __future__ import annotations
 
 import copy
 from dataclasses import replace
+from typing import TYPE_CHECKING
 
-from waveforest.analysis.classify import ClassifySettings
-from waveforest.analysis.compare import CompareSettings
-from waveforest.analysis.sensitivity import PARAMETERS, SensitivitySettings
-from waveforest.analysis.sensor_study import SensorStudySettings
-from waveforest.campaign.synthesize import CampaignSettings
-from waveforest.diagnose.power import PowerSettings
-from waveforest.diagnose.search import SearchSettings
-from waveforest.diagnose.settings import DiagnoseSettings
-from waveforest.diagnose.strata import StrataSettings
 from waveforest.effects import CATALOGUE
-from waveforest.model.agc_fit import AGCSettings
-from waveforest.model.calibration_pulses import TargetPulseSettings
-from waveforest.model.features import FeatureTableSettings
 from waveforest.model.forward import MCRTSetup, SensorSettings, SensorSetup
-from waveforest.model.selection import SelectRules
-from waveforest.model.self_tuning import SelfTuningSettings
-from waveforest.model.simulate import SimulateSettings
-from waveforest.report.quicklook import QuicklookSettings
-from waveforest.report.summary import ReportSettings
 from waveforest.sensor.calibration import calibration_effects
 from waveforest.sensor.params import CFDParams, FeatureParams
 from waveforest.sensor.reference import ReferenceSystem
+
+if TYPE_CHECKING:
+    from waveforest.analysis.classify import ClassifySettings
+    from waveforest.analysis.compare import CompareSettings
+    from waveforest.analysis.sensitivity import SensitivitySettings
+    from waveforest.analysis.sensor_study import SensorStudySettings
+    from waveforest.campaign.synthesize import CampaignSettings
+    from waveforest.diagnose.settings import DiagnoseSettings
+    from waveforest.model.agc_fit import AGCSettings
+    from waveforest.model.calibration_pulses import TargetPulseSettings
+    from waveforest.model.features import FeatureTableSettings
+    from waveforest.model.selection import SelectRules
+    from waveforest.model.self_tuning import SelfTuningSettings
+    from waveforest.model.simulate import SimulateSettings
+    from waveforest.report.quicklook import QuicklookSettings
+    from waveforest.report.summary import ReportSettings
 
 # -- sensor: CFD, features, the sensor model ---------------------------------------------------
 
@@ -103,6 +103,7 @@ def mcrt_setup(cfg: dict, n_rays: int | None = None, effects: dict | None = None
 def campaign_settings(cfg: dict) -> CampaignSettings:
     """The virtual campaign (``seed``, ``datasets``, ``campaign``, ``vegetation``, ``select.tree_radius_m``,
     ``mcrt.sampler``, ``mcrt.roulette``, ``mcrt.max_rays``)."""
+    from waveforest.campaign.synthesize import CampaignSettings
     camp, veg = cfg["campaign"], cfg["vegetation"]
     per_species, cap, species = camp["samples_per_species"], camp["max_pulses_per_site"], camp["species"]
     return CampaignSettings(
@@ -125,6 +126,7 @@ def campaign_settings(cfg: dict) -> CampaignSettings:
 
 def select_rules(cfg: dict) -> SelectRules:
     """The selection rules (section ``select``; the compared species and heights of ``simulate``)."""
+    from waveforest.model.selection import SelectRules
     sel, sim = cfg["select"], cfg["simulate"]
     return SelectRules(
         tree_radius_m=float(sel["tree_radius_m"]),
@@ -137,6 +139,7 @@ def select_rules(cfg: dict) -> SelectRules:
 
 def simulate_settings(cfg: dict) -> SimulateSettings:
     """The simulation chain of the ``simulate`` stage (seed, ``simulate``, ``vegetation``, ``mcrt``, ``sensor``)."""
+    from waveforest.model.simulate import SimulateSettings
     sim, veg = cfg["simulate"], cfg["vegetation"]
     k, cap = sim["instances_per_sample"], sim["max_pulses"]
     return SimulateSettings(
@@ -157,6 +160,7 @@ def simulate_settings(cfg: dict) -> SimulateSettings:
 
 def agc_settings(cfg: dict) -> AGCSettings:
     """The fit of Eq. 1 (section ``agc``; ``calibrate.noise_tail``: n0; ``sensor.digitizer_max``: clipping)."""
+    from waveforest.model.agc_fit import AGCSettings
     sec = cfg["agc"]
     fixed = sec["b"]
     return AGCSettings(statistic=str(sec["statistic"]), energy_half_window_ns=float(sec["energy_half_window_ns"]),
@@ -171,6 +175,7 @@ def agc_settings(cfg: dict) -> AGCSettings:
 
 def target_pulse_settings(cfg: dict) -> TargetPulseSettings:
     """The calibration-target pulses of section ``calibrate`` (with ``sensor.digitizer_max`` and the seed)."""
+    from waveforest.model.calibration_pulses import TargetPulseSettings
     sec = cfg["calibrate"]
     return TargetPulseSettings(noise_tail=int(sec["noise_tail"]), window_ns=tuple(sec["window_ns"]),
                                max_zenith_deg=float(sec["max_zenith_deg"]), cos_incidence=bool(sec["cos_incidence"]),
@@ -183,6 +188,7 @@ def target_pulse_settings(cfg: dict) -> TargetPulseSettings:
 
 def feature_table_settings(cfg: dict) -> FeatureTableSettings:
     """Feature tables of pulse files (``sensor.features``; ``sensor.cfd``: the CFD, range_correction, max_echoes)."""
+    from waveforest.model.features import FeatureTableSettings
     sec = cfg["sensor"]["cfd"]
     return FeatureTableSettings(features=feature_params(cfg), cfd=cfd_params(cfg),
                                 range_correction=bool(sec["range_correction"]), max_echoes=int(sec["max_echoes"]))
@@ -191,6 +197,7 @@ def feature_table_settings(cfg: dict) -> FeatureTableSettings:
 def self_tuning_settings(cfg: dict) -> SelfTuningSettings:
     """The CFD of one pulse table tuned on its own DR echoes (section ``tune_cfd``; the range-correction
     fit of ``calibrate``; the starting CFD and the features of ``sensor``; the seed)."""
+    from waveforest.model.self_tuning import SelfTuningSettings
     sec, cal = cfg["tune_cfd"], cfg["calibrate"]
     return SelfTuningSettings(seed=int(cfg["seed"]), tuning_pulses=int(sec["tuning_pulses"]),
                               noise_tail=int(sec["noise_tail"]), noise_guard_ns=float(sec["noise_guard_ns"]),
@@ -202,6 +209,7 @@ def self_tuning_settings(cfg: dict) -> SelfTuningSettings:
 
 def quicklook_settings(cfg: dict) -> QuicklookSettings:
     """The quicklook page (section ``quicklook``; the seed)."""
+    from waveforest.report.quicklook import QuicklookSettings
     sec = cfg["quicklook"]
     return QuicklookSettings(seed=int(cfg["seed"]), gallery=int(sec["gallery"]), map_feature=str(sec["map_feature"]),
                              map_cells=int(sec["map_cells"]))
@@ -212,6 +220,7 @@ def quicklook_settings(cfg: dict) -> QuicklookSettings:
 
 def sensitivity_settings(cfg: dict) -> SensitivitySettings:
     """The sensitivity study (section ``sensitivity``; ``vegetation.lai_jitter``, ``mcrt``, ``sensor``, the seed)."""
+    from waveforest.analysis.sensitivity import PARAMETERS, SensitivitySettings
     s = cfg["sensitivity"]
     return SensitivitySettings(
         seed=int(cfg["seed"]), pulses=int(s["pulses"]), instances=int(s["instances"]), height_m=float(s["height_m"]),
@@ -225,6 +234,7 @@ def sensitivity_settings(cfg: dict) -> SensitivitySettings:
 def sensor_study_settings(cfg: dict) -> SensorStudySettings:
     """The sensor study (section ``sensor_study``; ``sensitivity.reference_system``, ``vegetation``,
     ``mcrt``, ``sensor``, the seed)."""
+    from waveforest.analysis.sensor_study import SensorStudySettings
     s, veg = cfg["sensor_study"], cfg["vegetation"]
     return SensorStudySettings(
         seed=int(cfg["seed"]), pulses=int(s["pulses"]), instances=int(s["instances"]),
@@ -245,6 +255,7 @@ def sensor_study_settings(cfg: dict) -> SensorStudySettings:
 def compare_settings(cfg: dict) -> CompareSettings:
     """The real vs simulated comparison (``simulate.species``, ``simulate.datasets``,
     ``simulate.compare_min_h_m``; the seed)."""
+    from waveforest.analysis.compare import CompareSettings
     sim = cfg["simulate"]
     return CompareSettings(species=tuple(sim["species"]), datasets=tuple(sim["datasets"]),
                            min_h_m={k: float(v) for k, v in sim["compare_min_h_m"].items()}, seed=int(cfg["seed"]))
@@ -252,6 +263,7 @@ def compare_settings(cfg: dict) -> CompareSettings:
 
 def classify_settings(cfg: dict) -> ClassifySettings:
     """The real-data classification (section ``classify``; ``select.min_pulses``; the seed)."""
+    from waveforest.analysis.classify import ClassifySettings
     c = cfg["classify"]
     return ClassifySettings(features=tuple(c["features"]),
                             extra_feature_sets=tuple(tuple(s) for s in c["extra_feature_sets"]),
@@ -271,6 +283,10 @@ def diagnose_settings(cfg: dict) -> DiagnoseSettings:
     ``diagnose.n_rays`` rays (at most ``mcrt.n_rays``) and ``diagnose.instances_per_sample``
     plants per field sample, with no pulse cap.
     """
+    from waveforest.diagnose.power import PowerSettings
+    from waveforest.diagnose.search import SearchSettings
+    from waveforest.diagnose.settings import DiagnoseSettings
+    from waveforest.diagnose.strata import StrataSettings
     d, p, sim = cfg["diagnose"], cfg["diagnose"]["power"], cfg["simulate"]
     base = dict(sim["effects"] or {})
     chosen = d["datasets"]
@@ -310,6 +326,7 @@ def diagnose_settings(cfg: dict) -> DiagnoseSettings:
 def report_settings(cfg: dict) -> ReportSettings:
     """What the report states of the run: data source, seed, datasets, the settings its sentences
     name."""
+    from waveforest.report.summary import ReportSettings
     sim, sens, cls = cfg["simulate"], cfg["sensitivity"], cfg["classify"]
     return ReportSettings(
         datasets=tuple(str(x) for x in cfg["datasets"]),

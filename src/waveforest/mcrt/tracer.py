@@ -148,6 +148,10 @@ class TraceResult:
         sigma split by scattering order (``trace(..., by_order=True)``).
     rays : (n,) int64 or None
         Rays each pulse used (the adaptive budget varies them; fixed: all ``n_rays``).
+    mc_error : (n,) float64 or None
+        Under the adaptive budget, each pulse's estimated Monte Carlo error of its recorded
+        waveform when it stopped, in noise SDs (:func:`waveform_error`; above the tolerance
+        only where the pulse reached ``max_rays``); NaN under a fixed budget.
     """
 
     sigma: np.ndarray
@@ -159,6 +163,7 @@ class TraceResult:
     n_rays: int
     sigma_by_order: np.ndarray | None = None
     rays: np.ndarray | None = None
+    mc_error: np.ndarray | None = None
 
     def __len__(self) -> int:
         return self.sigma.shape[0]
@@ -380,14 +385,15 @@ def _trace_chunk(prepared: PreparedScene, beams: Beams, index: np.ndarray, st: _
     rays each, or the adaptive budget of ``st.adaptive`` (:func:`_trace_chunk_adaptive`).
 
     Returns (sigma (nb, layers, n_bins), dropped (nb,), order_totals (nb, max_order),
-    first_hit_counts (nb, 5), t0_ns (nb,), rays (nb,)).
+    first_hit_counts (nb, 5), t0_ns (nb,), rays (nb,), mc_error (nb,): NaN for a fixed budget).
     """
     if st.adaptive is not None:
         return _trace_chunk_adaptive(prepared, beams, index, st, threads)
     frame, plane = _frame(prepared, beams, beam_keys(st.key, index))
     acc, dropped, totals, first = _wave(prepared, frame, beams.footprint_m, beams.range_m, plane, st, st.n_rays,
                                         0, threads)
-    return acc, dropped, totals, first, frame.t0_ns, np.full(len(beams), st.n_rays, np.int64)
+    nb = len(beams)
+    return acc, dropped, totals, first, frame.t0_ns, np.full(nb, st.n_rays, np.int64), np.full(nb, np.nan)
 
 
 def _trace_chunk_adaptive(prepared: PreparedScene, beams: Beams, index: np.ndarray, st: _ChunkSettings,
@@ -414,6 +420,7 @@ def _trace_chunk_adaptive(prepared: PreparedScene, beams: Beams, index: np.ndarr
     first = np.zeros((nb, MISS_KIND + 1), np.int64)
     batches = np.zeros((nb, k, st.n_bins))  # sum of each batch of N / k consecutive rays
     done = np.zeros(nb, np.int64)  # rays traced so far (N)
+    error = np.full(nb, np.nan)  # the estimate when each pulse stopped
     target = np.full(nb, ad.min_rays, np.int64)
     noise = ad.noise[index]
     active = np.arange(nb)
@@ -439,12 +446,13 @@ def _trace_chunk_adaptive(prepared: PreparedScene, beams: Beams, index: np.ndarr
         done[active] = target[active]
         err = waveform_error(batches[active] / (done[active] // k)[:, None, None], ad.kernel, noise[active],
                              st.bin_ns)
+        error[active] = err
         stop = (err <= ad.tolerance) | (done[active] >= ad.max_rays)
         go = active[~stop]
         target[go] = next_budget(done[go], err[~stop] / ad.tolerance, ad.max_rays)
         active = go
     scale = 1.0 / done
-    return (total * scale[:, None, None], dropped * scale, totals * scale[:, None], first, frame.t0_ns, done)
+    return (total * scale[:, None, None], dropped * scale, totals * scale[:, None], first, frame.t0_ns, done, error)
 
 
 def next_budget(done: np.ndarray, ratio: np.ndarray, max_rays: int) -> np.ndarray:
@@ -640,6 +648,7 @@ def _trace_chunks(prepared: PreparedScene, beams: Beams, st: _ChunkSettings, chu
     first = np.zeros((n, MISS_KIND + 1), np.int64)
     t0 = np.zeros(n)
     rays = np.zeros(n, np.int64)
+    error = np.full(n, np.nan)
 
     def run_chunk(ab, embree_threads):
         a, b = ab
@@ -654,9 +663,10 @@ def _trace_chunks(prepared: PreparedScene, beams: Beams, st: _ChunkSettings, chu
 
         results = tqdm(results, total=len(chunks), desc="trace", unit="chunk", leave=False)
     with NumbaThreads(None if by_pulses else threads):  # the kernels' prange threads
-        for i, (acc, drop, tot, fh, t0c, nr) in results:
+        for i, (acc, drop, tot, fh, t0c, nr, err) in results:
             a, b = chunks[i]
             sigma[a:b], dropped[a:b], totals[a:b], first[a:b], t0[a:b], rays[a:b] = acc, drop, tot, fh, t0c, nr
+            error[a:b] = err
     return TraceResult(
         sigma=sigma.sum(axis=1),
         t0_ns=t0,
@@ -667,4 +677,5 @@ def _trace_chunks(prepared: PreparedScene, beams: Beams, st: _ChunkSettings, chu
         n_rays=st.n_rays if st.adaptive is None else int(rays.max(initial=0)),
         sigma_by_order=sigma if st.by_order else None,
         rays=rays,
+        mc_error=error,
     )

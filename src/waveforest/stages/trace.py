@@ -8,16 +8,19 @@ from __future__ import annotations
 
 import json
 import time
+import warnings
 from dataclasses import dataclass, replace
 from pathlib import Path
 
 import click
 import numpy as np
+import pandas as pd
 import pyarrow as pa
 
 from waveforest.atomic import atomic_path
 from waveforest.cliutil import (
     stage_options,
+    warnings_to_stderr,
 )
 from waveforest.constants import RANGE_PER_NS
 from waveforest.effects import CATALOGUE, parse_effects
@@ -29,10 +32,15 @@ from waveforest.mcrt.tracer import trace as trace_pulses
 from waveforest.model.forward import MCRTSetup
 from waveforest.plotting import pyplot, save_png
 from waveforest.scene import Scene, read_ply
+from waveforest.sensor.features import first_echo_features
 from waveforest.sensor.reference import reference_sensor
+from waveforest.sensor.signal import analog_waveforms
 from waveforest.settings import mcrt_setup, reference_system
 
 TABLE_SUFFIXES = (".parquet", ".csv")
+
+SAMPLING_NS = 1.0
+"""Sampling of the recorded waveform's features (the ALS60's 1 ns)."""
 
 PLOT_FRACTION = 0.999
 """The plot of sigma(t) spans the bins holding this fraction of the binned sigma."""
@@ -48,22 +56,28 @@ class SceneSpec:
     height_m: float | None
     ground_rho: float
     lai_jitter: float
+    plant_seed: int | None = None
 
     def describe(self) -> str:
         """The scene as the output's metadata names it."""
         return str(self.path) if self.path is not None else f"{self.species} h={self.height_m}"
 
     def load(self, seed: int) -> Scene:
-        """Read the PLY file, or build the instance with ``seed``."""
-        if (self.path is None) == (self.species is None):
-            raise WaveforestError("trace: give either a scene PLY file or --species (with --height), not both")
+        """Read the PLY file, or build the instance with ``plant_seed`` (None: ``seed``)."""
+        if self.path is None and self.species is None:
+            raise WaveforestError("trace: give a scene PLY file or --species (with --height)")
+        if self.path is not None and self.species is not None:
+            raise WaveforestError("trace: give a scene PLY file or --species, not both")
         if self.path is not None:
+            if self.height_m is not None or self.plant_seed is not None:
+                raise WaveforestError("trace: --height and --plant-seed build a --species instance, not a PLY file")
             return read_ply(self.path)
         if self.height_m is None or not self.height_m > 0:
             raise WaveforestError("trace: --species needs --height (m, > 0)")
         from waveforest.vegetation import build_scene  # not imported to trace a PLY file
 
-        return build_scene(self.species, float(self.height_m), int(seed), ground_rho=self.ground_rho,
+        plant = seed if self.plant_seed is None else self.plant_seed
+        return build_scene(self.species, float(self.height_m), int(plant), ground_rho=self.ground_rho,
                            lai_jitter=self.lai_jitter)
 
 
@@ -77,14 +91,15 @@ def mcrt_effects(effects) -> dict[str, float]:
 
 
 def write_sigma(result: TraceResult, path: str | Path, i: int = 0, metadata: dict | None = None) -> Path:
-    """Write sigma(t) of pulse ``i`` (time, range, sigma, sigma per order) as Parquet or CSV.
+    """Write sigma(t) of pulse ``i`` (time, range, sigma, sigma per order) as Parquet or CSV."""
+    return write_frame(result.frame(i), path, metadata)
 
-    The suffix chooses the format; Parquet files carry ``metadata`` (JSON) in the schema.
-    """
+
+def write_frame(df: pd.DataFrame, path: str | Path, metadata: dict | None = None) -> Path:
+    """Write ``df`` as Parquet or CSV (the suffix chooses); Parquet carries ``metadata`` (JSON)."""
     path = Path(path)
     if path.suffix.lower() not in TABLE_SUFFIXES:
         raise WaveforestError(f"{path}: expected a .parquet or .csv output file")
-    df = result.frame(i)
     if path.suffix.lower() == ".csv":
         with atomic_path(path) as tmp:
             df.to_csv(tmp, index=False, float_format="%.10g")
@@ -92,6 +107,21 @@ def write_sigma(result: TraceResult, path: str | Path, i: int = 0, metadata: dic
     table = pa.Table.from_pandas(df, preserve_index=False)
     meta = {"waveforest.trace": json.dumps(metadata or {}, default=float)}
     return write_table(table.replace_schema_metadata(meta), path)
+
+
+def recorded(result: TraceResult, sensor, range_m: float, i: int = 0) -> tuple[pd.DataFrame, dict[str, float]]:
+    """The noise-free waveform that ``sensor`` (a ReferenceSensor) records of pulse ``i`` at range
+    ``range_m`` (Eq. 7 on the sigma grid, DN above the noise mean, against two-way time from
+    emission), and its first-echo features (Apeak DN, E DN ns, FWHM ns) on samples every
+    :data:`SAMPLING_NS` from the waveform's start, the echo segment at 3 noise SDs of ``sensor``:
+    the quantities whose Monte Carlo spread the ray budget bounds (docs/method.md §(d))."""
+    v, t_first = analog_waveforms(result.sigma[i:i + 1], result.t0_ns[i:i + 1], range_m, sensor.system,
+                                  bin_ns=result.bin_ns)
+    table = pd.DataFrame({"time_ns": t_first[0] + result.bin_ns * np.arange(v.shape[1]), "waveform_dn": v[0]})
+    w = v[:, ::int(round(SAMPLING_NS / result.bin_ns))]
+    f = first_echo_features(w, None, SAMPLING_NS, np.argmax(w, axis=1).astype(float) * SAMPLING_NS, 0.0,
+                            sensor.noise_sd)
+    return table, {k: float(f[k][0]) for k in ("Apeak", "E", "FWHM")}
 
 
 def plot_sigma(result: TraceResult, path: str | Path, i: int = 0, title: str = "") -> Path:
@@ -123,8 +153,9 @@ def plot_sigma(result: TraceResult, path: str | Path, i: int = 0, title: str = "
 
 
 def run(scene: SceneSpec, beam: BeamSpec, mcrt: MCRTSetup, out: str | Path, *, seed: int, window_ns: float,
-        plot: str | Path | None = None, sensor=None) -> TraceResult:
-    """Trace one pulse through one scene and write its sigma(t) (and a plot).
+        sensor, plot: str | Path | None = None, waveform: str | Path | None = None) -> tuple[TraceResult, dict]:
+    """Trace one pulse through one scene and write its sigma(t) (and a plot, and the waveform
+    ``sensor`` records).
 
     Parameters
     ----------
@@ -132,52 +163,59 @@ def run(scene: SceneSpec, beam: BeamSpec, mcrt: MCRTSetup, out: str | Path, *, s
     beam : BeamSpec
         The pulse (neither footprint nor divergence: the ALS60's divergence).
     mcrt : MCRTSetup
-        Tracer settings and MCRT effects (``specular``, ``hotspot``).
+        Tracer settings and MCRT effects (``specular``, ``hotspot``); with ``tolerance`` set,
+        the adaptive ray budget against ``sensor``, else ``mcrt.n_rays`` rays.
     out : path
         ``.parquet`` or ``.csv`` output.
     seed : int
-        Seed of the vegetation instance and of the tracer.
+        Seed of the tracer (and of the vegetation instance unless ``scene.plant_seed``).
     window_ns : float
         Length of the sigma(t) window, ns of two-way time.
-    plot : path, optional
-        PNG of sigma(t) by order.
-    sensor : waveforest.sensor.reference.ReferenceSensor, optional
-        The sensor of the adaptive ray budget (``mcrt.tolerance``); None = ``mcrt.n_rays`` rays.
+    sensor : waveforest.sensor.reference.ReferenceSensor
+        The sensor of the recorded waveform, its features and the ray budget.
+    plot, waveform : path, optional
+        PNG of sigma(t) by order; the recorded waveform (:func:`recorded`), .parquet or .csv.
 
     Returns
     -------
-    TraceResult
+    (TraceResult, metadata dict written with the table: rays, the budget's error, features, ...)
     """
     out = Path(out)
-    if out.suffix.lower() not in TABLE_SUFFIXES:
-        raise WaveforestError(f"{out}: expected a .parquet or .csv output file")
+    for path in (out, waveform):
+        if path is not None and Path(path).suffix.lower() not in TABLE_SUFFIXES:
+            raise WaveforestError(f"{path}: expected a .parquet or .csv output file")
     if beam.footprint_m is not None and beam.divergence_mrad is not None:
         raise WaveforestError("trace: give --footprint or --divergence, not both")
     mcrt_effects(mcrt.effects)
     loaded = scene.load(seed)
     try:
         beams = beam.beams()
-        budget = {} if sensor is None else mcrt.budget(sensor.system, sensor.noise_sd, beam.range_m)
+        budget = mcrt.budget(sensor.system, sensor.noise_sd, beam.range_m)
         result = trace_pulses(loaded, beams, seed=seed, window_ns=window_ns, by_order=True, **mcrt.kwargs(), **budget)
     except ValueError as exc:
         if isinstance(exc, WaveforestError):
             raise
         raise WaveforestError(f"trace: {exc}") from None
+    wave, features = recorded(result, sensor, beam.range_m)
     meta = {
-        "scene": scene.describe(),
+        "scene": scene.describe(), "plant_seed": scene.plant_seed if scene.plant_seed is not None else seed,
         "sensor_xyz": beams.origin[0].tolist(), "dir_xyz": beams.direction[0].tolist(),
         "footprint_m": float(beams.footprint_m[0]), "range_m": float(beam.range_m),
         "t0_ns": float(result.t0_ns[0]), "bin_ns": result.bin_ns, "n_rays": int(result.rays[0]),
         "tolerance": mcrt.tolerance if budget else None,
+        "mc_error_noise_sd": float(result.mc_error[0]), "max_rays": mcrt.max_rays if budget else None,
         "max_order": mcrt.max_order, "seed": seed, "sampler": mcrt.sampler, "roulette": mcrt.roulette,
         "effects": dict(mcrt.effects),
         "order_totals": result.order_totals[0].tolist(), "sigma_dropped": float(result.sigma_dropped[0]),
         "first_hit_counts": result.first_hit_counts[0].tolist(),
+        "sensor": sensor.source, "noise_sd_dn": float(sensor.noise_sd), "features": features,
     }
     write_sigma(result, out, 0, meta)
+    if waveform is not None:
+        write_frame(wave, waveform, meta)
     if plot is not None:
         plot_sigma(result, plot)
-    return result
+    return result, meta
 
 
 @click.command("trace")
@@ -186,6 +224,8 @@ def run(scene: SceneSpec, beam: BeamSpec, mcrt: MCRTSetup, out: str | Path, *, s
               help="Output sigma(t) table, .parquet or .csv (time_ns, range_m, sigma, sigma per order).")
 @click.option("--species", default=None, help="Trace a vegetation instance of this species slug instead of SCENE.")
 @click.option("--height", type=click.FloatRange(min=0, min_open=True), default=None, help="Height of the vegetation instance, m (with --species).")
+@click.option("--plant-seed", type=click.IntRange(min=0), default=None,
+              help="Seed of the --species instance (default: --seed): hold the plant while --seed varies the rays.")
 @click.option("--range", "range_m", type=click.FloatRange(min=0, min_open=True), default=1200.0, show_default=True,
               help="Sensor distance from the target point, m.")
 @click.option("--scan-zenith", type=float, default=0.0, show_default=True, help="Beam zenith angle, degrees.")
@@ -208,14 +248,20 @@ def run(scene: SceneSpec, beam: BeamSpec, mcrt: MCRTSetup, out: str | Path, *, s
 @click.option("--effect", "effects", multiple=True, metavar="NAME=VALUE",
               help="MCRT effect: specular=FRACTION or hotspot=FACTOR (repeatable).")
 @click.option("--plot", type=click.Path(dir_okay=False), default=None, help="PNG of sigma(t) by scattering order.")
+@click.option("--waveform", type=click.Path(dir_okay=False), default=None,
+              help="Also write the noise-free waveform the reference sensor records (time_ns, waveform_dn), "
+                   ".parquet or .csv.")
 @stage_options
-def trace(scene, out, species, height, range_m, scan_zenith, azimuth, footprint, divergence,
-          target_x, target_y, target_z, rays, tolerance, orders, effects, plot, cfg):
+def trace(scene, out, species, height, plant_seed, range_m, scan_zenith, azimuth, footprint, divergence,
+          target_x, target_y, target_z, rays, tolerance, orders, effects, plot, waveform, cfg):
     """Trace one LiDAR pulse through SCENE (a PLY whose faces carry rho, tau, kind) -> sigma(t).
 
     Writes sigma(t) on the fine time grid (config mcrt.bin_ns) with its per-order split,
-    and optionally a plot. Rays: the adaptive budget of --tolerance (config mcrt.tolerance)
-    against the reference sensor, or --rays per pulse. Example:
+    and optionally a plot and the recorded waveform. Rays: the adaptive budget of --tolerance
+    (config mcrt.tolerance) against the reference sensor (config sensitivity.reference_system),
+    or --rays per pulse; the sampler and roulette are config mcrt.sampler and mcrt.roulette
+    (random and 0: plain Monte Carlo). Prints the rays used, the budget's estimated error and
+    the first-echo features (Apeak, E, FWHM) of the recorded waveform. Example:
 
       waveforest trace canopy.ply --out sigma.parquet --range 1200 --scan-zenith 10 --plot sigma.png
     """
@@ -231,16 +277,28 @@ def trace(scene, out, species, height, range_m, scan_zenith, azimuth, footprint,
     if orders is not None:
         mcrt = replace(mcrt, max_order=orders)
     spec = SceneSpec(path=scene, species=species, height_m=height, ground_rho=veg["ground_rho"],
-                     lai_jitter=veg["lai_jitter"])
+                     lai_jitter=veg["lai_jitter"], plant_seed=plant_seed)
     beam = BeamSpec(target=(target_x, target_y, target_z), range_m=range_m, scan_zenith_deg=scan_zenith,
                     azimuth_deg=azimuth, footprint_m=footprint, divergence_mrad=divergence)
     t = time.perf_counter()
-    sensor = None if mcrt.tolerance is None else reference_sensor(reference_system(cfg), range_m=range_m)
-    res = run(spec, beam, mcrt, out, seed=cfg["seed"], window_ns=cfg["mcrt"]["window_ns"], plot=plot, sensor=sensor)
+    sensor = reference_sensor(reference_system(cfg), range_m=range_m)
+    with warnings_to_stderr():
+        res, meta = run(spec, beam, mcrt, out, seed=cfg["seed"], window_ns=cfg["mcrt"]["window_ns"], sensor=sensor,
+                        plot=plot, waveform=waveform)
+        if res.total[0] == 0:
+            warnings.warn(f"the beam met nothing: sigma is 0 (the target ({target_x:g}, {target_y:g}, "
+                          f"{target_z:g}) lies outside the scene?)", stacklevel=1)
+        if mcrt.tolerance is not None and meta["mc_error_noise_sd"] > mcrt.tolerance:
+            warnings.warn(f"the ray budget stopped at mcrt.max_rays ({mcrt.max_rays}) with an estimated error of "
+                          f"{meta['mc_error_noise_sd']:.3g} noise SD, above the tolerance {mcrt.tolerance:g}",
+                          stacklevel=1)
     dt = time.perf_counter() - t
-    o = res.order_totals[0]
+    o, f = res.order_totals[0], meta["features"]
+    budget = (f"adaptive, tolerance {mcrt.tolerance:g}, estimated error {meta['mc_error_noise_sd']:.3g} noise SD"
+              if mcrt.tolerance is not None else "fixed")
     click.echo(
         f"wrote {out}: 1 pulse, {res.n_bins} bins of {res.bin_ns:g} ns, sigma {res.total[0]:.5g} "
-        f"(order 1 {o[0]:.5g}, dropped {res.sigma_dropped[0]:.3g}), {res.n_rays} rays, {dt:.2f} s"
-        + (f"; plot {plot}" if plot else "")
+        f"(order 1 {o[0]:.5g}, dropped {res.sigma_dropped[0]:.3g}), {res.n_rays} rays ({budget}); "
+        f"first echo Apeak {f['Apeak']:.4g} DN, E {f['E']:.4g} DN ns, FWHM {f['FWHM']:.4g} ns; {dt:.2f} s"
+        + (f"; waveform {waveform}" if waveform else "") + (f"; plot {plot}" if plot else "")
     )
