@@ -72,10 +72,10 @@ def measure(copies: dict[str, Path], scene: Path, work: Path, args) -> dict[str,
         for tag, src in copies.items():
             out = work / f"{tag}_{seed}.parquet"
             text, w = command(src, "trace", str(scene), "--out", str(out), "--seed", str(seed))
-            m = re.search(r"(\d+) rays, ([0-9.]+) s", text)
-            rays[tag] = int(m.group(1))
+            n, t = re.search(r"(\d+) rays", text), re.search(r" ([0-9.]+) s(?:;|$)", text.strip())
+            rays[tag] = int(n.group(1))
             sig[tag].append(sigma_1ns(out))
-            stage[tag].append(float(m.group(2)))
+            stage[tag].append(float(t.group(1)))
             wall[tag].append(w)
     found = {}
     for tag in copies:
