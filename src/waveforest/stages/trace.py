@@ -42,6 +42,9 @@ TABLE_SUFFIXES = (".parquet", ".csv")
 SAMPLING_NS = 1.0
 """Sampling of the recorded waveform's features (the ALS60's 1 ns)."""
 
+SEGMENT_SD = 3.0
+"""The first echo's segment: above this many noise SDs (docs/method.md §(h))."""
+
 PLOT_FRACTION = 0.999
 """The plot of sigma(t) spans the bins holding this fraction of the binned sigma."""
 
@@ -112,15 +115,20 @@ def write_frame(df: pd.DataFrame, path: str | Path, metadata: dict | None = None
 def recorded(result: TraceResult, sensor, range_m: float, i: int = 0) -> tuple[pd.DataFrame, dict[str, float]]:
     """The noise-free waveform that ``sensor`` (a ReferenceSensor) records of pulse ``i`` at range
     ``range_m`` (Eq. 7 on the sigma grid, DN above the noise mean, against two-way time from
-    emission), and its first-echo features (Apeak DN, E DN ns, FWHM ns) on samples every
-    :data:`SAMPLING_NS` from the waveform's start, the echo segment at 3 noise SDs of ``sensor``:
-    the quantities whose Monte Carlo spread the ray budget bounds (docs/method.md §(d))."""
+    emission), and its first-echo features (Apeak DN, E DN ns, FWHM ns; NaN without an echo) on
+    samples every :data:`SAMPLING_NS` from the waveform's start: the first local maximum above
+    :data:`SEGMENT_SD` noise SDs of ``sensor`` and its segment above that level. These are the
+    quantities whose Monte Carlo spread the ray budget bounds (docs/method.md §(d))."""
     v, t_first = analog_waveforms(result.sigma[i:i + 1], result.t0_ns[i:i + 1], range_m, sensor.system,
                                   bin_ns=result.bin_ns)
     table = pd.DataFrame({"time_ns": t_first[0] + result.bin_ns * np.arange(v.shape[1]), "waveform_dn": v[0]})
     w = v[:, ::int(round(SAMPLING_NS / result.bin_ns))]
-    f = first_echo_features(w, None, SAMPLING_NS, np.argmax(w, axis=1).astype(float) * SAMPLING_NS, 0.0,
-                            sensor.noise_sd)
+    above = np.flatnonzero(w[0] >= SEGMENT_SD * sensor.noise_sd)
+    peak = np.nan  # the first echo's peak: the first local maximum above the segment threshold
+    if above.size:
+        falls = np.flatnonzero(np.diff(w[0, above[0]:]) < 0)
+        peak = (above[0] + (falls[0] if falls.size else w.shape[1] - 1 - above[0])) * SAMPLING_NS
+    f = first_echo_features(w, None, SAMPLING_NS, np.array([peak]), 0.0, sensor.noise_sd, SEGMENT_SD)
     return table, {k: float(f[k][0]) for k in ("Apeak", "E", "FWHM")}
 
 
