@@ -22,6 +22,7 @@ from waveforest.errors import WaveforestError
 from waveforest.mcrt import trace
 from waveforest.sensor import CFDParams, FeatureParams, detect_echoes, first_echo_features, render
 from waveforest.sensor.agc import divide_gain
+from waveforest.sensor.signal import analog_waveforms
 
 MAX_ECHOES = 4
 """DR echoes per pulse (ALS60, docs/method.md §(a))."""
@@ -328,6 +329,36 @@ def render_sigma(sigma: np.ndarray, t0_ns: np.ndarray, range_m: np.ndarray, setu
         sigma_total=np.zeros(n) if sigma_total is None else sigma_total,
         first_hit_counts=np.zeros((n, 5), np.int64) if first_hit_counts is None else first_hit_counts,
     )
+
+
+FEATURE_SAMPLING_NS = 1.0
+"""Sampling of :func:`noise_free_waveform`'s features (the ALS60's 1 ns)."""
+
+SEGMENT_SD = 3.0
+"""The first echo's segment of :func:`noise_free_waveform`: above this many noise SDs (§(h))."""
+
+
+def noise_free_waveform(result, system, noise_sd: float, range_m: float, i: int = 0):
+    """The noise-free waveform recorded of pulse ``i`` of a TraceResult (Eq. 7 with S(t)
+    ``system`` at R = ``range_m``, on the sigma grid, DN above the noise mean) and its first
+    echo's features: the quantities whose Monte Carlo spread the ray budget bounds (§(d)).
+
+    Returns (t_ns (k,) two-way time from emission, v (k,) DN, {"Apeak": DN, "E": DN ns,
+    "FWHM": ns}); the features on samples every :data:`FEATURE_SAMPLING_NS` from the waveform's
+    start, the first echo the first local maximum above :data:`SEGMENT_SD` ``noise_sd`` (NaN
+    without one) and its segment above that level.
+    """
+    v, t_first = analog_waveforms(result.sigma[i:i + 1], result.t0_ns[i:i + 1], range_m, system,
+                                  bin_ns=result.bin_ns)
+    w = v[:, ::int(round(FEATURE_SAMPLING_NS / result.bin_ns))]
+    above = np.flatnonzero(w[0] >= SEGMENT_SD * noise_sd)
+    peak = np.nan
+    if above.size:
+        falls = np.flatnonzero(np.diff(w[0, above[0]:]) < 0)
+        peak = (above[0] + (falls[0] if falls.size else w.shape[1] - 1 - above[0])) * FEATURE_SAMPLING_NS
+    f = first_echo_features(w, None, FEATURE_SAMPLING_NS, np.array([peak]), 0.0, noise_sd, SEGMENT_SD)
+    t_ns = t_first[0] + result.bin_ns * np.arange(v.shape[1])
+    return t_ns, v[0], {k: float(f[k][0]) for k in ("Apeak", "E", "FWHM")}
 
 
 def trace_and_render(scene, beams, range_m: np.ndarray, mcrt: MCRTSetup, setup: SensorSetup,

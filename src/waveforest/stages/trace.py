@@ -29,21 +29,13 @@ from waveforest.io.pulses import write_table
 from waveforest.mcrt.beams import BeamSpec
 from waveforest.mcrt.tracer import TraceResult
 from waveforest.mcrt.tracer import trace as trace_pulses
-from waveforest.model.forward import MCRTSetup
+from waveforest.model.forward import MCRTSetup, noise_free_waveform
 from waveforest.plotting import pyplot, save_png
 from waveforest.scene import Scene, read_ply
-from waveforest.sensor.features import first_echo_features
 from waveforest.sensor.reference import reference_sensor
-from waveforest.sensor.signal import analog_waveforms
 from waveforest.settings import mcrt_setup, reference_system
 
 TABLE_SUFFIXES = (".parquet", ".csv")
-
-SAMPLING_NS = 1.0
-"""Sampling of the recorded waveform's features (the ALS60's 1 ns)."""
-
-SEGMENT_SD = 3.0
-"""The first echo's segment: above this many noise SDs (docs/method.md §(h))."""
 
 PLOT_FRACTION = 0.999
 """The plot of sigma(t) spans the bins holding this fraction of the binned sigma."""
@@ -112,26 +104,6 @@ def write_frame(df: pd.DataFrame, path: str | Path, metadata: dict | None = None
     return write_table(table.replace_schema_metadata(meta), path)
 
 
-def recorded(result: TraceResult, sensor, range_m: float, i: int = 0) -> tuple[pd.DataFrame, dict[str, float]]:
-    """The noise-free waveform that ``sensor`` (a ReferenceSensor) records of pulse ``i`` at range
-    ``range_m`` (Eq. 7 on the sigma grid, DN above the noise mean, against two-way time from
-    emission), and its first-echo features (Apeak DN, E DN ns, FWHM ns; NaN without an echo) on
-    samples every :data:`SAMPLING_NS` from the waveform's start: the first local maximum above
-    :data:`SEGMENT_SD` noise SDs of ``sensor`` and its segment above that level. These are the
-    quantities whose Monte Carlo spread the ray budget bounds (docs/method.md §(d))."""
-    v, t_first = analog_waveforms(result.sigma[i:i + 1], result.t0_ns[i:i + 1], range_m, sensor.system,
-                                  bin_ns=result.bin_ns)
-    table = pd.DataFrame({"time_ns": t_first[0] + result.bin_ns * np.arange(v.shape[1]), "waveform_dn": v[0]})
-    w = v[:, ::int(round(SAMPLING_NS / result.bin_ns))]
-    above = np.flatnonzero(w[0] >= SEGMENT_SD * sensor.noise_sd)
-    peak = np.nan  # the first echo's peak: the first local maximum above the segment threshold
-    if above.size:
-        falls = np.flatnonzero(np.diff(w[0, above[0]:]) < 0)
-        peak = (above[0] + (falls[0] if falls.size else w.shape[1] - 1 - above[0])) * SAMPLING_NS
-    f = first_echo_features(w, None, SAMPLING_NS, np.array([peak]), 0.0, sensor.noise_sd, SEGMENT_SD)
-    return table, {k: float(f[k][0]) for k in ("Apeak", "E", "FWHM")}
-
-
 def plot_sigma(result: TraceResult, path: str | Path, i: int = 0, title: str = "") -> Path:
     """PNG of sigma(t) of pulse ``i``, total and per scattering order, against range."""
     plt = pyplot()
@@ -182,7 +154,8 @@ def run(scene: SceneSpec, beam: BeamSpec, mcrt: MCRTSetup, out: str | Path, *, s
     sensor : waveforest.sensor.reference.ReferenceSensor
         The sensor of the recorded waveform, its features and the ray budget.
     plot, waveform : path, optional
-        PNG of sigma(t) by order; the recorded waveform (:func:`recorded`), .parquet or .csv.
+        PNG of sigma(t) by order; the recorded waveform
+        (:func:`waveforest.model.forward.noise_free_waveform`), .parquet or .csv.
 
     Returns
     -------
@@ -204,7 +177,8 @@ def run(scene: SceneSpec, beam: BeamSpec, mcrt: MCRTSetup, out: str | Path, *, s
         if isinstance(exc, WaveforestError):
             raise
         raise WaveforestError(f"trace: {exc}") from None
-    wave, features = recorded(result, sensor, beam.range_m)
+    t_ns, v, features = noise_free_waveform(result, sensor.system, sensor.noise_sd, beam.range_m)
+    wave = pd.DataFrame({"time_ns": t_ns, "waveform_dn": v})
     meta = {
         "scene": scene.describe(), "plant_seed": scene.plant_seed if scene.plant_seed is not None else seed,
         "sensor_xyz": beams.origin[0].tolist(), "dir_xyz": beams.direction[0].tolist(),
