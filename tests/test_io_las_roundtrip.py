@@ -16,7 +16,7 @@ from reference_io import reference_pulses
 
 from waveforest.constants import RANGE_PER_NS
 from waveforest.io.las import WaveformPulseReader, open_waveform_las, read_waveform_las
-from waveforest.io.las.write import WaveformLasWriter, write_waveform_las
+from waveforest.io.las.write import WaveformLasWriter, creation_today, write_waveform_las
 
 TIME_TOL_NS = 1e-5
 """Echo times are stored as float32 ps: 256 ns = 2.56e5 ps has a float32 step of 0.016 ps."""
@@ -261,3 +261,36 @@ def test_adjusted_standard_gps_time_is_declared(tmp_path):
     week = laspy.read(write_waveform_las(tmp_path / "week.las", t))
     assert int(std.header.global_encoding.value) & 1 and not int(week.header.global_encoding.value) & 1
     assert np.allclose(np.unique(std.gps_time), np.sort(late["gps_time"].to_numpy()))
+
+
+TM35FIN = ('PROJCS["ETRS89 / TM35FIN(E,N)",GEOGCS["ETRS89",DATUM["European_Terrestrial_Reference_System_1989",'
+           'SPHEROID["GRS 1980",6378137,298.257222101]],PRIMEM["Greenwich",0],UNIT["degree",0.0174532925199433],'
+           'AUTHORITY["EPSG","4258"]],PROJECTION["Transverse_Mercator"],UNIT["metre",1],AUTHORITY["EPSG","3067"]]')
+
+
+@pytest.mark.parametrize("wkt, model, key, code", [
+    (TM35FIN, 1, 3072, 3067),  # projected: its top-level EPSG code, not the datum's 4258
+    ('GEOGCS["WGS 84",DATUM["WGS_1984",SPHEROID["WGS 84",6378137,298.257223563]],AUTHORITY["EPSG","4326"]]',
+     2, 2048, 4326),
+    ('LOCAL_CS["scene frame",LOCAL_DATUM["scene",0],UNIT["metre",1]]', 32767, None, None),
+])
+def test_las13_carries_geotiff_keys_beside_the_wkt(tmp_path, wkt, model, key, code):
+    """LAS 1.3 knows GeoTIFF keys only: the directory (34735) laspy parses, with the WKT's EPSG
+    code or a user-defined model cited by name; LAS 1.4 keeps the WKT alone (global encoding bit 4)."""
+    t = synthetic_pulses(10, seed=4)
+    las = laspy.read(write_waveform_las(tmp_path / "c13.las", t, version="1.3", point_format=4, wkt=wkt))
+    keys = {k.id: k.value_offset for k in las.header.vlrs.get("GeoKeyDirectoryVlr")[0].geo_keys}
+    assert keys[1024] == model and (key is None or keys[key] == code)
+    assert any(v.record_id == 2112 for v in las.header.vlrs)
+    if key is None:  # the citation key points into GeoAsciiParams
+        assert las.header.vlrs.get("GeoAsciiParamsVlr")[0].strings[0] == "scene frame|"
+    las14 = laspy.read(write_waveform_las(tmp_path / "c14.las", t, wkt=wkt))
+    assert not las14.header.vlrs.get("GeoKeyDirectoryVlr") and int(las14.header.global_encoding.value) & 16
+
+
+def test_creation_date_is_today_or_source_date_epoch(monkeypatch):
+    monkeypatch.setenv("SOURCE_DATE_EPOCH", "1388707200")  # 2014-01-03 00:00 UTC
+    assert creation_today() == (3, 2014)
+    monkeypatch.delenv("SOURCE_DATE_EPOCH")
+    day, year = creation_today()
+    assert year >= 2025 and 1 <= day <= 366

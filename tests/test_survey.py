@@ -96,6 +96,13 @@ def test_a_leg_that_sees_no_scene(tmp_path, capsys):
     _fails(tmp_path, capsys, survey=survey, expect="platform/legs/1: the leg sees no part of the scene")
 
 
+def test_a_sensor_inside_the_scene(tmp_path, capsys):
+    """A leg flown below the top of the scene it looks at (the tilted plane reaches ~0.17 m)."""
+    survey = {**SURVEY, "platform": {"legs": [SURVEY["platform"]["legs"][0],
+                                              {"start": [0, -3], "end": [0, 3], "altitude_m": 0.05}]}}
+    _fails(tmp_path, capsys, survey=survey, expect="platform/legs/1: the sensor flies inside the scene")
+
+
 def test_the_outputs_read_back(tmp_path, capsys):
     """LAS 1.4 PF9 + .wdp: laspy, `info` and the pulse reader agree with the summary."""
     sc, sv = _files(tmp_path)
@@ -308,8 +315,9 @@ def test_a_merge_removes_stale_caches_of_its_folder(tmp_path, capsys):
 
 
 def test_ctrl_c_leaves_no_output_and_the_rerun_resumes(tmp_path, capsys, monkeypatch):
-    """Interrupted after its first tile: exit 130, no DIR, that tile kept; the rerun traces only
-    the other tiles and writes what an uninterrupted run writes."""
+    """Interrupted after its first tile: exit 130, no DIR, that tile and the run's time kept; the
+    rerun traces only the other tiles, counts both runs' time and writes what an uninterrupted
+    run writes."""
     import waveforest.survey.run as run_module
 
     sc, sv = _files(tmp_path)
@@ -326,6 +334,7 @@ def test_ctrl_c_leaves_no_output_and_the_rerun_resumes(tmp_path, capsys, monkeyp
     assert code == 130 and not (tmp_path / "out").exists(), lines
     cache = next(tmp_path.glob(".out.survey-*"))
     assert [p.name for p in cache.glob("tile_*.json")] == [f"tile_{calls[0]:06d}.json"]
+    interrupted = json.loads((cache / "run_0_1_0.json").read_text())  # its time counts in the summary
 
     def counting(k, *args, **kwargs):
         calls.append(k)
@@ -333,8 +342,9 @@ def test_ctrl_c_leaves_no_output_and_the_rerun_resumes(tmp_path, capsys, monkeyp
 
     monkeypatch.setattr(run_module, "run_tile", counting)
     code, _ = _run(["survey", sc, sv, "--out", tmp_path / "out", "--no-progress"], capsys)
-    assert code == 0 and calls[0] not in calls[1:] and len(calls) == json.loads(
-        (tmp_path / "out" / "summary.json").read_text())["tiles"]
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert code == 0 and calls[0] not in calls[1:] and len(calls) == summary["tiles"]
+    assert summary["wall_s"] > interrupted["wall_s"] > 0
     code, _ = _run(["survey", sc, sv, "--out", tmp_path / "again", "--no-progress"], capsys)
     assert (tmp_path / "out" / "survey.wdp").read_bytes() == (tmp_path / "again" / "survey.wdp").read_bytes()
 

@@ -98,7 +98,9 @@ def plan(scene: SurveyScene, survey: Survey, min_tile_pulses: int = 1) -> Plan:
     tile them (memory: the kept pulses, about 80 bytes each). Tiles of side ``quality.tile_m``
     are widened by :func:`tile_side` to hold ``min_tile_pulses`` pulses on average.
 
-    A leg none of whose pulses sees the scene is an error naming the leg.
+    A leg none of whose pulses sees the scene, or a pulse fired from inside the scene's box
+    (the tracer starts its rays at the box, so the sensor must be outside it), is an error
+    naming the leg.
     """
     tracks = leg_tracks(survey)
     box = scene.bounds.copy()
@@ -114,6 +116,13 @@ def plan(scene: SurveyScene, survey: Survey, min_tile_pulses: int = 1) -> Plan:
         raise SurveyError(f"{survey.source}: {where}: the leg sees no part of the scene (scene x {lo[0]:.1f}.."
                           f"{hi[0]:.1f}, y {lo[1]:.1f}..{hi[1]:.1f} m)")
     kept = concat(kept)
+    inside = np.flatnonzero(np.all((kept.origin >= box[0]) & (kept.origin <= box[1]), axis=1))
+    if inside.size:
+        i = inside[np.argmin(kept.origin[inside, 2])]
+        where = "platform/trajectory" if survey.trajectory is not None else f"platform/legs/{kept.leg[i]}"
+        raise SurveyError(f"{survey.source}: {where}: the sensor flies inside the scene (z {kept.origin[i, 2]:.1f} m at "
+                          f"GPS time {kept.gps_time[i]:.3f} s; the scene reaches z {box[1, 2]:.1f} m): "
+                          "expected a flight above the scene")
     zg = float(box[0, 2])
     s = (zg - kept.origin[:, 2]) / kept.direction[:, 2]
     ground = kept.origin + s[:, None] * kept.direction

@@ -16,6 +16,7 @@ import json
 import resource
 import shutil
 import time
+from contextlib import suppress
 from pathlib import Path
 
 import laspy
@@ -24,7 +25,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from waveforest.atomic import OutputFolder, atomic_path
-from waveforest.io.las.write import GPS_WEEK_S, WaveformLasWriter
+from waveforest.io.las.write import GPS_WEEK_S, WaveformLasWriter, creation_today
 from waveforest.model.forward import MCRTSetup, SensorSetup
 from waveforest.survey.engine import (
     ADAPTIVE_TILE_PULSES,
@@ -84,19 +85,22 @@ def run_tiles(scene: SurveyScene, survey: Survey, mcrt: MCRTSetup, setup: Sensor
     cpu = time.process_time()
     scenes = TileScenes(scene, survey, mcrt.viewed_diameter_m, max_zenith_tan(pl.pulses)) if missing else None
     prepare_s = time.process_time() - cpu
+    traced = 0
     try:
         for k in missing:
             res = run_tile(k, pl, scenes, survey, mcrt, setup, cache / f"tile_{k:06d}.parquet", threads, bar)
             with atomic_path(cache / f"tile_{k:06d}.json") as tmp:  # written last: the tile is complete
                 tmp.write_text(json.dumps(res.__dict__))
+            traced += 1
     finally:
         if bar is not None:
             bar.close()
-    if missing:  # this run's prototypes and BVHs (a resumed run builds them anew), wall time and memory
-        runs = len(list(cache.glob(f"run_{part[0]}_{part[1]}_*.json")))
-        with atomic_path(cache / f"run_{part[0]}_{part[1]}_{runs}.json") as tmp:
-            tmp.write_text(json.dumps({"prototype_build_s": scene.build_s + prepare_s,
-                                       "wall_s": time.perf_counter() - wall, "peak_memory_mb": peak_memory_mb()}))
+        if traced:  # this run's prototypes and BVHs (a resumed run builds them anew), wall time and
+            # memory, also when it was interrupted: the summary counts every run that traced
+            runs = len(list(cache.glob(f"run_{part[0]}_{part[1]}_*.json")))
+            with suppress(OSError), atomic_path(cache / f"run_{part[0]}_{part[1]}_{runs}.json") as tmp:
+                tmp.write_text(json.dumps({"prototype_build_s": scene.build_s + prepare_s,
+                                           "wall_s": time.perf_counter() - wall, "peak_memory_mb": peak_memory_mb()}))
     return pl, cache
 
 
@@ -140,7 +144,7 @@ def merge(pl: Plan, cache: Path, scene: SurveyScene, survey: Survey, out_dir: Pa
         last = max(float(tr.gps_time[-1]) for tr in pl.tracks)
         with WaveformLasWriter(las, version=survey.las_version, bits=survey.scanner.bits,
                                storage=survey.waveforms, agc_attribute="user_data", wkt=survey.crs_wkt or LOCAL_WKT,
-                               generating_software="waveforest survey",
+                               generating_software="waveforest survey", creation=creation_today(),
                                gps_time_type="week" if last < GPS_WEEK_S else "standard") as w:
             for t in in_time_order([cache / f"tile_{k:06d}.parquet" for k in range(len(pl.tiles))],
                                    survey.chunk_pulses):

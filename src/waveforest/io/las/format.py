@@ -49,6 +49,8 @@ WPD_INDEX_OFFSET = 99
 """Descriptor index = record id - 99 (1..255)."""
 EXTRA_BYTES_RECORD_ID = 4
 WKT_RECORD_ID = 2112
+GEOKEY_DIRECTORY_RECORD_ID = 34735
+GEOASCII_PARAMS_RECORD_ID = 34737
 LASZIP_USER_ID = b"laszip encoded"
 LASZIP_RECORD_ID = 22204
 """The LASzip VLR that every LAZ file carries (compressor, chunk size, items)."""

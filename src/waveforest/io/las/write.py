@@ -25,8 +25,13 @@ in order of first appearance (at most 255). Waveform bytes are little-endian uns
 ``bits``-bit integers, uncompressed, either inside the file (LAS 1.4: EVLR 65535 after the
 points; LAS 1.3: after the points at the header's "start of waveform data packet record",
 global encoding bit 1) or in a ``.wdp`` file beside it (bit 2) that starts with the same
-60-byte record header. Nothing time-dependent is written (creation day/year are arguments),
-so the same table gives byte-identical files.
+60-byte record header. Nothing time-dependent is written (creation day/year are arguments,
+:func:`creation_today` the caller's choice), so the same table gives byte-identical files.
+
+The coordinate system is an OGC WKT record (2112). LAS 1.3 predates WKT and asks for GeoTIFF
+keys: a 1.3 file also gets a GeoKeyDirectory (34735) from the WKT (:func:`geokeys`), with the
+EPSG code of a projected or geographic WKT, else a user-defined model with the WKT's name as
+its citation (GeoAsciiParams, 34737).
 
 What LAS cannot hold is refused with :class:`waveforest.io.las.format.LasWaveformError`, never
 silently changed: samples that are not whole numbers in ``[0, 2**bits - 1]``, a sampling
@@ -46,8 +51,10 @@ from __future__ import annotations
 
 import errno
 import os
+import re
 import shutil
 from dataclasses import dataclass
+from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
@@ -66,6 +73,8 @@ from waveforest.io.las.format import (
     GE_WAVEFORM_EXTERNAL,
     GE_WAVEFORM_INTERNAL,
     GE_WKT,
+    GEOASCII_PARAMS_RECORD_ID,
+    GEOKEY_DIRECTORY_RECORD_ID,
     HEADER_13,
     HEADER_14,
     LAS_SIGNATURE,
@@ -103,6 +112,43 @@ MAX_DESCRIPTORS = 255
 COPY_BUFFER_BYTES = 16 << 20
 DEFAULT_CREATION = (1, 2014)
 """Creation day of year and year written when none is given (no clock is read)."""
+
+GEOKEY_MODEL, GEOKEY_RASTER, GEOKEY_CITATION = 1024, 1025, 1026
+GEOKEY_GEOGRAPHIC, GEOKEY_PROJECTED, GEOKEY_LINEAR_UNITS = 2048, 3072, 3076
+"""GeoTIFF key ids (GeoTIFF 1.0 §6.3): model type, raster type, citation, EPSG codes, units."""
+USER_DEFINED = 32767
+METRE = 9001
+
+
+def creation_today() -> tuple[int, int]:
+    """(day of year, year) of today in UTC, or of ``SOURCE_DATE_EPOCH`` (seconds since 1970,
+    the reproducible-builds convention) when that is set."""
+    epoch = os.environ.get("SOURCE_DATE_EPOCH")
+    day = (datetime.fromtimestamp(int(epoch), UTC) if epoch else datetime.now(UTC)).date()
+    return day.timetuple().tm_yday, day.year
+
+
+def geokeys(wkt: str) -> tuple[bytes, bytes]:
+    """GeoKeyDirectory and GeoAsciiParams bodies (uint16 records, ``|``-terminated ASCII) of an
+    OGC WKT (1 or 2): projected or geographic with the EPSG code of its top-level AUTHORITY / ID,
+    else user-defined, in metres, with the WKT's name as citation (its key counts the ``|``)."""
+    text = wkt.strip()
+    kind = text.split("[", 1)[0].strip().upper()
+    code = re.search(r'(?:AUTHORITY|ID)\[\s*"EPSG"\s*,\s*"?(\d+)"?\s*\]\s*\]\s*$', text, re.IGNORECASE)
+    name = re.match(r'[A-Z_]+\[\s*"([^"]*)"', text, re.IGNORECASE)
+    citation = ((name.group(1) if name else "unnamed").replace("|", "/") + "|").encode("ascii", "replace")
+    keys = [(GEOKEY_MODEL, 0, 1, USER_DEFINED), (GEOKEY_RASTER, 0, 1, 1),
+            (GEOKEY_CITATION, GEOASCII_PARAMS_RECORD_ID, len(citation), 0)]
+    if code and kind in ("PROJCS", "PROJCRS", "PROJECTEDCRS"):
+        keys[0] = (GEOKEY_MODEL, 0, 1, 1)
+        keys += [(GEOKEY_PROJECTED, 0, 1, int(code.group(1))), (GEOKEY_LINEAR_UNITS, 0, 1, METRE)]
+    elif code and kind in ("GEOGCS", "GEOGCRS", "GEOGRAPHICCRS"):
+        keys[0] = (GEOKEY_MODEL, 0, 1, 2)
+        keys.append((GEOKEY_GEOGRAPHIC, 0, 1, int(code.group(1))))
+    else:
+        keys.append((GEOKEY_LINEAR_UNITS, 0, 1, METRE))
+    body = np.array([(1, 1, 0, len(keys))] + sorted(keys), "<u2")
+    return body.tobytes(), citation + b"\0"  # LAS: NUL-separated strings
 
 
 @dataclass(frozen=True)
@@ -603,6 +649,11 @@ class WaveformLasWriter:
         if self.wkt is not None:
             out.append(_vlr(LASF_PROJECTION, WKT_RECORD_ID, self.wkt.encode("ascii") + b"\0", "OGC WKT"))
             count += 1
+            if self.version == "1.3":  # 1.3 readers know GeoTIFF keys only
+                directory, ascii_params = geokeys(self.wkt)
+                out.append(_vlr(LASF_PROJECTION, GEOKEY_DIRECTORY_RECORD_ID, directory, "GeoTIFF GeoKeyDirectoryTag"))
+                out.append(_vlr(LASF_PROJECTION, GEOASCII_PARAMS_RECORD_ID, ascii_params, "GeoTIFF GeoAsciiParamsTag"))
+                count += 2
         return b"".join(out), count
 
     def _header(self, vlr_bytes: int, n_vlrs: int) -> bytes:
