@@ -3,16 +3,19 @@
 Usage::
 
     python benchmarks/diagnose_limits.py RESULTS[:CONFIG] [--replicates 20] [--candidates understory xy_error]
+        [--with H_ground]
 
 RESULTS is a study's results folder (select, features, calibration, agc, campaign,
 config/diagnose.yaml, or the config CONFIG). The diagnosis's power analysis
 (:func:`waveforest.diagnose.power.detection_limits`: its seeds, pool and calibrated floor) runs
 twice on the same simulations, with the first-echo features alone (H, Npeaks, Apeak, FWHM, E)
-and with the whole waveform (diagnose.features' default). Prints per effect
+and with the whole waveform (every statistic of :mod:`waveforest.diagnose.waveform`); ``--with F ...``
+adds a third set, the first-echo features and the statistics F (named ``first_echo_F``). Prints
+per effect
 ``limit_<features>_<effect>: value unit`` (``nan`` when not reached up to the strongest value
 tried), ``power_at_bound_<features>_<effect>: share [low, high]`` (Wilson interval),
-``limit_ratio_<effect>: whole waveform / first echo`` (of the distances from off in the
-search coordinate u, :mod:`waveforest.diagnose.catalogue`: 0.5 = halved), ``floor_scale_<features>: factor`` and the
+``limit_ratio_<set>_<effect>: set / first echo`` (of the distances from off in the search
+coordinate u, :mod:`waveforest.diagnose.catalogue`: 0.5 = halved), ``floor_scale_<features>: factor`` and the
 wall and CPU time.
 """
 
@@ -29,6 +32,7 @@ from diagnose_floor import study_inputs
 from waveforest.diagnose import catalogue as cat
 from waveforest.diagnose.gap import ALL_FEATURES, FEATURES
 from waveforest.diagnose.power import detection_limits
+from waveforest.diagnose.waveform import WAVEFORM_FEATURES
 
 
 def strength(effect: str, value: float) -> float:
@@ -41,6 +45,8 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("results", help="results folder, or RESULTS:CONFIG to read another config")
     p.add_argument("--replicates", type=int, default=20, help="pseudo-real replicates per value")
     p.add_argument("--candidates", nargs="*", default=None, help="effects (default: the diagnosis's)")
+    p.add_argument("--with", dest="extra", nargs="*", default=(), choices=WAVEFORM_FEATURES,
+                   help="whole-waveform statistics of a third set beside the first-echo features")
     a = p.parse_args(argv)
     t0, c0 = time.perf_counter(), time.process_time()
     r, _, c = a.results.partition(":")
@@ -48,7 +54,10 @@ def main(argv: list[str] | None = None) -> None:
     power = replace(settings.power, replicates=a.replicates)
     search = settings.search if a.candidates is None else replace(settings.search, candidates=tuple(a.candidates))
     limits = {}
-    for name, features in (("first_echo", FEATURES), ("whole_waveform", ALL_FEATURES)):
+    sets = {"first_echo": FEATURES, "whole_waveform": ALL_FEATURES}
+    if a.extra:
+        sets["first_echo_" + "_".join(a.extra)] = FEATURES + tuple(a.extra)
+    for name, features in sets.items():
         cal: dict = {}
         lim, _ = detection_limits(keys, simulate, replace(search, features=features), power, settings.seed,
                                   calibration=cal)
@@ -58,11 +67,11 @@ def main(argv: list[str] | None = None) -> None:
             print(f"power_at_bound_{name}_{row.effect}: {row.power_at_bound:.2f} "
                   f"[{row.power_at_bound_ci_low:.2f}, {row.power_at_bound_ci_high:.2f}] at {row.upper_bound:.4g}")
         limits[name] = lim.set_index("effect")
-    for effect in limits["first_echo"].index:
-        u0 = limits["first_echo"].loc[effect]
-        w = limits["whole_waveform"].loc[effect]
-        ratio = strength(effect, w.smallest_detectable) / strength(effect, u0.smallest_detectable)
-        print(f"limit_ratio_{effect}: {ratio:.3f} whole/first")
+    for name in list(sets)[1:]:
+        for effect in limits["first_echo"].index:
+            ratio = (strength(effect, limits[name].loc[effect].smallest_detectable)
+                     / strength(effect, limits["first_echo"].loc[effect].smallest_detectable))
+            print(f"limit_ratio_{name}_{effect}: {ratio:.3f} set/first_echo")
     print(f"pulses: {len(keys)} count")
     print(f"samples: {keys['sample_id'].nunique()} count")
     print(f"wall_time: {time.perf_counter() - t0:.1f} s")

@@ -50,9 +50,9 @@ accurate per ray; its own error is << that of the estimators):
 * ``<method>_rel_err_total``, ``<method>_rel_err_order1``: relative RMS error of the total
   and of the first-order sigma;
 * ``<method>_rel_err_apeak``, ``<method>_rel_err_e``, ``<method>_err_fwhm``: the errors of the
-  first-echo features (:func:`waveforest.sensor.features.first_echo_features`) of the
-  noise-free waveform rendered (Eq. 7, :func:`waveforest.sensor.signal.analog_waveforms`) with
-  a Gaussian S(t) of 7.2 ns FWHM (2010_12_1) and sampled at 1 ns; FWHM in ns;
+  first-echo features of the noise-free waveform recorded with a Gaussian S(t) of 7.2 ns FWHM
+  (2010_12_1), sampled at 1 ns (:func:`recorded`: the study's first echo, the segment at 3
+  noise SDs); FWHM in ns;
 * ``<method>_err_share_order1``, ``..._order2``, ``..._order3plus``: each order's squared
   error (sum over seeds, pulses and 1-ns bins of (s_k - s_k,ref)^2) over that of the total:
   where the error lies (their sum differs from 1 by the orders' cross terms);
@@ -378,22 +378,6 @@ def _one_ns(res) -> np.ndarray:
     return s[:, :, :n_ns * k].reshape(s.shape[0], s.shape[1], n_ns, k).sum(axis=3)
 
 
-def waveform_features(res) -> np.ndarray:
-    """(n, 3) Apeak (DN), E (DN), FWHM (ns) of the noise-free waveforms of ``res`` (Eq. 7 with
-    the Gaussian S(t) of :data:`SYSTEM_FWHM_NS`, R = :data:`RANGE_M`, sampled at 1 ns)."""
-    from waveforest.sensor.features import first_echo_features
-    from waveforest.sensor.signal import analog_waveforms
-    from waveforest.sensor.system_waveform import gaussian_system_waveform
-
-    system = gaussian_system_waveform(SYSTEM_FWHM_NS, SYSTEM_PEAK)
-    v, _ = analog_waveforms(res.sigma, res.t0_ns, RANGE_M, system, bin_ns=res.bin_ns)
-    k = int(round(1.0 / res.bin_ns))
-    w = v[:, ::k]
-    sd = 1e-3 * w.max(axis=1)  # noise-free: the segment is the run above 0.3 % of the peak
-    f = first_echo_features(w, None, 1.0, np.argmax(w, axis=1).astype(float), 0.0, sd)
-    return np.column_stack([f["Apeak"], f["E"], f["FWHM"]])
-
-
 def bench_error(prefix: str, scene, beams, args, methods) -> dict:
     """Print the Monte Carlo errors of ``methods`` on one scene (see the module docstring).
 
@@ -409,7 +393,7 @@ def bench_error(prefix: str, scene, beams, args, methods) -> dict:
                     max_order=MAX_ORDER)
     ref = _one_ns(ref_res)
     ref_all, ref_1 = ref.sum(axis=1), ref[:, 0]
-    ref_feat = waveform_features(ref_res)
+    ref_feat = recorded(ref_res)[1]
     builds = {}
     for q in {m["quality"] for m in methods.values()}:
         builds[q] = best(lambda q=q: prepare(scene, quality=q), max(3, args.repeat), time.process_time)
@@ -448,7 +432,7 @@ def bench_error(prefix: str, scene, beams, args, methods) -> dict:
                 cpu[m].append(time.process_time() - c)
             rays[m] += target.intersector.rays
             sig[m].append(_one_ns(res))
-            feat[m].append(waveform_features(res))
+            feat[m].append(recorded(res)[1])
     for m, kw in methods.items():
         s = np.array(sig[m])  # (seeds, n, orders, n_ns)
         d_all = s.sum(axis=2) - ref_all[None]
@@ -501,16 +485,13 @@ def bench_error(prefix: str, scene, beams, args, methods) -> dict:
 def recorded(res, noise_sd: float = NOISE_SD_DN) -> tuple[np.ndarray, np.ndarray]:
     """The noise-free recorded waveforms of ``res`` (Eq. 7 with the Gaussian S(t) of
     :data:`SYSTEM_FWHM_NS`, :data:`SYSTEM_PEAK` at R = :data:`RANGE_M`, sampled every 1 ns), DN,
-    and their first-echo features (n, 3) Apeak (DN), E (DN), FWHM (ns), the echo segment at
-    3 ``noise_sd`` as the study finds it on recorded waveforms."""
-    from waveforest.sensor.features import first_echo_features
-    from waveforest.sensor.signal import analog_waveforms
+    and their first-echo features (n, 3) Apeak (DN), E (DN), FWHM (ns) as the study finds them:
+    :func:`waveforest.model.forward.noise_free_waveforms`, the segment at 3 ``noise_sd``."""
+    from waveforest.model.forward import noise_free_waveforms
     from waveforest.sensor.system_waveform import gaussian_system_waveform
 
     system = gaussian_system_waveform(SYSTEM_FWHM_NS, SYSTEM_PEAK)
-    v, _ = analog_waveforms(res.sigma, res.t0_ns, RANGE_M, system, bin_ns=res.bin_ns)
-    w = v[:, ::int(round(1.0 / res.bin_ns))]
-    f = first_echo_features(w, None, 1.0, np.argmax(w, axis=1).astype(float), 0.0, noise_sd)
+    _, _, w, f = noise_free_waveforms(res.sigma, res.t0_ns, res.bin_ns, system, noise_sd, RANGE_M)
     return w, np.column_stack([f["Apeak"], f["E"], f["FWHM"]])
 
 

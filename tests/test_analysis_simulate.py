@@ -3,17 +3,19 @@
 from __future__ import annotations
 
 import json
+from types import SimpleNamespace
 
 import numpy as np
 import pandas as pd
 import pyarrow as pa
 import pytest
 from fixtures.tables import plate_scene, pulse_table
+from scipy.special import erf
 
 from waveforest import config
 from waveforest.constants import RANGE_PER_NS
 from waveforest.io.pulses import same_table
-from waveforest.model.forward import render_sigma, split_effects
+from waveforest.model.forward import noise_free_waveform, noise_free_waveforms, render_sigma, split_effects
 from waveforest.model.simulate import plan, simulate_pulses
 from waveforest.sensor import feature_table, gaussian_system_waveform
 from waveforest.sensor.calibration import Calibration, load_calibration
@@ -378,3 +380,24 @@ def test_cli_end_to_end_with_the_vegetation_models(tmp_path):
     assert 1 <= out.num_rows <= 3 and set(out.column("source").to_pylist()) == {"sim"}
     h = np.array([z[0] for z in out.column("echo_z").to_pylist()]) - out.column("ground_z").to_numpy()
     assert np.all((h > -0.3) & (h < out.column("height_m").to_numpy() + 0.3))  # within the plant or on the ground
+
+
+def test_noise_free_waveforms_take_the_first_echo_not_the_strongest():
+    """Two delta returns 20 ns apart (separate segments at 3 noise SDs), the later three times the
+    earlier: Apeak is the first's (S(t)'s peak x sigma / R^2), E its Gaussian area; a pulse below
+    the segment level has none; one pulse of the batch through noise_free_waveform gives the same."""
+    bin_ns, r_m, fwhm = 0.05, 1000.0, 7.2
+    system = gaussian_system_waveform(fwhm, S_PEAK)
+    sigma = np.zeros((3, 2000))
+    sigma[0, 600], sigma[0, 1000] = 0.1, 0.3  # per-bin sums
+    sigma[1, 600] = 1e-6  # far below 3 noise SDs
+    sigma[2, 800] = 0.2
+    t_first, v, w, f = noise_free_waveforms(sigma, np.zeros(3), bin_ns, system, 1.3, r_m)
+    peak = S_PEAK / r_m**2 * np.array([0.1, np.nan, 0.2])  # DN at the return's time
+    inside = erf(np.sqrt(np.log(peak / (3 * 1.3))))  # the Gaussian's share above the segment level
+    area = peak * fwhm / (2 * np.sqrt(2 * np.log(2))) * np.sqrt(2 * np.pi) * inside
+    assert f["Apeak"] == pytest.approx(peak, rel=0.01, nan_ok=True)
+    assert f["E"] == pytest.approx(area, rel=0.01, nan_ok=True)
+    assert f["FWHM"] == pytest.approx([fwhm, np.nan, fwhm], abs=0.1, nan_ok=True)
+    one = noise_free_waveform(SimpleNamespace(sigma=sigma, t0_ns=np.zeros(3), bin_ns=bin_ns), system, 1.3, r_m, 2)
+    assert one[2]["Apeak"] == pytest.approx(f["Apeak"][2]) and np.allclose(one[1], v[2])

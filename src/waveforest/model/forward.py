@@ -338,27 +338,37 @@ SEGMENT_SD = 3.0
 """The first echo's segment of :func:`noise_free_waveform`: above this many noise SDs (§(h))."""
 
 
-def noise_free_waveform(result, system, noise_sd: float, range_m: float, i: int = 0):
-    """The noise-free waveform recorded of pulse ``i`` of a TraceResult (Eq. 7 with S(t)
-    ``system`` at R = ``range_m``, on the sigma grid, DN above the noise mean) and its first
-    echo's features: the quantities whose Monte Carlo spread the ray budget bounds (§(d)).
+def noise_free_waveforms(sigma, t0_ns, bin_ns: float, system, noise_sd, range_m):
+    """The noise-free waveforms recorded of sigma(t) ``sigma`` (n, n_bins) starting at ``t0_ns``
+    (n,) in bins of ``bin_ns`` (a TraceResult's), Eq. 7 with S(t) ``system`` at R = ``range_m``
+    (float or (n,)), DN above the noise mean, and their first echoes' features: the quantities
+    whose Monte Carlo spread the ray budget bounds (§(d)).
 
-    Returns (t_ns (k,) two-way time from emission, v (k,) DN, {"Apeak": DN, "E": DN ns,
-    "FWHM": ns}); the features on samples every :data:`FEATURE_SAMPLING_NS` from the waveform's
-    start, the first echo the first local maximum above :data:`SEGMENT_SD` ``noise_sd`` (NaN
-    without one) and its segment above that level.
+    Returns (t_first_ns (n,) two-way time of the first sigma-grid sample, v (n, k) DN on the
+    sigma grid, w (n, m) DN every :data:`FEATURE_SAMPLING_NS` from v's first sample, features
+    {"Apeak": DN, "E": DN ns, "FWHM": ns} of (n,)): the first echo is the first local maximum
+    of w above :data:`SEGMENT_SD` ``noise_sd`` (float or (n,); NaN without one), its segment
+    the run above that level.
     """
-    v, t_first = analog_waveforms(result.sigma[i:i + 1], result.t0_ns[i:i + 1], range_m, system,
-                                  bin_ns=result.bin_ns)
-    w = v[:, ::int(round(FEATURE_SAMPLING_NS / result.bin_ns))]
-    above = np.flatnonzero(w[0] >= SEGMENT_SD * noise_sd)
-    peak = np.nan
-    if above.size:
-        falls = np.flatnonzero(np.diff(w[0, above[0]:]) < 0)
-        peak = (above[0] + (falls[0] if falls.size else w.shape[1] - 1 - above[0])) * FEATURE_SAMPLING_NS
-    f = first_echo_features(w, None, FEATURE_SAMPLING_NS, np.array([peak]), 0.0, noise_sd, SEGMENT_SD)
-    t_ns = t_first[0] + result.bin_ns * np.arange(v.shape[1])
-    return t_ns, v[0], {k: float(f[k][0]) for k in ("Apeak", "E", "FWHM")}
+    v, t_first = analog_waveforms(sigma, t0_ns, range_m, system, bin_ns=bin_ns)
+    w = v[:, ::int(round(FEATURE_SAMPLING_NS / bin_ns))]
+    n, m = w.shape
+    sd = np.broadcast_to(np.asarray(noise_sd, np.float64), (n,))
+    above = w >= SEGMENT_SD * sd[:, None]
+    start = np.argmax(above, axis=1)
+    falls = (np.diff(w, axis=1) < 0) & (np.arange(m - 1)[None, :] >= start[:, None])
+    peak = np.where(falls.any(axis=1), np.argmax(falls, axis=1), m - 1)
+    peak_ns = np.where(above.any(axis=1), peak * FEATURE_SAMPLING_NS, np.nan)
+    f = first_echo_features(w, None, FEATURE_SAMPLING_NS, peak_ns, 0.0, sd, SEGMENT_SD)
+    return t_first, v, w, {k: f[k] for k in ("Apeak", "E", "FWHM")}
+
+
+def noise_free_waveform(result, system, noise_sd: float, range_m: float, i: int = 0):
+    """Pulse ``i`` of a TraceResult through :func:`noise_free_waveforms`: (t_ns (k,) two-way time
+    from emission of each sigma-grid sample, v (k,) DN, {"Apeak": DN, "E": DN ns, "FWHM": ns})."""
+    t_first, v, _, f = noise_free_waveforms(result.sigma[i:i + 1], result.t0_ns[i:i + 1], result.bin_ns, system,
+                                            noise_sd, range_m)
+    return t_first[0] + result.bin_ns * np.arange(v.shape[1]), v[0], {k: float(x[0]) for k, x in f.items()}
 
 
 def trace_and_render(scene, beams, range_m: np.ndarray, mcrt: MCRTSetup, setup: SensorSetup,
