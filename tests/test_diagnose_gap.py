@@ -179,6 +179,39 @@ def test_robust_sd_is_the_sd_of_normal_replicates_and_ignores_a_wild_one():
     assert np.isnan(B.robust_sd(np.array([[1.0], [np.nan]])))[0]
 
 
+def test_gap_interval_is_the_recentred_one_clipped_at_zero():
+    r = np.random.default_rng(4).normal(0.1, 1.0, 1000)
+    raw = B.recentred_interval(0.05, r)
+    assert raw[0] < 0 and G.gap_interval(0.05, r) == (0.0, raw[1])
+    assert G.gap_interval(3.0, r) == B.recentred_interval(3.0, r)  # bounds above 0: untouched
+    assert np.isnan(G.gap_interval(0.05, np.array([np.nan, 1.0]))).all()
+
+
+def test_gap_intervals_stay_at_or_above_zero_and_the_excess_keeps_its_sign():
+    """G >= 0: the intervals of the total, per-feature and per-cell gaps (before and after) never
+    reach below 0; the excess G - F keeps negative bounds, and significance is the raw rule's."""
+    rng = np.random.default_rng(3)
+    real = clustered(rng, samples=6)
+    sim = clustered(rng, samples=6)
+    rep = G.gap_report(real, sim, n_boot=100, seed=4, wasserstein=False)
+    s = rep.summary
+    data = G.GapData.build(real, sim)
+    w = B.bootstrap_weights(data.universe, 100, 4)
+    raw_lows = []
+    for f, row in s.iterrows():
+        raw_lo, raw_hi = B.recentred_interval(row["gap"], G.total_gap(data, w, feature=None if f == "total" else f))
+        raw_lows.append(raw_lo)
+        assert row["ci_low"] == max(raw_lo, 0.0) and row["ci_high"] == raw_hi
+        assert row["excess_ci_low"] == row["ci_low"] - row["noise_floor"]
+        assert row["significant"] == bool(raw_lo - row["noise_floor"] > 0)  # clipping changes no verdict
+    assert min(raw_lows) < 0  # the clipping was exercised
+    assert (s["ci_low"] >= 0).all() and (s["excess_ci_low"] < 0).any()
+    t = BA.before_after(real, sim, sim, n_boot=100, seed=4, wasserstein=False)
+    lows = t[["before_ci_low", "after_ci_low"]].to_numpy()
+    assert (lows >= 0).all() and (lows == 0).any() and (lows < t[["gap_before", "gap_after"]].to_numpy()).any()
+    assert (t["before_ci_high"] >= t["gap_before"]).all()
+
+
 def test_nanquantile0_is_numpys_nanquantile_bit_for_bit():
     """The one-sort quantile behind every bootstrap SE: NaN, +-inf, ties, all-NaN columns and
     single values, every quantile from 0 to 1."""

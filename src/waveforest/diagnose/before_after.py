@@ -6,7 +6,8 @@ so every replicate resamples the same field samples for the real data and both
 simulations (a paired cluster bootstrap), and both gaps average the same cells (valid in
 both). The reduction ``R = G_base - G_new`` (squared pooled SDs) gets a Wald interval
 ``R -+ t * SE*`` with samples - species degrees of freedom (per cell: samples - 1); each
-gap a recentred percentile interval (docs/method.md §(j), the gap).
+gap a recentred percentile interval clipped at 0 (:func:`.gap.gap_interval`; docs/method.md
+§(j), the gap).
 
 * :func:`paired_reduction` — the total reduction (:class:`Reduction`);
 * :func:`before_after` — the table per cell, per feature and in total (``gap_before_after.csv``).
@@ -24,6 +25,7 @@ import pandas as pd
 from waveforest.diagnose.gap import (
     GapData,
     cell_statistics,
+    gap_interval,
     masked_floor,
     masked_gap,
     sample_universe,
@@ -36,7 +38,6 @@ from waveforest.stats.bootstrap import (
     DEFAULT_ALPHA,
     bootstrap_weights,
     cluster_df,
-    recentred_interval,
     wald_interval,
 )
 
@@ -116,8 +117,8 @@ def before_after(real: pd.DataFrame, sim_before: pd.DataFrame, sim_after: pd.Dat
     DataFrame
         One row per dataset x species x feature (``level = cell``), per feature (``level =
         feature``, dataset and species empty) and one ``level = total`` row, with: n_cells,
-        gap_before, before_ci_low, before_ci_high, gap_after, after_ci_low, after_ci_high,
-        noise_floor (of the base model), reduction, reduction_ci_low, reduction_ci_high,
+        gap_before, before_ci_low, before_ci_high, gap_after, after_ci_low, after_ci_high
+        (bounds >= 0), noise_floor (of the base model), reduction, reduction_ci_low, reduction_ci_high,
         relative_reduction (share of the base model's excess gap removed); cell rows also
         d_before, d_after, log_sd_ratio_before, log_sd_ratio_after, w1_before, w1_after,
         n_real, n_sim_before, n_sim_after, mean_real, mean_before, mean_after.
@@ -192,8 +193,8 @@ class _PairedTerms:
         ga, gb = masked_gap(self.data, pa_, mask), masked_gap(self.data, pb_, mask)
         reps_a, reps_b = masked_gap(self.data, ra, mask), masked_gap(self.data, rb, mask)
         fl = masked_floor(self.data, ra, mask)
-        lo_a, hi_a = recentred_interval(ga, reps_a, alpha)
-        lo_b, hi_b = recentred_interval(gb, reps_b, alpha)
+        lo_a, hi_a = gap_interval(ga, reps_a, alpha)
+        lo_b, hi_b = gap_interval(gb, reps_b, alpha)
         r_lo, r_hi = wald_interval(ga - gb, reps_a - reps_b, df, alpha)
         excess = ga - fl
         return {"n_cells": int(mask.sum()), "gap_before": ga, "before_ci_low": lo_a, "before_ci_high": hi_a,

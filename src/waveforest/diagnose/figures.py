@@ -15,35 +15,49 @@ NAMED_COLOUR, OTHER_COLOUR = "#1f4e79", "#bfbfbf"
 
 
 def gap_figure(gap: pd.DataFrame, candidates: pd.DataFrame, path: str | Path, *, title: str = "") -> Path:
-    """Write ``gap.png``.
+    """Write ``gap.png`` (:func:`draw_gap_figure`; ``path`` written atomically) and return its path."""
+    plt = pyplot()
+    fig = draw_gap_figure(gap, candidates, title=title)
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    return path
+
+
+def draw_gap_figure(gap: pd.DataFrame, candidates: pd.DataFrame, *, title: str = ""):
+    """The figure of ``gap.png`` (a matplotlib Figure, open: the caller closes it).
 
     Left: the moment gap per feature and in total, base model ("before") and extended model
-    ("after"), with their bootstrap intervals and the base model's noise floor (a tick per
-    bar). Right: every candidate's test-half gap reduction with its interval, per round
-    (named ones dark), the evidence on which the effects were named.
+    ("after"), with their bootstrap intervals (never below 0) and the base model's noise floor
+    (a tick per bar). Right, only when ``candidates`` has rows: every candidate's test-half gap
+    reduction with its interval, per round (named ones dark), the evidence on which the effects
+    were named; without candidates the figure has the left panel alone.
 
     Parameters
     ----------
     gap : DataFrame
-        ``gap_before_after.csv`` (:func:`.gap.before_after`): rows with level feature/total.
+        ``gap_before_after.csv`` (:func:`.before_after.before_after`): rows with level feature/total.
     candidates : DataFrame
         ``candidates.csv`` (may be empty).
-    path : path
-        PNG written (atomically).
     title : str
         Figure title (e.g. the verdict).
     """
     plt = pyplot()
     rows = gap[gap["level"].isin(["feature", "total"])].reset_index(drop=True)
     n_c = len(candidates)
-    fig, axes = plt.subplots(1, 2, figsize=(12, max(4.2, 1.4 + 0.28 * n_c)),
-                             gridspec_kw={"width_ratios": [1.3, 1.0]}, layout="constrained")
+    if n_c:
+        fig, axes = plt.subplots(1, 2, figsize=(12, max(4.2, 1.4 + 0.28 * n_c)),
+                                 gridspec_kw={"width_ratios": [1.3, 1.0]}, layout="constrained")
+    else:
+        fig, ax0 = plt.subplots(1, 1, figsize=(6.8, 4.2), layout="constrained")
+        axes = [ax0]
     ax = axes[0]
     x = np.arange(len(rows))
     for off, key, colour, label in ((-0.2, "before", BEFORE_COLOUR, "base model"),
                                     (0.2, "after", AFTER_COLOUR, "with named effects")):
         g = rows[f"gap_{key}"].to_numpy(float)
-        lo = rows[f"{key}_ci_low"].to_numpy(float)
+        lo = np.maximum(rows[f"{key}_ci_low"].to_numpy(float), 0.0)  # a gap is >= 0
         hi = rows[f"{key}_ci_high"].to_numpy(float)
         err = np.vstack([np.clip(g - lo, 0, None), np.clip(hi - g, 0, None)])
         ax.bar(x + off, g, 0.38, color=colour, label=label, yerr=np.nan_to_num(err), capsize=3)
@@ -54,8 +68,8 @@ def gap_figure(gap: pd.DataFrame, candidates: pd.DataFrame, path: str | Path, *,
     ax.set_title("gap between real and simulated features")
     # below the axes: a legend never covers a bar
     ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.28), ncol=3, frameon=False)
-    ax = axes[1]
     if n_c:
+        ax = axes[1]
         c = candidates.sort_values(["round", "rank"], ascending=[True, False]).reset_index(drop=True)
         y = np.arange(n_c)
         r = c["gap_reduction"].to_numpy(float)
@@ -67,16 +81,9 @@ def gap_figure(gap: pd.DataFrame, candidates: pd.DataFrame, path: str | Path, *,
         ax.set_yticks(y, [f"R{rr} {n}" for rr, n in zip(c["round"], c["name"])], fontsize=8)
         ax.set_xlabel("test-half gap reduction (95 % interval)")
         ax.set_title("candidates (dark: named)")
-    else:
-        ax.text(0.5, 0.5, "no candidate tested", ha="center", va="center", transform=ax.transAxes)
-        ax.set_axis_off()
     if title:
         fig.suptitle(title)
-    path = Path(path)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=110, bbox_inches="tight")
-    plt.close(fig)
-    return path
+    return fig
 
 
 def power_figure(curve: pd.DataFrame, limits: pd.DataFrame, path: str | Path, *, title: str = "") -> Path:

@@ -58,10 +58,12 @@ campaigns, 1.0 F at the paper's scale on two datasets; docs/validation.md, Diagn
 floor), so F
 carries a factor ``floor_scale`` (:meth:`GapData.build`) that the diagnosis calibrates on
 pseudo-real data without effect (:func:`.power.floor_calibration`): the mean G over its mean F. The gap is
-*significant* when the lower bound of the excess gap's interval is above 0. Intervals of G (and of differences of G) are bootstrap percentile intervals
+*significant* when the lower bound of the excess gap's interval is above 0. Intervals of G are bootstrap percentile intervals
 recentred on the estimate (G + quantiles of G* - median G*): the bootstrap adds its own
 noise to d*, shifting G* upwards by about F; recentring removes that shift and keeps the
-skewness of a sum of squares. Intervals of d and l are ``estimate -+ t * SE*`` (bootstrap
+skewness of a sum of squares. G >= 0, so its bounds are clipped at 0 (:func:`gap_interval`);
+the excess gap's interval is G's minus F (its lower bound >= -F, negative when G's reaches
+below F). Intervals of d and l are ``estimate -+ t * SE*`` (bootstrap
 standard error, Student t with samples - 1 degrees of freedom), as are those of a
 difference of two gaps (paired reductions; samples - species degrees of freedom); those of w
 are percentile intervals (descriptive only).
@@ -422,6 +424,14 @@ def masked_gap(data: GapData, stats: dict[str, np.ndarray], mask: np.ndarray) ->
     return float(out) if np.ndim(out) == 0 else out
 
 
+def gap_interval(estimate: float, replicates: np.ndarray, alpha: float = DEFAULT_ALPHA) -> tuple[float, float]:
+    """Interval of a gap (G, or a per-feature or per-cell part: all >= 0): the recentred
+    bootstrap interval (:func:`waveforest.stats.bootstrap.recentred_interval`) with its bounds
+    clipped at 0; NaN stays NaN."""
+    lo, hi = recentred_interval(estimate, replicates, alpha)
+    return float(np.maximum(lo, 0.0)), float(np.maximum(hi, 0.0))
+
+
 def masked_floor(data: GapData, boot: dict[str, np.ndarray], mask: np.ndarray) -> float:
     """F over the cells of ``mask``: ``data.floor_scale`` x mean of ``Var*(d_bar) + Var*(l_bar)``
     from the bootstrap statistics ``boot`` ((B, C, F) arrays of :func:`cell_statistics`)."""
@@ -494,8 +504,9 @@ class GapReport:
         (+ lsr_ci_low/high), w1 (+ w1_ci_low/high), contribution (d^2 + l^2), noise
         (Var d + Var l), valid.
     summary : DataFrame
-        One row per feature and a last row ``total``: gap, ci_low, ci_high, noise_floor,
-        excess, excess_ci_low, excess_ci_high, significant, w1 (mean over cells), n_cells.
+        One row per feature and a last row ``total``: gap, ci_low, ci_high (>= 0), noise_floor,
+        excess, excess_ci_low, excess_ci_high (ci_low/high - noise_floor), significant
+        (excess_ci_low > 0), w1 (mean over cells), n_cells.
     replicates : (B,) float64
         Bootstrap replicates of the total gap.
     """
@@ -611,7 +622,7 @@ def _summary_table(data: GapData, point: dict, boot: dict, w1, alpha: float) -> 
         g = masked_gap(data, point, mask)
         reps = masked_gap(data, boot, mask)
         fl = masked_floor(data, boot, mask)
-        lo, hi = recentred_interval(g, reps, alpha)
+        lo, hi = gap_interval(g, reps, alpha)
         summary_rows[f] = {
             "gap": g, "ci_low": lo, "ci_high": hi, "noise_floor": fl,
             "excess": g - fl, "excess_ci_low": lo - fl, "excess_ci_high": hi - fl,
