@@ -104,6 +104,30 @@ def test_cli_reads_every_select_table(tmp_path):
         run(tmp_path / "B_real.parquet", tmp_path / "x.json", config.load(), select_paths=[paths["A"]])
 
 
+def test_counts_are_those_of_the_pulses_the_accuracy_was_computed_on(tmp_path, capsys):
+    """Pulses without E or Apeak (no first-echo segment) leave the LDA: n_pulses, the per-group
+    counts and the confusion matrix agree, and the JSON says how many left and why."""
+    a, _ = _two_datasets()
+    a["Npeaks"] = 1
+    lost = a.index[(a["species"] == "raspberry") & a["single_echo_set"]][:3]
+    a.loc[lost, ["E", "Apeak", "Npeaks"]] = [np.nan, np.nan, 0]
+    a.loc[lost[2], "Npeaks"] = 1  # one without a first echo's segment is not the rule for all
+    r = classify_dataset(a, classify_settings(config.load()))
+    confusion = np.sum(r["main"]["one_pulse"]["resubstitution"]["confusion"])
+    assert r["n_pulses"] == r["main"]["n_pulses"] == confusion == 35 + 40 + 40 - 3
+    assert r["pulses_per_group"]["low_green"] == r["species"]["raspberry"] == 37
+    assert r["pulses_per_sample"] == pytest.approx(confusion / r["n_samples"])
+    assert r["main"]["n_dropped"] == 3 and r["main"]["dropped_reason"] == "no value of E or Apeak"
+    fwhm_only = [e for e in r["extra"] if e["features"] == ["E", "Apeak", "FWHM"]][0]
+    assert fwhm_only["n_dropped"] == 3
+    a.loc[lost[2], "Npeaks"] = 0
+    a.to_parquet(tmp_path / "A_real.parquet")
+    main(["classify", str(tmp_path / "A_real.parquet"), "--out", str(tmp_path / "A.json")])
+    assert ("classify: A: 3 pulse(s) left out, no value of E or Apeak: no first-echo segment above the noise "
+            "threshold, Npeaks 0") in capsys.readouterr().out
+    assert json.loads((tmp_path / "A.json").read_text())["n_pulses"] == 112
+
+
 def test_max_h_is_the_sample_maximum_and_not_normalised():
     df = pd.DataFrame(dict(sample_id=["s1", "s1", "s1", "s2", "s2"], H=[0.2, np.nan, 0.9, 0.4, 0.1]))
     assert add_sample_features(df)["maxH"].tolist() == [0.9, 0.9, 0.9, 0.4, 0.4]

@@ -69,7 +69,7 @@ def test_report_has_every_table_and_figure(tmp_path):
                     "candidates.csv", "extra/something.csv", "Wall time per stage", "Software versions",
                     "Calibration per dataset"):
         assert caption in page and caption in md
-    assert "fields.csv" not in page  # the campaign folder is input, not a result
+    assert "<caption>campaign/fields.csv" not in page  # the campaign folder is input, not a result
     assert "understory: 1.2" in page and "seed: " in page
     assert re.search(r"<td>numpy</td><td>\d", page)
     t4 = pd.read_csv(res / "report" / "table4.csv")

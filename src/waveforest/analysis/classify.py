@@ -16,6 +16,10 @@ Per dataset:
 4. overall accuracy, Cohen's kappa and the confusion matrix, by resubstitution (the paper's
    scheme) and by cross-validation whose folds never split a field sample.
 
+A pulse without a value of a feature set (no first-echo segment) takes no part in that set's
+LDA; each set records how many left (``n_dropped``) and why. The result's ``n_pulses``,
+``n_samples`` and per-group counts are those of the main set's LDA.
+
 Extras: other feature sets (default E + Apeak + FWHM, the paper: < 1 pp gain; E + Apeak +
 maxH, the paper's "+ max H per sample": the largest first-echo height H among the sample's
 classification-set pulses, given to each of its pulses at the 1-pulse level), and the
@@ -191,7 +195,22 @@ def _too_few(what: str, counts: dict, dropped: int, features) -> str:
     return text
 
 
+def dropped_reason(df: pd.DataFrame, features) -> str | None:
+    """Why pulses of ``df`` leave an LDA on ``features`` (they lack a value of one); None if none do."""
+    lacking = df[list(features)].isna()
+    bad = lacking.any(axis=1).to_numpy()
+    if not bad.any():
+        return None
+    names = [f for f in features if lacking[f].any()]
+    text = f"no value of {' or '.join(names)}"
+    if "Npeaks" in df.columns and (df.loc[bad, "Npeaks"].to_numpy() == 0).all():
+        text += ": no first-echo segment above the noise threshold, Npeaks 0"
+    return text
+
+
 def _levels(df: pd.DataFrame, features, labels, folds: int, seed: int) -> dict:
+    """LDA at both levels on the pulses of ``df`` with every one of ``features``: ``n_pulses`` of
+    them; ``n_dropped`` without, ``dropped_reason`` why (:func:`dropped_reason`)."""
     d = df.dropna(subset=list(features))
     x = d[list(features)].to_numpy(float)
     y = d["functional_group"].astype(str).to_numpy(object)
@@ -200,7 +219,8 @@ def _levels(df: pd.DataFrame, features, labels, folds: int, seed: int) -> dict:
     present = [g for g in labels if counts[g]]
     out = {"features": list(features), "groups_present": present,
            "groups_missing": [g for g in labels if not counts[g]],
-           "n_pulses": int(len(d)), "n_samples": int(d["sample_id"].nunique()), "reason": None}
+           "n_pulses": int(len(d)), "n_samples": int(d["sample_id"].nunique()),
+           "n_dropped": int(len(df) - len(d)), "dropped_reason": dropped_reason(df, features), "reason": None}
     if len(present) < 2:
         out["one_pulse"] = out["mean_of_sample"] = None
         out["reason"] = _too_few("functional groups", counts, len(df) - len(d), features)
@@ -304,6 +324,7 @@ def classify_dataset(features: pd.DataFrame, settings: ClassifySettings, selecti
     seed = settings.seed
     folds = settings.cv_folds
     main = _levels(lda_rows, feats, labels, folds, seed)
+    used = lda_rows.dropna(subset=feats)  # the main LDA's pulses: every count below is theirs
     datasets = [k for k in table.columns if k not in ("species", "functional_group", "max_pulses", "included")]
     result = {
         "dataset": str(names[0]) if len(names) == 1 else [str(n) for n in names],
@@ -312,13 +333,13 @@ def classify_dataset(features: pd.DataFrame, settings: ClassifySettings, selecti
                   "with folds that never split a field sample",
         "groups": labels,
         "normaliser": record,
-        "n_pulses": int(len(lda_rows)),
-        "n_samples": int(lda_rows["sample_id"].nunique()),
-        "pulses_per_sample": float(len(lda_rows) / max(lda_rows["sample_id"].nunique(), 1)),
-        "pulses_per_group": {g: int((lda_rows["functional_group"] == g).sum()) for g in labels},
-        "samples_per_group": {g: int(lda_rows.loc[lda_rows["functional_group"] == g, "sample_id"].nunique())
+        "n_pulses": int(len(used)),
+        "n_samples": int(used["sample_id"].nunique()),
+        "pulses_per_sample": float(len(used) / max(used["sample_id"].nunique(), 1)),
+        "pulses_per_group": {g: int((used["functional_group"] == g).sum()) for g in labels},
+        "samples_per_group": {g: int(used.loc[used["functional_group"] == g, "sample_id"].nunique())
                               for g in labels},
-        "species": {str(k): int(v) for k, v in lda_rows["species"].value_counts().sort_index().items()},
+        "species": {str(k): int(v) for k, v in used["species"].value_counts().sort_index().items()},
         "species_rule": {"min_pulses": min_pulses, "counted_over": scope, "datasets": datasets},
         "species_table": [
             {"species": r["species"], "functional_group": r["functional_group"],

@@ -32,7 +32,14 @@ from waveforest.io import paper
 from waveforest.io.results import read_agc_fit, read_calibration_json, read_classify_result, read_select_columns
 from waveforest.report.markdown import format_value, round_floats, shift_headings, to_html, to_markdown
 from waveforest.report.source import source_parts, virtual_caveat
-from waveforest.report.summary import ReportSettings, missing, read_csv, summary_parts
+from waveforest.report.summary import (
+    ReportSettings,
+    classified_counts,
+    dropped_line,
+    missing,
+    read_csv,
+    summary_parts,
+)
 from waveforest.stats.proportion import wilson_interval
 
 MAX_TABLE_ROWS = 400
@@ -217,6 +224,17 @@ def _sensitivity(sec: Section, used: set, d: Path, table: pd.DataFrame, settings
     _figure_if_present(sec, used, d / "fig8.png", "Fig. 8 analogue")
 
 
+def by_value(t: pd.DataFrame) -> pd.DataFrame:
+    """Rows of each swept ``parameter`` by ``value`` ascending (numerically; others last), the
+    parameters in their first order, ties in theirs; ``t`` as is without those columns."""
+    if not {"parameter", "value"} <= set(t.columns):
+        return t
+    rank = {p: i for i, p in enumerate(pd.unique(t["parameter"]))}
+    value = pd.to_numeric(t["value"], errors="coerce").to_numpy(float)
+    order = np.lexsort((np.nan_to_num(value, nan=np.inf), t["parameter"].map(rank).to_numpy()))
+    return t.iloc[order].reset_index(drop=True)
+
+
 def _sensor_study(sec: Section, used: set, d: Path, t: pd.DataFrame, settings: ReportSettings) -> None:
     sec.text(f"Simulated {', '.join(settings.sensor_study_species)} at {settings.sensor_study_range_m:g} m; "
              "LDA on Apeak, FWHM, E. `resubstitution` = "
@@ -227,10 +245,13 @@ def _sensor_study(sec: Section, used: set, d: Path, t: pd.DataFrame, settings: R
         wide = t.pivot_table(index=["parameter", "value"], columns=["level", "scheme"], values="accuracy",
                              sort=False)
         wide.columns = [f"{a} {b}" for a, b in wide.columns]
-        sec.table("Overall accuracy (fraction correct)", wide.reset_index())
+        sec.table("Overall accuracy (fraction correct)", by_value(wide.reset_index()))
     else:
-        sec.table("Sensor study", t)
-    _csv_if_present(sec, used, d / "sensor_study_features.csv", "Mean first-echo features per setting and species")
+        sec.table("Sensor study", by_value(t))
+    features = d / "sensor_study_features.csv"
+    if features.exists():
+        used.add(features)
+        sec.table("Mean first-echo features per setting and species", by_value(read_csv(features)))
     _figure_if_present(sec, used, d / "fig9.png", "Fig. 9 analogue")
 
 
@@ -267,6 +288,9 @@ def _classify(results: Path, used: set, out_dir: Path, settings: ReportSettings)
              f"normalised by the {settings.classify_normaliser} mean (classify.groups, features, normaliser). Percent correct and kappa by resubstitution (as the paper) and cross-validated with folds that "
              "never split a field sample (`cv_*`); `paper_*`: Hovi & Korpela (2014) Table 4.")
     sec.table("Table 4 analogue (also results/report/table4.csv)", t4)
+    dropped = dropped_line(res)
+    if dropped:
+        sec.text(dropped)
     extra_rows, three_rows = [], []
     for r in res:
         for e in r.get("extra") or []:
@@ -515,13 +539,15 @@ def table4(results: list[dict], paper: pd.DataFrame | None = None) -> pd.DataFra
 
     Columns: dataset, one_pulse_correct_pct, one_pulse_kappa, mean_of_sample_correct_pct,
     mean_of_sample_kappa, pulses_per_sample (resubstitution, as the paper), the same four
-    figures cross-validated (``cv_*``), n_pulses, n_samples, and ``paper_*`` columns.
+    figures cross-validated (``cv_*``), n_pulses, n_samples, and ``paper_*`` columns; the counts
+    are those the accuracy was computed on (:func:`waveforest.report.summary.classified_counts`).
     """
     rows = []
     for r in results:
         m = r["main"]
-        row = {"dataset": r["dataset"], "n_pulses": r["n_pulses"], "n_samples": r["n_samples"],
-               "pulses_per_sample": round(r["pulses_per_sample"], 2)}
+        n, samples, pps, _, _ = classified_counts(r)
+        row = {"dataset": r["dataset"], "n_pulses": int(n), "n_samples": int(samples),
+               "pulses_per_sample": round(pps, 2)}
         for level, key in (("one_pulse", "one_pulse"), ("mean_of_sample", "mean_of_sample")):
             block = m.get(level)
             for scheme, prefix in (("resubstitution", ""), ("cross_validated", "cv_")):

@@ -5,6 +5,7 @@
 - the config file and every key that differs from the schema's defaults;
 - the datasets, and the field-sample and pulse counts beside the paper's, with a plain warning
   where ours are far below (:data:`FAR_BELOW`);
+- the code's commit, the input files' SHA-256 and the machine (:mod:`.provenance`);
 - :func:`virtual_caveat`: the summary's first sentence when the "real" data are virtual.
 """
 
@@ -19,6 +20,7 @@ from waveforest.errors import WaveforestError
 from waveforest.io import paper
 from waveforest.io.results import read_campaign_truth, read_select_columns
 from waveforest.report.markdown import format_value
+from waveforest.report.provenance import provenance_table
 from waveforest.report.summary import ReportSettings, read_csv
 
 FAR_BELOW = 0.1
@@ -157,4 +159,7 @@ def source_parts(results: str | Path, settings: ReportSettings, config_path: str
     if per_sp is not None:
         items.append(("table", "Real pulses compared per dataset and species (compare/table3.csv) beside the "
                                "paper's N", per_sp))
+    items.append(("table", "Code, input data and machine: the code and machine that wrote this report (earlier "
+                           "steps record the waveforest version only); size and SHA-256 of every campaign file "
+                           "the study reads", provenance_table(folder, settings.datasets)))
     return items

@@ -250,6 +250,39 @@ def _groups_reason(r: dict, main: dict) -> str:
     return "fewer than 2 functional groups with pulses"
 
 
+def classified_counts(r: dict) -> tuple[float, float, float, int, str | None]:
+    """(pulses, samples, pulses per sample) the main accuracy of a classify JSON was computed on,
+    and (pulses left out of it, why). Older JSONs counted the left-out pulses in their top-level
+    ``n_pulses``: ``main``'s own counts are taken where present."""
+    main = r.get("main") or {}
+    top = _num(r.get("n_pulses"))
+    n = _num(main["n_pulses"]) if "n_pulses" in main else top
+    samples = _num(main["n_samples"]) if "n_samples" in main else _num(r.get("n_samples"))
+    if "n_dropped" in main:
+        d = _num(main["n_dropped"])
+        dropped, why = (int(d) if np.isfinite(d) else 0), main.get("dropped_reason")
+    else:
+        dropped = int(top - n) if np.isfinite(top) and np.isfinite(n) and top > n else 0
+        why = f"no value of {' or '.join(main.get('features') or ['its features'])}" if dropped else None
+    if "n_samples" in main:
+        pps = n / samples if samples else np.nan
+    else:
+        pps = _num(r.get("pulses_per_sample"))
+    return n, samples, pps, dropped, why
+
+
+def dropped_line(results: list[dict]) -> str | None:
+    """One line: per dataset, the pulses left out of the main LDA and why; None when none were."""
+    parts = []
+    for r in results:
+        n, _, _, dropped, why = classified_counts(r)
+        if dropped:
+            parts.append(f"{r.get('dataset')}, {dropped} of {int(n) + dropped} pulses ({why or 'reason not recorded'})")
+    if not parts:
+        return None
+    return "Left out of the classification, so not in its pulse counts: " + "; ".join(parts) + "."
+
+
 def _level_cell(r: dict, level: str, scheme: str) -> str:
     """One Table 4 cell, "percent (κ kappa)", or ``— (reason)`` from the JSON or the group counts."""
     main = r.get("main") or {}
@@ -294,7 +327,8 @@ def table4_summary(results: list[dict], run_datasets=(), paper_t4: pd.DataFrame 
         absent = missing("dataset not in this run" if run_datasets and ds not in run_datasets and r is None
                          else "not classified")
         row = {"dataset": ds}
-        row["pulses (samples)"] = absent if r is None else f"{int(_num(r.get('n_pulses')))} ({int(_num(r.get('n_samples')))})"
+        n, samples, pps, _, _ = classified_counts(r) if r is not None else (np.nan,) * 3 + (0, None)
+        row["pulses (samples)"] = absent if r is None else f"{int(n)} ({int(samples)})"
         for key, label in LEVELS:
             for scheme, tag in (("resubstitution", "resub"), ("cross_validated", "CV")):
                 row[f"{label} {tag}"] = absent if r is None else _level_cell(r, key, scheme)
@@ -302,8 +336,7 @@ def table4_summary(results: list[dict], run_datasets=(), paper_t4: pd.DataFrame 
                 row[f"{label} paper"] = f"{p.loc[ds, f'{key}_correct_pct']:.1f} (κ {p.loc[ds, f'{key}_kappa']:.2f})"
             else:
                 row[f"{label} paper"] = missing("not in the paper")
-        pps = _num(r.get("pulses_per_sample")) if r is not None else np.nan
-        row["pulses/sample"] = (f"{pps:.1f}" if np.isfinite(pps) and r.get("n_samples")
+        row["pulses/sample"] = (f"{pps:.1f}" if np.isfinite(pps) and samples
                                 else absent if r is None else missing("0 samples"))
         row["pulses/sample paper"] = f"{p.loc[ds, 'pulses_per_sample']:.1f}" if ds in p.index else missing("not in the paper")
         rows.append(row)
@@ -554,6 +587,9 @@ def summary_parts(results: str | Path, settings: ReportSettings) -> list[tuple]:
                                           n_groups=len(settings.classify_groups))))
     t4_brief, left_out = drop_absent(fill_blanks(table4_summary(cls, run_datasets)), "Table 4 in brief")
     items.append(("table", "Table 4 in brief: ours beside the paper's", t4_brief))
+    dropped = dropped_line(cls)
+    if dropped:
+        items.append(("text", dropped))
     if left_out:
         items.append(("text", left_out))
     ss = read_csv(results / "sensor_study" / "sensor_study.csv")

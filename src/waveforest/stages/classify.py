@@ -79,3 +79,6 @@ def classify(features, select_paths, out, cfg):
                f"{r['species_rule']['min_pulses']}-pulse rule over {len(r['species_rule']['datasets'])} "
                f"dataset(s); {r['n_pulses']} pulses, {r['n_samples']} samples, "
                f"1-pulse accuracy {100 * acc:.1f} % -> {out}")
+    if r["main"].get("dropped_reason"):
+        click.echo(f"classify: {r['dataset']}: {r['main']['n_dropped']} pulse(s) left out, "
+                   f"{r['main']['dropped_reason']}")

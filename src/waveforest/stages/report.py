@@ -74,7 +74,8 @@ def report(inputs, results, out, markdown, study_config, cfg):
     """One HTML page and a Markdown twin with every table and figure of a run.
 
     The report opens with what the run ran on (data source, config and its differences from the
-    defaults, datasets, pulse counts beside the paper's), then a summary: Table 3 and Table 4
+    defaults, datasets, pulse counts beside the paper's; the code's git commit, the size and
+    SHA-256 of every input file, the machine), then a summary: Table 3 and Table 4
     beside the paper's values, the Fig. 9 trend and the diagnosis verdict with its detection
     limits; a missing value says why in place. Details follow, calibration after the results.
 
