@@ -55,3 +55,10 @@ def test_trajectory_and_nominal_range_exclude_each_other(tmp_path):
         run(las, tmp_path / "x.parquet", trajectory=tmp_path / "t.csv", nominal_range_m=10.0)
     with pytest.raises(WaveforestError, match="overwrite the input"):
         run(las, las)
+    ext = write_waveform_las(tmp_path / "y.las", synthetic_pulses(3), storage="external")
+    wdp = (tmp_path / "y.wdp").read_bytes()
+    (tmp_path / "link.parquet").symlink_to(tmp_path / "y.wdp")
+    for out in ("y.wdp", "link.parquet"):  # its waveform file, by name or through a link
+        with pytest.raises(WaveforestError, match="overwrite the input y.wdp"):
+            run(ext, tmp_path / out)
+    assert (tmp_path / "y.wdp").read_bytes() == wdp

@@ -181,6 +181,26 @@ def test_output_folder_rules(tmp_path):
     assert snapshot(tmp_path / "late") == {"x.txt": b"user"} and temporaries(tmp_path) == []
 
 
+def test_a_folder_holding_an_input_or_not_writable_is_refused_even_with_force(tmp_path, monkeypatch):
+    out = tmp_path / "o"
+    (out / "data").mkdir(parents=True)
+    (out / "data" / "in.las").write_text("input")
+    with pytest.raises(WaveforestError, match=r"holds the input data/in\.las, which replacing the folder would delete"):
+        OutputFolder(out, "quicklook", force=True, inputs=[out / "data" / "in.las"])
+    OutputFolder(out, "quicklook", force=True, inputs=[tmp_path / "elsewhere.las"])  # not inside: accepted
+    real = os.access
+    monkeypatch.setattr(os, "access", lambda p, mode: False if Path(p) == out else real(p, mode))
+    with pytest.raises(WaveforestError, match="cannot write in the output folder"):
+        OutputFolder(out, "quicklook", force=True)
+    assert (out / "data" / "in.las").read_text() == "input"
+
+
+def test_quicklook_force_never_deletes_its_input(looked, capsys):
+    tmp, _, _ = looked
+    assert wf("quicklook", tmp / RIEGL.name, "--out", tmp, "--no-progress", "--force") == 1
+    assert "holds the input" in capsys.readouterr().err and (tmp / RIEGL.name).exists()
+
+
 def test_output_files_publishes_all_or_none(tmp_path):
     a, b = tmp_path / "a.txt", tmp_path / "b.txt"
     a.write_text("old")

@@ -103,6 +103,14 @@ def test_a_sensor_inside_the_scene(tmp_path, capsys):
     _fails(tmp_path, capsys, survey=survey, expect="platform/legs/1: the sensor flies inside the scene")
 
 
+def test_force_never_deletes_the_scene_it_flies(tmp_path, capsys):
+    """--out the folder holding SCENE.yaml, SURVEY.yaml and the mesh: refused even with --force."""
+    sc, sv = _files(tmp_path)
+    code, lines = _run(["survey", sc, sv, "--out", tmp_path, "--no-progress", "--force"], capsys)
+    assert code == 1 and "holds the input" in lines[-1], lines
+    assert sc.exists() and sv.exists() and (tmp_path / "plane.obj").exists()
+
+
 def test_the_outputs_read_back(tmp_path, capsys):
     """LAS 1.4 PF9 + .wdp: laspy, `info` and the pulse reader agree with the summary."""
     sc, sv = _files(tmp_path)

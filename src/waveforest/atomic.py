@@ -26,7 +26,7 @@ import signal
 import stat
 import tempfile
 import threading
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextvars import ContextVar
 from pathlib import Path
 
@@ -233,13 +233,17 @@ class OutputFolder:
     write into; on a clean exit the manifest is added, ``path`` is checked again and ``tmp``
     replaces it (a symlink to a folder: its target is replaced). On any exception (Ctrl-C, and
     SIGTERM as ``waveforest.cli.main`` raises it) ``tmp`` and the folders made for it are
-    removed and ``path`` is left as it was.
+    removed and ``path`` is left as it was. ``inputs``: files the command reads; a folder that
+    holds one is refused even with ``force`` (replacing it would delete the input), and so is an
+    existing folder this process may not write in.
     """
 
-    def __init__(self, path: str | os.PathLike, command: str, *, force: bool = False):
+    def __init__(self, path: str | os.PathLike, command: str, *, force: bool = False,
+                 inputs: Sequence[str | os.PathLike] = ()):
         self.path = Path(path)
         self.command = command
         self.force = force
+        self.inputs = [Path(os.path.realpath(p)) for p in inputs]
         self.tmp: Path | None = None
         self._target = Path(os.path.realpath(self.path))
         self._made: list[Path] = []
@@ -258,6 +262,12 @@ class OutputFolder:
         if not stat.S_ISDIR(mode):
             raise WaveforestError(f"{self.path}: exists and is not a folder; refusing to replace it "
                                   "(give a folder path)")
+        inside = [p for p in self.inputs if p.is_relative_to(self._target)]
+        if inside:
+            raise WaveforestError(f"{self.path}: holds the input {inside[0].relative_to(self._target)}, which "
+                                  f"replacing the folder would delete; give another output folder")
+        if not os.access(self._target, os.W_OK | os.X_OK):
+            raise WaveforestError(f"{self.path}: cannot write in the output folder (permission denied)")
         if self.force:
             return
         writer, ours = _manifest(self._target)

@@ -21,7 +21,7 @@ import pyarrow as pa
 from waveforest import settings
 from waveforest.atomic import OutputFolder, write_json
 from waveforest.cliutil import EXISTING_FILE, OUT_DIR, force_option, stage_options, warnings_to_stderr
-from waveforest.io.las import summarise
+from waveforest.io.las import find_wdp, summarise
 from waveforest.io.las.pulses import las_to_pulses
 from waveforest.model.features import cfd_features
 from waveforest.model.self_tuning import summary_line, tune_pulse_table
@@ -52,9 +52,11 @@ def run(las_path, out_dir, cfg: dict, *, dataset: str | None = None, trajectory=
 
     Returns a dict: the paths written, the tune-cfd result and the feature counts.
     """
-    folder = OutputFolder(out_dir, "quicklook", force=force)
+    las_path = Path(las_path)
+    inputs = [p for p in (las_path, find_wdp(las_path), trajectory) if p is not None]
+    folder = OutputFolder(out_dir, "quicklook", force=force, inputs=inputs)
     with folder:
-        return _write(Path(las_path), folder, cfg, dataset=dataset, trajectory=trajectory, progress=progress)
+        return _write(las_path, folder, cfg, dataset=dataset, trajectory=trajectory, progress=progress)
 
 
 def _write(las_path: Path, folder: OutputFolder, cfg: dict, *, dataset, trajectory, progress: bool) -> dict:

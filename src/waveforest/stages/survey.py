@@ -15,6 +15,7 @@ import click
 from waveforest.cliutil import EXISTING_FILE, OUT_DIR, force_option, stage_options, warnings_to_stderr
 from waveforest.settings import mcrt_setup, reference_system, sensor_settings
 from waveforest.survey import load_scene, load_survey, run_survey, sensor_setup, survey_mcrt
+from waveforest.survey.spec import input_files
 
 
 def _part(ctx, param, value: str | None) -> tuple[int, int] | None:
@@ -69,8 +70,8 @@ def _run(scene_file, survey_file, out, part, progress, force, cfg):
     scene = load_scene(scene_file, progress=progress)
     mcrt = survey_mcrt(mcrt_setup(cfg), sv)
     setup = sensor_setup(sv, sensor)
-    result = run_survey(scene, sv, mcrt, setup, out, force=force, progress=progress,
-                        part=part)
+    result = run_survey(scene, sv, mcrt, setup, out, force=force, progress=progress, part=part,
+                        inputs=[scene_file, survey_file, *input_files(scene_file, survey_file)])
     if result is None:
         click.echo(f"part {part[0]}/{part[1]}: tiles traced (run without --part to merge into {out})")
     else:

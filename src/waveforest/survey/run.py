@@ -128,12 +128,12 @@ def in_time_order(tiles: list[Path], window: int):
 
 
 def merge(pl: Plan, cache: Path, scene: SurveyScene, survey: Survey, out_dir: Path, *, force: bool = False,
-          mcrt: MCRTSetup) -> dict:
+          mcrt: MCRTSetup, inputs=()) -> dict:
     """Write DIR from the cached tiles (all must be there); return the summary: wall time the
     sum of the runs that traced tiles (parts, resumed runs) and of this merge, peak memory the
     largest of theirs."""
     t0 = time.perf_counter()
-    folder = OutputFolder(out_dir, COMMAND, force=force)
+    folder = OutputFolder(out_dir, COMMAND, force=force, inputs=inputs)
     missing = [k for k in range(len(pl.tiles)) if not (cache / f"tile_{k:06d}.json").exists()]
     if missing:
         raise SurveyError(f"{cache}: tiles {missing[0]} and {len(missing) - 1} more not traced yet "
@@ -183,9 +183,10 @@ def merge(pl: Plan, cache: Path, scene: SurveyScene, survey: Survey, out_dir: Pa
 
 def run_survey(scene: SurveyScene, survey: Survey, mcrt: MCRTSetup, setup: SensorSetup,
                out_dir: Path, *, force: bool = False, threads: int | None = None, progress: bool = False,
-               part: tuple[int, int] | None = None) -> dict | None:
-    """Trace (resuming) and merge; with ``part`` only that part's tiles are traced (no merge, None)."""
-    OutputFolder(out_dir, COMMAND, force=force)  # refuse a foreign folder before any work
+               part: tuple[int, int] | None = None, inputs=()) -> dict | None:
+    """Trace (resuming) and merge; with ``part`` only that part's tiles are traced (no merge, None).
+    ``inputs``: the files the survey reads (an output folder holding one is refused)."""
+    OutputFolder(out_dir, COMMAND, force=force, inputs=inputs)  # refuse a foreign folder before any work
     try:
         pl, cache = run_tiles(scene, survey, mcrt, setup, out_dir, part=part or (0, 1),
                               threads=threads, progress=progress)
@@ -195,7 +196,7 @@ def run_survey(scene: SurveyScene, survey: Survey, mcrt: MCRTSetup, setup: Senso
     if part is not None:
         return None
     try:
-        return merge(pl, cache, scene, survey, out_dir, force=force, mcrt=mcrt)
+        return merge(pl, cache, scene, survey, out_dir, force=force, mcrt=mcrt, inputs=inputs)
     except OSError as exc:
         raise SurveyError(f"{exc.filename or out_dir}: cannot write the survey ({exc.strerror or exc}); "
                           "nothing was written to the output folder") from None

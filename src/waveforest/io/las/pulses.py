@@ -15,6 +15,7 @@ from pathlib import Path
 
 from waveforest.atomic import output_folder
 from waveforest.errors import WaveforestError
+from waveforest.io.las.file import find_wdp
 from waveforest.io.las.read import (
     DEFAULT_BATCH_PULSES,
     DEFAULT_BUCKET_POINTS,
@@ -98,6 +99,19 @@ def sensor_locator(trajectory, nominal_range_m) -> tuple[object, str]:
     return None, "unknown"
 
 
+def refuse_overwriting_input(out: str | os.PathLike, las_path: str | os.PathLike) -> None:
+    """A :class:`WaveforestError` when ``out`` is the LAS file ``las_path`` or the ``.wdp``
+    beside it (the same file by path or by inode): writing it would destroy the input."""
+    out, las_path = Path(out), Path(las_path)
+    inputs = [p for p in (las_path, find_wdp(las_path)) if p is not None]
+    for p in inputs:
+        same = out.resolve() == p.resolve()
+        if not same and out.exists() and p.exists():
+            same = os.path.samefile(out, p)
+        if same:
+            raise WaveforestError(f"{out}: the output would overwrite the input {p.name}")
+
+
 def las_to_pulses(
     las_path: str | os.PathLike,
     out: str | os.PathLike,
@@ -136,8 +150,7 @@ def las_to_pulses(
 
     las_path, out = Path(las_path), Path(out)
     locate, sensor = sensor_locator(trajectory, nominal_range_m)
-    if out.resolve() == las_path.resolve():
-        raise WaveforestError(f"{out}: the output would overwrite the input")
+    refuse_overwriting_input(out, las_path)
 
     output_folder(out)  # refuse a device, FIFO or directory before reading anything
     reader = WaveformPulseReader(
