@@ -105,7 +105,7 @@ def test_short_wdp(tmp_path, capsys, table):
         fh.truncate(wdp.stat().st_size // 2)
     msg = _ingest_fails(tmp_path, path, capsys)
     assert "f.wdp" in msg and "short" in msg
-    assert "waveforest: warning:" in _ingest_fails.stderr and "malformed" in _ingest_fails.stderr  # header too
+    assert "waveforest: warning:" in _ingest_fails.stderr and "cut short" in _ingest_fails.stderr  # header too
 
 
 def test_descriptor_index_out_of_range(tmp_path, capsys, table):

@@ -711,11 +711,16 @@ def _locate_waveform_data(
         size = wdp.stat().st_size
         h = _record_header(wdp, 0, size)
         ok = _is_waveform_header(h, size) and int(h["record_length"]) == size - WAVEFORM_HEADER_SIZE
-        if not ok:
-            warn(
-                f"{wdp}: malformed 60-byte waveform record header (expected LASF_Spec / 65535 / record length "
-                f"{size - WAVEFORM_HEADER_SIZE}); trusting the points' byte offsets and packet sizes"
-            )
+        if size < WAVEFORM_HEADER_SIZE:
+            warn(f"{wdp}: {size} bytes, shorter than its 60-byte waveform record header; trusting the points' "
+                 "byte offsets and packet sizes")
+        elif _is_waveform_header(h, 1 << 62) and not ok:  # the right record, of another length
+            warn(f"{wdp}: its record header announces {int(h['record_length'])} bytes of waveform data, the file "
+                 f"holds {size - WAVEFORM_HEADER_SIZE} after it (cut short, or bytes appended); trusting the points' "
+                 "byte offsets and packet sizes")
+        elif not ok:
+            warn(f"{wdp}: malformed 60-byte waveform record header (expected user ID LASF_Spec and record ID "
+                 "65535); trusting the points' byte offsets and packet sizes")
         return WaveformData(wdp, 0, size, "external", ok, int(h["record_length"]) if ok else 0)
     if internal_pos is None:
         if compressed:
