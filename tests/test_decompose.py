@@ -12,7 +12,16 @@ from fixtures.real import RIEGL
 
 from waveforest.cli import main
 from waveforest.io.las.extra_bytes import ECHO_DIMENSIONS
-from waveforest.sensor.decompose import FLAG_CLIPPED, FLAG_FLAT, FLAG_NOISE, FLAG_SHORT, decompose
+from waveforest.sensor.decompose import (
+    AMP_BOUND,
+    FLAG_CLIPPED,
+    FLAG_FLAT,
+    FLAG_NOISE,
+    FLAG_NOT_CONVERGED,
+    FLAG_POOR_FIT,
+    FLAG_SHORT,
+    decompose,
+)
 
 SD = 1.3
 FWHM = 7.0
@@ -112,6 +121,91 @@ def test_a_clipped_record_is_found_after_agc_normalisation():
     assert abs(d.amplitude[0, 0] / (true_a / g) - 1) < 0.02 < abs(plain.amplitude[0, 0] / (true_a / g) - 1)
 
 
+RIEGL_CFD = {"noise_mean": 4.105967, "noise_sd": 1.171688, "pulse_fwhm_ns": 4.41234419178228}
+"""Noise and system pulse of the RIEGL file (`waveforest quicklook`'s cfd.json)."""
+RIEGL_1677 = [3, 4, 3, 4, 4, 4, 3, 3, 2, 2, 2, 2, 2, 2, 3, 14, 41, 92, 143, 170, 155, 106, 56, 24, 13, 10, 8, 7, 8, 10,
+              12, 10, 8, 8, 7, 7, 7, 7, 7, 5, 5, 4, 4, 5, 5, 5, 5, 4, 5, 5, 4, 4, 3, 4, 3, 4, 4, 4, 4, 4]
+RIEGL_122 = [2, 2, 3, 3, 2, 3, 2, 3, 3, 3, 2, 4, 8, 28, 71, 136, 192, 213, 183, 122, 64, 32, 19, 15, 13, 12, 12, 14, 14,
+             14, 11, 10, 10, 9, 8, 9, 8, 8, 8, 7, 7, 7, 7, 8, 8, 9, 9, 8, 6, 6, 5, 6, 5, 7, 6, 5, 5, 4, 3, 5]
+"""Samples (DN, 1 ns) of two pulses of the RIEGL file: one echo and its afterpulse; one echo with a long tail."""
+
+
+def _riegl(samples, **kw):
+    c = RIEGL_CFD
+    return decompose(np.array([samples], float), None, 1.0, c["noise_mean"], c["noise_sd"],
+                     pulse_fwhm_ns=c["pulse_fwhm_ns"], **kw)
+
+
+def test_no_phantom_echo_at_the_records_edge():
+    """A component that leaves the fitted samples is free of the data: it must stay inside
+    them, its amplitude bounded by the data (RIEGL pulse 1677 gave an echo at 0 ns of 1106 DN)."""
+    d = _riegl(RIEGL_1677)
+    k = d.n_echoes[0]
+    assert k == 2 and d.flags[0] == 0
+    np.testing.assert_allclose(d.time_ns[0, :k], [19.15, 30.2], atol=0.5)
+    assert d.amplitude[0, 0] == pytest.approx(170 - RIEGL_CFD["noise_mean"], rel=0.03)
+    assert d.rms_residual[0] < 3.0
+
+
+def test_an_added_component_that_does_not_survive_leaves_the_fit_before_it():
+    """RIEGL pulse 122: the tail's component merges into the echo; the echo must stay the fitted
+    one (209 DN, SD 1.96 ns), not the unfitted merge (109 DN, SD 4.3 ns, flagged not converged)."""
+    d = _riegl(RIEGL_122)
+    assert d.n_echoes[0] == 1 and not d.flags[0] & (FLAG_NOT_CONVERGED | FLAG_POOR_FIT)
+    assert d.amplitude[0, 0] == pytest.approx(213 - RIEGL_CFD["noise_mean"], rel=0.03)
+    assert d.sigma_ns[0, 0] == pytest.approx(1.96, abs=0.1) and d.rms_residual[0] < 6.0
+
+
+def test_echoes_stay_inside_the_record_and_below_the_amplitude_bound():
+    rng = np.random.default_rng(11)
+    rows = [[(float(rng.uniform(3, 60) * SD), float(rng.uniform(-5, 70))) for _ in range(rng.integers(0, 5))]
+            for _ in range(1500)]
+    x = _waveforms(rows, n_samples=64, seed=12)
+    d = decompose(x, None, 1.0, 10.0, SD, pulse_fwhm_ns=FWHM)
+    has = np.arange(d.time_ns.shape[1]) < d.n_echoes[:, None]
+    peak = np.max(x, axis=1) - 10.0
+    assert np.all((d.time_ns[has] >= 0.0) & (d.time_ns[has] <= 63.0))
+    assert np.all(d.amplitude <= (AMP_BOUND * peak + 3.0 * SD)[:, None] + 1e-9, where=has)
+
+
+def test_a_fit_far_from_the_data_is_flagged_poor_and_keeps_its_echo():
+    x = np.full((1, 80), 10.0)
+    x[0, 20:50] = 110.0  # a flat-topped return no Gaussian of the system pulse's width fits
+    d = decompose(x, None, 1.0, 10.0, SD, pulse_fwhm_ns=FWHM, fixed_width=True, max_echoes=1)
+    assert d.n_echoes[0] == 1 and d.flags[0] & FLAG_POOR_FIT
+    assert not _riegl(RIEGL_1677).flags[0] & FLAG_POOR_FIT
+
+
+def test_each_point_carries_its_pulses_flags():
+    """echo_columns: every echo of a pulse has the pulse's flags (a not-converged or poor fit
+    keeps its echoes, marked)."""
+    import pyarrow as pa
+
+    from waveforest.model.decompose import DecomposeSettings, echo_columns
+
+    d = _riegl(RIEGL_1677)
+    d = d._replace(flags=np.array([FLAG_NOT_CONVERGED | FLAG_POOR_FIT], np.uint8))
+    cols = {f"{c}_{a}": [0.0] for c in ("anchor", "dir", "sensor") for a in "xyz"}
+    batch = pa.table({**cols, "gps_time": [1.0], "scan_angle_deg": [0.0]})
+    out = echo_columns(batch, d, DecomposeSettings(), 0)
+    assert list(out["flags"]) == [FLAG_NOT_CONVERGED | FLAG_POOR_FIT] * 2
+
+
+@pytest.mark.skipif("flags" not in [n for n, _, _ in ECHO_DIMENSIONS],
+                    reason="the echo cloud has no per-point flags dimension yet (waveforest.io.las.extra_bytes)")
+def test_the_point_cloud_marks_the_points_of_suspect_fits(tmp_path):
+    out = tmp_path / "e.las"
+    main(["decompose", str(RIEGL), "--out", str(out), "--nominal-range", "1000", "--no-progress"])
+    las = laspy.read(out)
+    summary = json.loads((tmp_path / "e.las.json").read_text())
+    flags, pid = np.asarray(las["flags"]), np.asarray(las.pulse_id)
+    assert summary["flagged_pulses"].get("poor fit", 0) > 0  # free widths: two echoes fitted as one
+    for bit, name in ((FLAG_CLIPPED, "clipped"), (FLAG_NOT_CONVERGED, "fit not converged"), (FLAG_POOR_FIT, "poor fit")):
+        assert len(np.unique(pid[(flags & bit) > 0])) == summary["flagged_pulses"].get(name, 0), name
+    for p in np.unique(pid):  # one value per pulse
+        assert np.ptp(flags[pid == p]) == 0
+
+
 def test_fixed_width_keeps_the_system_pulse_width():
     x = _waveforms([[(30.0, 50.0), (20.0, 75.0)]], seed=2)
     d = decompose(x, None, 1.0, 10.0, SD, pulse_fwhm_ns=FWHM, fixed_width=True)
@@ -136,7 +230,9 @@ def test_decompose_command_writes_a_point_cloud_laspy_reads(tmp_path, capsys):
     # the relative cross-section follows Eq. F2
     r, a, s = (np.asarray(las[k], np.float64) for k in ("range_m", "amplitude_dn", "sigma_ns"))
     np.testing.assert_allclose(las.cross_section, (r / 1000.0) ** 4 * a * s, rtol=1e-5)
-    capsys.readouterr()
+    # 7 pulses hold their returns in two packets: the second is not decomposed, and said so
+    assert summary["n_pulses_packets_skipped"] == 7
+    assert "7 pulses with more than one waveform packet" in capsys.readouterr().out
     main(["info", str(out)])
     said = capsys.readouterr().out
     assert "point format 6 (no waveforms)" in said and "extra bytes cross_section" in said
@@ -223,11 +319,38 @@ def test_point_format_9_never_overwrites_the_inputs_waveforms(tmp_path):
     assert (tmp_path / "in.wdp").read_bytes() == before
 
 
-def test_decompose_refuses_a_wrong_output_name_and_writes_nothing(tmp_path):
+def test_decompose_refuses_a_wrong_output_name_and_writes_nothing(tmp_path, capsys):
     with pytest.raises(SystemExit) as exc:
         main(["decompose", str(RIEGL), "--out", str(tmp_path / "echoes.txt"), "--no-progress"])
-    assert exc.value.code == 1
+    assert exc.value.code == 2  # a bad option value: a usage error
+    assert "'--out'" in capsys.readouterr().err
     assert list(tmp_path.iterdir()) == []
+
+
+def test_decompose_never_overwrites_its_input_las_or_wdp(tmp_path, monkeypatch, capsys):
+    import shutil
+
+    shutil.copy(RIEGL, tmp_path / "in.las")
+    shutil.copy(RIEGL.with_suffix(".wdp"), tmp_path / "in.WDP")
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    (tmp_path / "wdp.las").symlink_to(tmp_path / "in.WDP")
+    (tmp_path / "las.laz").symlink_to(tmp_path / "in.las")
+    monkeypatch.chdir(tmp_path)
+    for out in ("in.las", "./in.las", str(tmp_path / "in.las"), "wdp.las", "las.laz"):
+        with pytest.raises(SystemExit) as exc:
+            main(["decompose", "in.las", "--out", out, "--no-progress"])
+        assert exc.value.code == 1, out
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "would overwrite the input" in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["in.WDP", "in.las", "las.laz", "wdp.las"]
+    assert all((tmp_path / name).read_bytes() == data for name, data in before.items())
+
+
+def test_the_progress_bar_ends_full_when_the_header_undercounts_the_pulses(tmp_path, capsys):
+    """The RIEGL header counts 2,365 first returns for 2,368 pulses."""
+    main(["decompose", str(RIEGL), "--out", str(tmp_path / "e.las"), "--progress"])
+    last = capsys.readouterr().err.replace("\n", "\r").rstrip("\r").rsplit("\r", 1)[-1]
+    assert "100%" in last and "2.37k/2.37k" in last, last
 
 
 def test_multi_echo_features_of_a_feature_table():

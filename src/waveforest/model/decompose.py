@@ -7,7 +7,8 @@ and its echoes written to a LAS 1.4 point format 6 file with extra bytes
 waveforms: each echo points into its pulse's packet, in a copy of the source's waveform data
 (a ``.wdp`` beside the output), at its time within the packet. Per echo: the centre along the
 beam (``anchor + dir * t * c/2``), range, amplitude, SD, FWHM, energy, the pulse's fit residual,
-echo number and count, and the backscatter cross-section (Eq. F2):
+echo number and count, the pulse's flags (:data:`waveforest.sensor.decompose.FLAGS`) and the
+backscatter cross-section (Eq. F2):
 
     sigma_bs = C_cal * R^4 * A * s                                                   (F2)
 
@@ -34,7 +35,7 @@ from waveforest.io.las.extra_bytes import EchoCloudWriter, copy_waveform_data, e
 from waveforest.io.las.file import open_point_reader
 from waveforest.io.las.format import WAVEFORM_HEADER_SIZE
 from waveforest.io.las.info import projection_records
-from waveforest.io.las.pulses import sensor_locator
+from waveforest.io.las.pulses import refuse_overwriting_input, sensor_locator
 from waveforest.io.las.read import WaveformPulseReader
 from waveforest.io.pulses import list_to_padded
 from waveforest.model.self_tuning import Pulses
@@ -67,7 +68,9 @@ class DecomposeSettings:
 
 @dataclass
 class DecomposeSummary:
-    """What :func:`decompose_file` wrote and found."""
+    """What :func:`decompose_file` wrote and found. ``n_pulses_packets_skipped``: pulses whose
+    returns lie in more than one waveform packet; only the packet of the first return is
+    decomposed (:class:`~waveforest.io.las.read.WaveformPulseReader`)."""
 
     out: Path
     n_pulses: int = 0
@@ -78,6 +81,7 @@ class DecomposeSummary:
     noise_sd: float = math.nan
     pulse_fwhm_ns: float | None = None
     noise_source: str = ""
+    n_pulses_packets_skipped: int = 0
     seconds: float = 0.0
 
     def as_dict(self) -> dict:
@@ -85,7 +89,7 @@ class DecomposeSummary:
                 "echoes_per_pulse": {str(k): v for k, v in sorted(self.echoes_per_pulse.items())},
                 "flagged_pulses": self.flags, "noise_mean_dn": self.noise_mean, "noise_sd_dn": self.noise_sd,
                 "pulse_fwhm_ns": self.pulse_fwhm_ns, "noise_source": self.noise_source,
-                "seconds": round(self.seconds, 3)}
+                "n_pulses_packets_skipped": self.n_pulses_packets_skipped, "seconds": round(self.seconds, 3)}
 
 
 def calibration_constant(reflectance: float, incidence_deg: float, divergence_mrad: float, range_m: float,
@@ -134,7 +138,7 @@ def echo_columns(batch: pa.Table, dec, settings: DecomposeSettings, first_pulse:
            "return_number": number, "number_of_returns": k[rows], "intensity": amp,
            "pulse_id": first_pulse + rows, "echo_time_ns": t, "range_m": rng, "amplitude_dn": amp,
            "sigma_ns": sig, "fwhm_ns": dec.fwhm_ns[has], "energy_dn_ns": dec.energy[has],
-           "residual_dn": dec.rms_residual[rows], "cross_section": cross}
+           "residual_dn": dec.rms_residual[rows], "flags": dec.flags[rows], "cross_section": cross}
     if "wave_packet_index" in batch.column_names:  # point format 9: the pulse's packet, t in ps, -dir * c/2 per ps
         out.update({c: batch.column(c).to_numpy()[rows] for c in
                     ("wave_packet_index", "wave_packet_offset", "wave_packet_bytes")})
@@ -152,7 +156,8 @@ def decompose_file(las_path, out_path, settings: DecomposeSettings, *, cfd_path=
     Raises
     ------
     WaveforestError
-        Unreadable input, a bad CFD JSON, or noise that cannot be estimated.
+        An output name that is not .las/.laz or would overwrite the input LAS or its waveform
+        file, unreadable input, a bad CFD JSON, or noise that cannot be estimated.
     """
     from tqdm import tqdm
 
@@ -161,6 +166,7 @@ def decompose_file(las_path, out_path, settings: DecomposeSettings, *, cfd_path=
         raise WaveforestError(f"{out_path}: expected a .las or .laz output file")
     if settings.point_format not in (6, 9):
         raise WaveforestError(f"point format {settings.point_format}: expected 6 or 9")
+    refuse_overwriting_input(out_path, las_path)
     keep_waves = settings.point_format == 9
     wdp = out_path.with_suffix(".wdp")
     locate, _ = sensor_locator(trajectory, nominal_range_m)
@@ -178,7 +184,7 @@ def decompose_file(las_path, out_path, settings: DecomposeSettings, *, cfd_path=
                          descriptors=las.descriptors if keep_waves else None)
     summary = DecomposeSummary(out_path)
     started = time.perf_counter()
-    total = int(las.header_points_by_return[0]) or None
+    total = int(las.header_points_by_return[0]) or None  # an estimate: pulses may lack a first return
     batches = iter(reader)
     with output_files(), tqdm(total=total, unit="waveform", unit_scale=True, disable=not progress,
                               file=sys.stderr, desc=f"decompose {las_path.name}") as bar:
@@ -198,14 +204,19 @@ def decompose_file(las_path, out_path, settings: DecomposeSettings, *, cfd_path=
                                     min_snr=settings.min_snr, max_echoes=settings.max_echoes)
                     w.write(echo_columns(batch, dec, settings, summary.n_pulses))
                     _count(summary, dec)
+                    if bar.total is not None and bar.n + batch.num_rows > bar.total:
+                        bar.total = bar.n + batch.num_rows  # past the estimate: never a bare counter
                     bar.update(batch.num_rows)
             finally:
                 batches.close()
+            bar.total = bar.n  # the true count
+            bar.refresh()
         if keep_waves:
             wf = las.waveform  # an internal record may be followed by EVLRs: its own length
             size = WAVEFORM_HEADER_SIZE + wf.record_length if wf.storage == "internal" and wf.header_ok else wf.size
             with atomic_path(wdp) as tmp:
                 copy_waveform_data(wf.path, wf.base, size, tmp)
+        summary.n_pulses_packets_skipped = reader.stats.n_split_pulses
         summary.seconds = time.perf_counter() - started
         write_json(summary.as_dict(), out_path.with_name(out_path.name + ".json"))
     return summary

@@ -17,17 +17,23 @@ fitted by weighted least squares over the samples within 4 s of any component:
    the analytic Jacobian and, while it is positive definite, the exact Hessian (the residual's
    second-derivative term added to Gauss–Newton's, which otherwise converges only linearly for
    weak echoes); each component is evaluated within ``TRUNC`` SDs of its centre, so the normal
-   equations of components that do not overlap are independent blocks. Bounds ``A >= 0``,
-   ``mu`` inside the record, ``s_min <= s <= s_max``. With ``fixed_width`` every ``s`` stays at
-   ``s_min`` (the system pulse's, a Gaussian approximation of S(t)).
+   equations of components that do not overlap are independent blocks. Bounds
+   ``0 <= A <= A_max`` (:data:`AMP_BOUND`), ``mu`` inside the fitted samples (never outside
+   the record), ``s_min <= s <= s_max``. With ``fixed_width`` every ``s`` stays at ``s_min``
+   (the system pulse's, a Gaussian approximation of S(t)).
 3. **Model selection**: components below the detection level (``min_snr`` noise SDs) are
    dropped and components closer than ``merge_sd`` widths merged, then the fit is repeated;
    a smoothed residual above the detection level adds a component there (at most three times).
+   An added component that does not survive the selection is taken back with its refit: the
+   fit before it is kept. The echoes returned are always those of a fit, never of an unfitted
+   merge.
 
 Samples at the record's maximum get zero weight where the digitiser clipped: the maximum held
 over two samples or more at a full-scale value 2^k - 1 (:data:`FULL_SCALE_BITS`). A
 waveform that is flat, shorter than five samples, or has no candidate above the detection
-level gets no echo and a flag (:data:`FLAGS`); no output is ever NaN for a found echo.
+level gets no echo and a flag (:data:`FLAGS`); no output is ever NaN for a found echo. A fit
+that did not converge, or whose residual is far above the noise (:data:`POOR_FIT_SD`,
+:data:`POOR_FIT_PEAK`), keeps its echoes and is flagged.
 """
 
 from __future__ import annotations
@@ -40,10 +46,21 @@ from numba import njit, prange
 
 import waveforest.sensor.checks as checks
 
-FLAG_FLAT, FLAG_CLIPPED, FLAG_NOISE, FLAG_SHORT, FLAG_NOT_CONVERGED = 1, 2, 4, 8, 16
+FLAG_FLAT, FLAG_CLIPPED, FLAG_NOISE, FLAG_SHORT, FLAG_NOT_CONVERGED, FLAG_POOR_FIT = 1, 2, 4, 8, 16, 32
 FLAGS = {FLAG_FLAT: "flat", FLAG_CLIPPED: "clipped", FLAG_NOISE: "all noise", FLAG_SHORT: "too short",
-         FLAG_NOT_CONVERGED: "fit not converged"}
+         FLAG_NOT_CONVERGED: "fit not converged", FLAG_POOR_FIT: "poor fit"}
 """Bit flags of a waveform (an int per waveform; several may be set)."""
+
+POOR_FIT_SD = 5.0
+"""A fit is poor when its RMS residual exceeds this many noise SDs ..."""
+POOR_FIT_PEAK = 0.05
+"""... plus this fraction of the record's highest sample above the noise mean (a real
+system pulse is no exact Gaussian: its misfit grows with the echo)."""
+AMP_BOUND = 2.0
+"""An echo's amplitude is at most this many times the record's highest sample above the
+noise mean, plus the detection level (components are non-negative, so none exceeds the data
+by more than the noise, except between samples: a Gaussian of SD half a sample peaks 1.65
+times above its nearest sample); unbounded where the record was clipped."""
 
 MIN_SAMPLES = 5
 """Fewer samples than this: too short to fit (three parameters per echo)."""
@@ -302,10 +319,12 @@ def _solve(a, b, m):
 
 
 @njit(cache=True)
-def _clamp(p, k, n, s_min, s_max, fixed_width):
+def _clamp(p, k, lo, hi, a_max, s_min, s_max, fixed_width):
+    """Project ``p`` onto the bounds: ``0 <= A <= a_max``, ``lo <= mu <= hi - 1`` (the fitted
+    samples), ``s_min <= s <= s_max``."""
     for c in range(k):
-        p[NP * c] = max(p[NP * c], 0.0)
-        p[NP * c + 1] = min(max(p[NP * c + 1], 0.0), n - 1.0)
+        p[NP * c] = min(max(p[NP * c], 0.0), a_max)
+        p[NP * c + 1] = min(max(p[NP * c + 1], float(lo)), hi - 1.0)
         p[NP * c + 2] = s_min if fixed_width else min(max(p[NP * c + 2], s_min), s_max)
 
 
@@ -330,6 +349,7 @@ class Scratch(NamedTuple):
     hess: np.ndarray
     work: np.ndarray
     second: np.ndarray
+    saved: np.ndarray
 
 
 @njit(cache=True)
@@ -341,13 +361,15 @@ def scratch(n_samples, max_k):
                    np.empty(n_samples), np.empty(n_samples), np.empty((cap, n_samples)),
                    np.empty((cap, n_samples)), np.empty((cap, 2), np.int64), np.empty((cap, 2), np.int64),
                    np.empty((m, n_samples)), np.empty(m), np.empty(m), np.empty(m), np.empty(m),
-                   np.empty((m, m)), np.empty((m, m)), np.empty((cap, 6)))
+                   np.empty((m, m)), np.empty((m, m)), np.empty((cap, 6)), np.empty(m))
 
 
 @njit(cache=True)
-def _levenberg_marquardt(ws, n, k, s_min, s_max, fixed_width, max_iter, level, merge_sd, amplitudes_first):
-    """Refine ``ws.p[:3k]`` in place (F1, bounds by projection); True when converged. The fit
-    runs over the initial components +- 4 SD, widened by 2 SD of the widest. Steps use the
+def _levenberg_marquardt(ws, n, k, a_max, s_min, s_max, fixed_width, max_iter, level, merge_sd, amplitudes_first):
+    """Refine ``ws.p[:3k]`` in place (F1, bounds by projection, :func:`_clamp`); True when
+    converged. The fit runs over the initial components +- 4 SD, widened by 2 SD of the widest,
+    and keeps every centre within those samples (a component outside them would be free of the
+    data: any amplitude at no cost). Steps use the
     exact Hessian (second derivatives of F1) where it is positive definite, else Gauss-Newton's;
     after SLOW_FIT steps a fit that :func:`_prune` would change stops early (False): two
     components sharing one echo slide along a flat valley of the cost, and the pruned set is
@@ -362,6 +384,7 @@ def _levenberg_marquardt(ws, n, k, s_min, s_max, fixed_width, max_iter, level, m
         widest = max(widest, p[NP * c + 2])
     pad = int(2.0 * widest) + 1
     lo, hi = max(lo - pad, 0), min(hi + pad, n)
+    _clamp(p, k, lo, hi, a_max, s_min, s_max, fixed_width)
     cost = _residual(y, w, p, k, lo, hi, ex, sup, r)
     if amplitudes_first:  # the amplitudes that fit best for these centres and widths: linear
         _normal_equations(p, k, w, r, ex, sup, fixed_width, ws.jac, grad, hess, ws.second)
@@ -374,7 +397,7 @@ def _levenberg_marquardt(ws, n, k, s_min, s_max, fixed_width, max_iter, level, m
             for u in range(m):
                 trial[u] = p[u]
             for c in range(k):
-                trial[NP * c] = max(p[NP * c] + step[c], 0.0)
+                trial[NP * c] = min(max(p[NP * c] + step[c], 0.0), a_max)
             new = _residual(y, w, trial, k, lo, hi, ex_t, sup_t, r_t)
             if new < cost:
                 for u in range(m):
@@ -410,7 +433,7 @@ def _levenberg_marquardt(ws, n, k, s_min, s_max, fixed_width, max_iter, level, m
                 continue
             for u in range(m):
                 trial[u] = p[u] + step[u]
-            _clamp(trial, k, n, s_min, s_max, fixed_width)
+            _clamp(trial, k, lo, hi, a_max, s_min, s_max, fixed_width)
             new = _residual(y, w, trial, k, lo, hi, ex_t, sup_t, r_t)
             if new <= cost:
                 small = True  # the move within the bounds, not the step asked for
@@ -591,6 +614,8 @@ def decompose_row(x, n, dt, mean, sd, agc_gain, s_min_ns, s_max_ns, min_snr, mer
                 w[i] = 0.0
     s_min, s_max = s_min_ns / dt, s_max_ns / dt
     level = min_snr * sd
+    peak = hi_v - mean
+    a_max = np.inf if flags & FLAG_CLIPPED else AMP_BOUND * peak + level
     _smooth(y, n, g, xs)
     _second_difference(xs, n, d2)
     cap = ws.ex.shape[0]
@@ -599,16 +624,25 @@ def decompose_row(x, n, dt, mean, sd, agc_gain, s_min_ns, s_max_ns, min_snr, mer
     if k == 0:
         return 0, flags | FLAG_NOISE, np.nan
     k = _prune(p, k, 0.0, merge_sd, s_min, s_hi)  # two minima within one echo: noise on its top
-    converged = _levenberg_marquardt(ws, n, k, s_min, s_max, fixed_width, max_iter, level, merge_sd, True)
+    converged = _levenberg_marquardt(ws, n, k, a_max, s_min, s_max, fixed_width, max_iter, level, merge_sd, True)
     added = 0
-    for _round in range(8):
+    k_saved, converged_saved = -1, False  # the fit before a component was added (-1: none)
+    # each round drops a component, adds one (three at most) or ends: the loop ends in a break
+    for _round in range(cap + 8):
         before = k
         k = _select(p, k, level, merge_sd, s_min, s_hi, max_k)
+        if k != before and k <= k_saved:  # the added component did not survive: the fit before it
+            for u in range(NP * k_saved):
+                p[u] = ws.saved[u]
+            k, converged = k_saved, converged_saved
+            break
         if k == 0:
             break
         if k != before:  # refit what is left, then select again
-            converged = _levenberg_marquardt(ws, n, k, s_min, s_max, fixed_width, max_iter, level, merge_sd, False)
+            converged = _levenberg_marquardt(ws, n, k, a_max, s_min, s_max, fixed_width, max_iter, level, merge_sd,
+                                             False)
             continue
+        k_saved = -1
         if k >= max_k or added == 3:
             break
         # a residual echo the candidates missed: add it and refit
@@ -620,12 +654,13 @@ def decompose_row(x, n, dt, mean, sd, agc_gain, s_min_ns, s_max_ns, min_snr, mer
                 best, at = xs[i + 1], i
         if best <= level:
             break
+        for u in range(NP * k):
+            ws.saved[u] = p[u]
+        k_saved, converged_saved = k, converged
         p[NP * k], p[NP * k + 1], p[NP * k + 2] = best, float(at), max(s_min, min(s_max, 2.0 * math.sqrt(var_smooth)))
         k += 1
         added += 1
-        converged = _levenberg_marquardt(ws, n, k, s_min, s_max, fixed_width, max_iter, level, merge_sd, True)
-    else:
-        k = _select(p, k, level, merge_sd, s_min, s_hi, max_k)
+        converged = _levenberg_marquardt(ws, n, k, a_max, s_min, s_max, fixed_width, max_iter, level, merge_sd, True)
     if k == 0:
         return 0, flags | FLAG_NOISE, np.nan
     lo, hi = _window(p, k, n)
@@ -638,9 +673,12 @@ def decompose_row(x, n, dt, mean, sd, agc_gain, s_min_ns, s_max_ns, min_snr, mer
         out_p[c, 0] = p[NP * c]
         out_p[c, 1] = p[NP * c + 1] * dt
         out_p[c, 2] = p[NP * c + 2] * dt
+    rms = math.sqrt(ss / max(nw, 1.0))
+    if rms > POOR_FIT_SD * sd + POOR_FIT_PEAK * peak:
+        flags |= FLAG_POOR_FIT
     if not converged:
         flags |= FLAG_NOT_CONVERGED
-    return k, flags, math.sqrt(ss / max(nw, 1.0))
+    return k, flags, rms
 
 
 @njit(parallel=True, cache=True)

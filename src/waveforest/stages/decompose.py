@@ -40,9 +40,11 @@ def decompose(las_file, out, cfd, min_snr, max_echoes, fixed_width, calibration_
 
     Per echo: range, amplitude, width, energy and the backscatter cross-section.
 
-    Waveforms that are flat, clipped, all noise or too short are flagged and counted in the
-    summary; they give no echo. Without a trajectory or --nominal-range the ranges and
-    cross-sections are unknown (written as 0, the dimensions' no_data value).
+    Waveforms that are flat, all noise or too short are flagged and counted in the summary;
+    they give no echo. Clipped waveforms and fits that did not converge or fit poorly keep
+    their echoes, flagged and counted. Only the first waveform packet of a pulse is
+    decomposed; pulses with more are counted. Without a trajectory or --nominal-range the
+    ranges and cross-sections are unknown (written as 0, the dimensions' no_data value).
 
     Example:
 
@@ -50,6 +52,8 @@ def decompose(las_file, out, cfd, min_snr, max_echoes, fixed_width, calibration_
     waveforest decompose flight.las --out echoes.laz --cfd cfd.json --nominal-range 1000
     waveforest decompose flight.las --out echoes.las --point-format 9   # + echoes.wdp
     """
+    if out.suffix.lower() not in (".las", ".laz"):
+        raise click.BadParameter(f"{out}: expected a .las or .laz output file", param_hint="'--out'")
     if fixed_width and cfd is None:
         raise click.BadParameter("needs --cfd (the system pulse width)", param_hint="'--fixed-width'")
     settings = DecomposeSettings(min_snr=min_snr, max_echoes=max_echoes, fixed_width=fixed_width,
@@ -58,5 +62,7 @@ def decompose(las_file, out, cfd, min_snr, max_echoes, fixed_width, calibration_
         s = decompose_file(las_file, out, settings, cfd_path=cfd, trajectory=trajectory,
                            nominal_range_m=nominal_range, progress=progress)
     flagged = ", ".join(f"{name} {n:,}" for name, n in s.flags.items()) or "none"
+    skipped = (f"; {s.n_pulses_packets_skipped:,} pulses with more than one waveform packet (later packets "
+               "not decomposed)" if s.n_pulses_packets_skipped else "")
     click.echo(f"decompose: {s.n_pulses:,} waveforms, {s.n_echoes:,} echoes "
-               f"({s.n_pulses / max(s.seconds, 1e-9):,.0f} waveforms/s); flagged: {flagged} -> {s.out}")
+               f"({s.n_pulses / max(s.seconds, 1e-9):,.0f} waveforms/s); flagged: {flagged}{skipped} -> {s.out}")

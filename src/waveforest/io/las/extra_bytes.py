@@ -9,8 +9,9 @@ sample lies at ``P + L * (x(t), y(t), z(t))``); the source's Waveform Packet Des
 encoding bit 2), a copy of the source's waveform data record (:func:`copy_waveform_data`).
 
 Written through laspy (and lazrs for LAZ) in chunks, so memory does not grow with the file.
-Each extra dimension is a 4-byte float, except ``pulse_id`` (uint64) and ``flags`` (uint8),
-with its unit in its description; a value that does not exist (a range without a known
+Each extra dimension is a 4-byte float, except ``pulse_id`` (uint64) and ``flags`` (uint8, the
+pulse's decomposition flags, :data:`waveforest.sensor.decompose.FLAGS`), with its unit in its
+description; a value that does not exist (a range without a known
 sensor position) is written as the dimension's ``no_data`` value, 0.
 """
 
@@ -32,6 +33,7 @@ ECHO_DIMENSIONS = (
     ("fwhm_ns", "f4", "ns: echo FWHM"),
     ("energy_dn_ns", "f4", "DN ns: echo area"),
     ("residual_dn", "f4", "DN: RMS fit residual of pulse"),
+    ("flags", "u1", "pulse flags: 2 clip, 16/32 fit"),
     ("cross_section", "f4", "backscatter cross-section"),
 )
 """(name, type, description) of the extra bytes, in record order (descriptions <= 32 characters)."""
