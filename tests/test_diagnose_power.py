@@ -119,9 +119,10 @@ def test_bounds_too_small_to_see_give_an_empty_limit():
     assert hot["status"] == "not reached" and not hot["sees_test_value"] and hot["power_at_bound"] < POWER.power
     text = verdict_with_limits("inconclusive", limits)
     assert text.startswith("inconclusive: these data cannot see hotspot at 1.3 factor (not reached up to 2 factor)")
-    assert text.endswith("; no effect larger than understory " + f"{limits['smallest_detectable'].iloc[1]:.3g} LAI")
-    assert "named: " in verdict_with_limits("named", limits) and "detection limits understory " in verdict_with_limits(
-        "named", limits)
+    assert text.endswith("; seen in >= 80% of the model's twins from understory "
+                         + f"{limits['smallest_detectable'].iloc[1]:.3g} LAI")
+    assert "no effect larger" not in text  # a power on the model's twins, no proof of absence
+    assert verdict_with_limits("named", limits).startswith("named: ")
     assert final_verdict("none", limits) == ("inconclusive", ["hotspot"])
     assert final_verdict("unexplained", limits)[0] == "unexplained"
     assert final_verdict("none", limits[limits["effect"] == "understory"]) == ("none", [])

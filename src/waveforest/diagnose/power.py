@@ -348,12 +348,15 @@ def detection_limits(keys: pd.DataFrame, simulate: Simulator, settings: SearchSe
 
 
 def verdict_with_limits(verdict: str, limits: pd.DataFrame) -> str:
-    """The verdict with the detection limits, e.g. ``none: no effect larger than understory 0.8
-    LAI, xy_error 0.15 m`` or ``inconclusive: these data cannot see nonlinearity at 150 DN (not
-    reached up to 50 DN); no effect larger than understory 0.8 LAI``.
+    """The verdict with the detection limits, e.g. ``none: seen in >= 80 % of the model's twins
+    from understory 0.8 LAI, xy_error 0.15 m`` or ``inconclusive: these data cannot see
+    nonlinearity at 150 DN (not reached up to 50 DN); seen in >= 80 % of the model's twins from
+    understory 0.8 LAI``.
 
-    Only ``none`` and ``inconclusive`` read "no effect larger than"; another verdict lists the
-    limits as such. A limit not reached reads "not reached up to" the strongest value tried.
+    A limit is a power (``limits.power``) on pseudo-real data, the model's own twins: no promise
+    that a larger effect is absent from data that differ from the model in other ways, so the
+    text never says "no effect larger than". A limit not reached reads "not reached up to" the
+    strongest value tried.
     """
     if limits.empty:
         return verdict
@@ -374,6 +377,6 @@ def verdict_with_limits(verdict: str, limits: pd.DataFrame) -> str:
             else f"{r.effect} ({limit_of(r)})" for r in blind.itertuples()))
     if len(found):
         values = ", ".join(f"{r.effect} {r.smallest_detectable:.3g} {r.unit}" for r in found.itertuples())
-        parts.append(("no effect larger than " if verdict in ("none", "inconclusive") else "detection limits ")
-                     + values)
+        power = float(limits["power"].iloc[0]) if "power" in limits else 0.8
+        parts.append(f"seen in >= {power:.0%} of the model's twins from {values}")
     return f"{verdict}: " + "; ".join(parts) if parts else verdict
