@@ -182,7 +182,7 @@ def test_table4_n_is_the_accuracys_and_the_left_out_pulses_are_said(tmp_path):
     path.write_text(json.dumps(old))
     assert table4([old]).loc[0, "n_pulses"] == confusion == r["n_pulses"]
     md = run(res, res / "report" / "report.html", cfg).markdown.read_text()
-    line = (f"Left out of the classification, so not in its pulse counts: 2012_10_1, 3 of {confusion + 3} pulses "
+    line = (f"Left out of the classification, so not in its pulse counts: 2012_10_1 3 of {confusion + 3:,} pulses "
             "(no value of E or Apeak).")
     assert md.count(line) == 2  # in the summary and in the classification section
     assert f"| 2012_10_1 | {confusion} ({r['n_samples']}) |" in md

@@ -272,15 +272,17 @@ def classified_counts(r: dict) -> tuple[float, float, float, int, str | None]:
 
 
 def dropped_line(results: list[dict]) -> str | None:
-    """One line: per dataset, the pulses left out of the main LDA and why; None when none were."""
-    parts = []
+    """One line: per reason, the datasets' pulses left out of the main LDA; None when none were."""
+    by_reason: dict[str, list[str]] = {}
     for r in results:
         n, _, _, dropped, why = classified_counts(r)
         if dropped:
-            parts.append(f"{r.get('dataset')}, {dropped} of {int(n) + dropped} pulses ({why or 'reason not recorded'})")
-    if not parts:
+            by_reason.setdefault(why or "reason not recorded", []).append(
+                f"{r.get('dataset')} {dropped:,} of {int(n) + dropped:,}")
+    if not by_reason:
         return None
-    return "Left out of the classification, so not in its pulse counts: " + "; ".join(parts) + "."
+    return "Left out of the classification, so not in its pulse counts: " + "; ".join(
+        f"{', '.join(parts)} pulses ({why})" for why, parts in by_reason.items()) + "."
 
 
 def _level_cell(r: dict, level: str, scheme: str) -> str:
