@@ -15,6 +15,7 @@ from fixtures.pulses import synthetic_pulses
 from reference_io import reference_pulses
 
 from waveforest.constants import RANGE_PER_NS
+from waveforest.errors import WaveforestError
 from waveforest.io.las import WaveformPulseReader, open_waveform_las, read_waveform_las
 from waveforest.io.las.write import WaveformLasWriter, creation_today, write_waveform_las
 
@@ -291,6 +292,9 @@ def test_las13_carries_geotiff_keys_beside_the_wkt(tmp_path, wkt, model, key, co
 def test_creation_date_is_today_or_source_date_epoch(monkeypatch):
     monkeypatch.setenv("SOURCE_DATE_EPOCH", "1388707200")  # 2014-01-03 00:00 UTC
     assert creation_today() == (3, 2014)
+    monkeypatch.setenv("SOURCE_DATE_EPOCH", "yesterday")
+    with pytest.raises(WaveforestError, match="SOURCE_DATE_EPOCH='yesterday': expected whole seconds"):
+        creation_today()
     monkeypatch.delenv("SOURCE_DATE_EPOCH")
     day, year = creation_today()
     assert year >= 2025 and 1 <= day <= 366

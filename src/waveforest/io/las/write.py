@@ -124,6 +124,8 @@ def creation_today() -> tuple[int, int]:
     """(day of year, year) of today in UTC, or of ``SOURCE_DATE_EPOCH`` (seconds since 1970,
     the reproducible-builds convention) when that is set."""
     epoch = os.environ.get("SOURCE_DATE_EPOCH")
+    if epoch and not epoch.strip().isdigit():
+        raise WaveforestError(f"SOURCE_DATE_EPOCH={epoch!r}: expected whole seconds since 1970-01-01 UTC")
     day = (datetime.fromtimestamp(int(epoch), UTC) if epoch else datetime.now(UTC)).date()
     return day.timetuple().tm_yday, day.year
 
