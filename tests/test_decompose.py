@@ -4,14 +4,17 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 
 import laspy
 import numpy as np
+import pyarrow as pa
 import pytest
 from fixtures.real import RIEGL
 
 from waveforest.cli import main
 from waveforest.io.las.extra_bytes import ECHO_DIMENSIONS
+from waveforest.model.decompose import DecomposeSettings, echo_columns
 from waveforest.sensor.decompose import (
     AMP_BOUND,
     FLAG_CLIPPED,
@@ -179,10 +182,6 @@ def test_a_fit_far_from_the_data_is_flagged_poor_and_keeps_its_echo():
 def test_each_point_carries_its_pulses_flags():
     """echo_columns: every echo of a pulse has the pulse's flags (a not-converged or poor fit
     keeps its echoes, marked)."""
-    import pyarrow as pa
-
-    from waveforest.model.decompose import DecomposeSettings, echo_columns
-
     d = _riegl(RIEGL_1677)
     d = d._replace(flags=np.array([FLAG_NOT_CONVERGED | FLAG_POOR_FIT], np.uint8))
     cols = {f"{c}_{a}": [0.0] for c in ("anchor", "dir", "sensor") for a in "xyz"}
@@ -191,8 +190,6 @@ def test_each_point_carries_its_pulses_flags():
     assert list(out["flags"]) == [FLAG_NOT_CONVERGED | FLAG_POOR_FIT] * 2
 
 
-@pytest.mark.skipif("flags" not in [n for n, _, _ in ECHO_DIMENSIONS],
-                    reason="the echo cloud has no per-point flags dimension yet (waveforest.io.las.extra_bytes)")
 def test_the_point_cloud_marks_the_points_of_suspect_fits(tmp_path):
     out = tmp_path / "e.las"
     main(["decompose", str(RIEGL), "--out", str(out), "--nominal-range", "1000", "--no-progress"])
@@ -328,8 +325,6 @@ def test_decompose_refuses_a_wrong_output_name_and_writes_nothing(tmp_path, caps
 
 
 def test_decompose_never_overwrites_its_input_las_or_wdp(tmp_path, monkeypatch, capsys):
-    import shutil
-
     shutil.copy(RIEGL, tmp_path / "in.las")
     shutil.copy(RIEGL.with_suffix(".wdp"), tmp_path / "in.WDP")
     before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
