@@ -150,13 +150,14 @@ def _record_header(path: Path, pos: int, file_size: int) -> np.void | None:
     return np.frombuffer(_read_at(path, pos, EVLR_HEADER.itemsize), EVLR_HEADER)[0]
 
 
+def _is_waveform_record(h: np.void | None) -> bool:
+    """The record header names the waveform data packet record (LASF_Spec / 65535)."""
+    return h is not None and bytes(h["user_id"]).rstrip(b"\0") == LASF_SPEC and int(h["record_id"]) == WAVEFORM_RECORD_ID
+
+
 def _is_waveform_header(h: np.void | None, available: int) -> bool:
-    return (
-        h is not None
-        and bytes(h["user_id"]).rstrip(b"\0") == LASF_SPEC
-        and int(h["record_id"]) == WAVEFORM_RECORD_ID
-        and int(h["record_length"]) <= available - WAVEFORM_HEADER_SIZE
-    )
+    """:func:`_is_waveform_record`, of a length that fits in ``available`` bytes with its header."""
+    return _is_waveform_record(h) and int(h["record_length"]) <= available - WAVEFORM_HEADER_SIZE
 
 
 def find_wdp(path: Path) -> Path | None:
@@ -711,14 +712,16 @@ def _locate_waveform_data(
         size = wdp.stat().st_size
         h = _record_header(wdp, 0, size)
         ok = _is_waveform_header(h, size) and int(h["record_length"]) == size - WAVEFORM_HEADER_SIZE
-        if size < WAVEFORM_HEADER_SIZE:
+        if ok:
+            pass
+        elif size < WAVEFORM_HEADER_SIZE:
             warn(f"{wdp}: {size} bytes, shorter than its 60-byte waveform record header; trusting the points' "
                  "byte offsets and packet sizes")
-        elif _is_waveform_header(h, 1 << 62) and not ok:  # the right record, of another length
+        elif _is_waveform_record(h):  # the right record, of another length
             warn(f"{wdp}: its record header announces {int(h['record_length'])} bytes of waveform data, the file "
                  f"holds {size - WAVEFORM_HEADER_SIZE} after it (cut short, or bytes appended); trusting the points' "
                  "byte offsets and packet sizes")
-        elif not ok:
+        else:
             warn(f"{wdp}: malformed 60-byte waveform record header (expected user ID LASF_Spec and record ID "
                  "65535); trusting the points' byte offsets and packet sizes")
         return WaveformData(wdp, 0, size, "external", ok, int(h["record_length"]) if ok else 0)
