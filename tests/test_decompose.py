@@ -185,7 +185,7 @@ def test_each_point_carries_its_pulses_flags():
     d = _riegl(RIEGL_1677)
     d = d._replace(flags=np.array([FLAG_NOT_CONVERGED | FLAG_POOR_FIT], np.uint8))
     cols = {f"{c}_{a}": [0.0] for c in ("anchor", "dir", "sensor") for a in "xyz"}
-    batch = pa.table({**cols, "gps_time": [1.0], "scan_angle_deg": [0.0]})
+    batch = pa.table({**cols, "gps_time": [1.0], "scan_angle_deg": [0.0], "pulse_id": [0]})
     out = echo_columns(batch, d, DecomposeSettings(), 0)
     assert list(out["flags"]) == [FLAG_NOT_CONVERGED | FLAG_POOR_FIT] * 2
 
@@ -227,9 +227,25 @@ def test_decompose_command_writes_a_point_cloud_laspy_reads(tmp_path, capsys):
     # the relative cross-section follows Eq. F2
     r, a, s = (np.asarray(las[k], np.float64) for k in ("range_m", "amplitude_dn", "sigma_ns"))
     np.testing.assert_allclose(las.cross_section, (r / 1000.0) ** 4 * a * s, rtol=1e-5)
-    # 7 pulses hold their returns in two packets: the second is not decomposed, and said so
-    assert summary["n_pulses_packets_skipped"] == 7
-    assert "7 pulses with more than one waveform packet" in capsys.readouterr().out
+    # every pulse's echoes are numbered 1..n along the beam, n its points
+    pid, ret, nret = (np.asarray(las[k]) for k in ("pulse_id", "return_number", "number_of_returns"))
+    for p in np.unique(pid):
+        m = pid == p
+        assert sorted(ret[m]) == list(range(1, m.sum() + 1)) and np.all(nret[m] == m.sum())
+    # 7 pulses hold their returns in two packets (RIEGL's segments): both are decomposed, so every
+    # return the scanner recorded in a second packet has an echo of the cloud within 10 cm
+    assert summary["n_pulses_several_packets"] == 7 and summary["n_packets"] == 2375
+    assert "7 with returns in several waveform packets, each decomposed" in capsys.readouterr().out
+    src = laspy.read(RIEGL)
+    g, off = np.asarray(src.gps_time), np.asarray(src.wavepacket_offset)
+    sxyz = np.column_stack([src.x, src.y, src.z])
+    first_off = {t: off[g == t][np.argmin(np.asarray(src.return_number)[g == t])] for t in np.unique(g)}
+    later = np.flatnonzero([off[i] != first_off[g[i]] for i in range(len(g))])
+    assert len(later) == 7
+    xyz, gps = np.column_stack([las.x, las.y, las.z]), np.asarray(las.gps_time)
+    for i in later:
+        near = np.linalg.norm(xyz[gps == g[i]] - sxyz[i], axis=1)
+        assert near.min() < 0.10, (g[i], near)
     main(["info", str(out)])
     said = capsys.readouterr().out
     assert "point format 6 (no waveforms)" in said and "extra bytes cross_section" in said
@@ -268,12 +284,15 @@ def _check_waveforms_kept(src_table, out):
     for a in "xyz":  # the first sample's position, from the quantised points (scale 1 mm)
         np.testing.assert_allclose(back.column(f"anchor_{a}").to_numpy()[j], src_table.column(f"anchor_{a}").to_numpy()[i],
                                    atol=2e-3)
-    # each echo's time read back reproduces its range: range - t c/2 is the range of the first sample, one per pulse
+    # each echo's time read back reproduces its range: range - t c/2 is the range of its packet's
+    # first sample, one per packet
     first_sample = np.asarray(las.range_m, np.float64) - np.asarray(las.echo_time_ns, np.float64) * RANGE_PER_NS
-    pid = np.asarray(las.pulse_id)
-    for p in np.unique(pid)[:200]:
-        assert np.ptp(first_sample[pid == p]) < 2e-3
-    te, tl = list_to_padded(back.column("echo_time_ns"), dtype=np.float64)
+    packet = np.unique(np.column_stack([las.pulse_id, las.wavepacket_offset]), axis=0, return_inverse=True)[1].ravel()
+    for p in np.unique(packet)[:300]:
+        assert np.ptp(first_sample[packet == p]) < 2e-3
+    by_packet = read_waveform_las(out, agc_attribute=None, by_packet=True)
+    assert by_packet.num_rows == packet.max() + 1
+    te, tl = list_to_padded(by_packet.column("echo_time_ns"), dtype=np.float64)
     assert int(tl.sum()) == len(las.points)
     np.testing.assert_allclose(np.sort(te[np.arange(te.shape[1]) < tl[:, None]]),
                                np.sort(np.asarray(las.echo_time_ns, np.float64)), atol=1e-3)

@@ -54,6 +54,35 @@ def test_pulse_count_and_grouping(table):
     assert reader.stats.n_split_pulses == 7 and reader.stats.n_pulses == 2368
 
 
+def test_by_packet_gives_each_packet_its_own_row():
+    """by_packet (decompose's reading): one row per (pulse, packet) of the independent reading,
+    with that packet's 16-bit samples and its returns at their own location in it."""
+    back = read_waveform_las(RIEGL, agc_attribute=None, by_packet=True)
+    groups = {}
+    for p in reference_points(RIEGL):
+        groups.setdefault((p["gps"], p["off"]), []).append(p)
+    assert back.num_rows == len(groups) == 2375
+    pid = back["pulse_id"].to_numpy()
+    assert len(np.unique(pid)) == 2368 and np.all(np.diff(pid) >= 0)
+    assert int(back["n_echoes"].to_numpy().sum()) == 2535
+    wdp = RIEGL.with_suffix(".wdp").read_bytes()
+    anchor = np.column_stack([back[f"anchor_{a}"].to_numpy() for a in "xyz"])
+    direction = np.column_stack([back[f"dir_{a}"].to_numpy() for a in "xyz"])
+    rows = zip(back["gps_time"].to_numpy(), back["samples"].to_pylist(), back["echo_time_ns"].to_pylist(),
+               back["echo_x"].to_pylist())
+    for i, (gps, samples, times, ex) in enumerate(rows):
+        if i % 50 and pid[i] not in pid[np.flatnonzero(np.diff(pid) == 0)]:
+            continue  # every 50th row and every pulse with several packets
+        pts = next(v for (g, _), v in groups.items() if g == gps and v[0]["x"] in ex)
+        raw = wdp[pts[0]["off"]:pts[0]["off"] + pts[0]["size"]]
+        assert samples == np.frombuffer(raw, "<u2").tolist()
+        assert sorted(ex) == sorted(p["x"] for p in pts)
+        for p, t in zip(sorted(pts, key=lambda q: q["loc"]), sorted(times)):  # each return on its packet's line
+            assert t == pytest.approx(p["loc"] / 1000.0)  # (air against vacuum c/2: as the test below)
+            at = anchor[i] + direction[i] * t * RANGE_PER_NS
+            assert np.linalg.norm(at - [p["x"], p["y"], p["z"]]) < ANCHOR_TOL_M + 3e-4 * RANGE_PER_NS * t
+
+
 def test_every_sample_exact(table, reference):
     assert len(reference) == table.num_rows
     samples = table["samples"].to_pylist()

@@ -3,10 +3,12 @@
 
 Each batch of pulses from :class:`waveforest.io.las.read.WaveformPulseReader` is decomposed
 and its echoes written to a LAS 1.4 point format 6 file with extra bytes
-(:mod:`waveforest.io.las.extra_bytes`); memory is one batch. Point format 9 keeps the
-waveforms: each echo points into its pulse's packet, in a copy of the source's waveform data
+(:mod:`waveforest.io.las.extra_bytes`); memory is one batch. Every waveform packet of a pulse
+is decomposed (a RIEGL pulse may hold its returns in several), and a pulse's echoes are numbered
+together. Point format 9 keeps the
+waveforms: each echo points into its packet, in a copy of the source's waveform data
 (a ``.wdp`` beside the output), at its time within the packet. Per echo: the centre along the
-beam (``anchor + dir * t * c/2``), range, amplitude, SD, FWHM, energy, the pulse's fit residual,
+beam (``anchor + dir * t * c/2``), range, amplitude, SD, FWHM, energy, its packet's fit residual,
 echo number and count, the pulse's flags (:data:`waveforest.sensor.decompose.FLAGS`) and the
 backscatter cross-section (Eq. F2):
 
@@ -40,7 +42,7 @@ from waveforest.io.las.read import WaveformPulseReader
 from waveforest.io.pulses import list_to_padded
 from waveforest.model.self_tuning import Pulses
 from waveforest.sensor.calibration import load_calibration
-from waveforest.sensor.decompose import FLAGS, decompose
+from waveforest.sensor.decompose import FLAG_NOISE, FLAGS, decompose
 from waveforest.sensor.self_calibration import tail_noise
 
 REFERENCE_RANGE_M = 1000.0
@@ -68,9 +70,9 @@ class DecomposeSettings:
 
 @dataclass
 class DecomposeSummary:
-    """What :func:`decompose_file` wrote and found. ``n_pulses_packets_skipped``: pulses whose
-    returns lie in more than one waveform packet; only the packet of the first return is
-    decomposed (:class:`~waveforest.io.las.read.WaveformPulseReader`)."""
+    """What :func:`decompose_file` wrote and found. ``n_pulses_several_packets``: pulses whose
+    returns lie in more than one waveform packet (each packet is decomposed; the pulse's echoes
+    are numbered together); ``n_packets``: the waveforms decomposed."""
 
     out: Path
     n_pulses: int = 0
@@ -81,7 +83,8 @@ class DecomposeSummary:
     noise_sd: float = math.nan
     pulse_fwhm_ns: float | None = None
     noise_source: str = ""
-    n_pulses_packets_skipped: int = 0
+    n_packets: int = 0
+    n_pulses_several_packets: int = 0
     seconds: float = 0.0
 
     def as_dict(self) -> dict:
@@ -89,7 +92,7 @@ class DecomposeSummary:
                 "echoes_per_pulse": {str(k): v for k, v in sorted(self.echoes_per_pulse.items())},
                 "flagged_pulses": self.flags, "noise_mean_dn": self.noise_mean, "noise_sd_dn": self.noise_sd,
                 "pulse_fwhm_ns": self.pulse_fwhm_ns, "noise_source": self.noise_source,
-                "n_pulses_packets_skipped": self.n_pulses_packets_skipped, "seconds": round(self.seconds, 3)}
+                "n_packets": self.n_packets, "n_pulses_several_packets": self.n_pulses_several_packets, "seconds": round(self.seconds, 3)}
 
 
 def calibration_constant(reflectance: float, incidence_deg: float, divergence_mrad: float, range_m: float,
@@ -117,10 +120,30 @@ def noise_and_width(cfd_path, first: pa.Table) -> tuple[float, float, float | No
     return noise.mean, noise.sd, None, "tail samples of the first batch"
 
 
+def pulse_numbers(pulse_id: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rows grouped in runs of equal ``pulse_id`` (a batch: one row per waveform packet, a pulse's
+    packets consecutive) -> (each row's run, numbered from 0; each run's first row)."""
+    first = np.ones(len(pulse_id), bool)
+    first[1:] = pulse_id[1:] != pulse_id[:-1]
+    return np.cumsum(first) - 1, np.flatnonzero(first)
+
+
+def pulse_flags(flags: np.ndarray, firsts: np.ndarray) -> np.ndarray:
+    """Flags (:data:`FLAGS`) of each pulse from those of its packets (rows ``firsts[j]`` up to
+    the next pulse's): any packet's flag, but "all noise" only if every packet is all noise."""
+    if not len(firsts):
+        return flags[:0]
+    noise = np.uint8(FLAG_NOISE)
+    return (np.bitwise_or.reduceat(flags, firsts) & ~noise) | np.bitwise_and.reduceat(flags & noise, firsts)
+
+
 def echo_columns(batch: pa.Table, dec, settings: DecomposeSettings, first_pulse: int) -> dict:
-    """The echoes of one decomposed batch as flat point columns (:class:`EchoCloudWriter`)."""
+    """The echoes of one decomposed batch as flat point columns (:class:`EchoCloudWriter`);
+    a pulse's echoes from all its packets are numbered together along the beam."""
     k = dec.n_echoes.astype(np.int64)
     rows = np.repeat(np.arange(len(k)), k)
+    row_pulse, firsts = pulse_numbers(batch.column("pulse_id").to_numpy())
+    pulse = row_pulse[rows]
     has = np.isfinite(dec.time_ns)  # found echoes are the first k of each row, in time order
     t = dec.time_ns[has]
     col = lambda c: batch.column(c).to_numpy(zero_copy_only=False).astype(np.float64)[rows]  # noqa: E731
@@ -133,13 +156,18 @@ def echo_columns(batch: pa.Table, dec, settings: DecomposeSettings, first_pulse:
         cross = (rng / REFERENCE_RANGE_M) ** 4 * amp * sig
     else:
         cross = settings.calibration_constant * rng ** 4 * amp * sig
-    number = np.broadcast_to(np.arange(1, dec.time_ns.shape[1] + 1), dec.time_ns.shape)[has]
+    along = sum(xyz[a] * col(f"dir_{a}") for a in "xyz")  # distance down the beam: the packets' common axis
+    order = np.lexsort((along, pulse))
+    group, starts = pulse_numbers(pulse[order])
+    number, count = np.empty(len(order), np.int64), np.empty(len(order), np.int64)
+    number[order] = np.arange(len(order)) - starts[group] + 1
+    count[order] = np.diff(np.append(starts, len(order)))[group]
     out = {**xyz, "gps_time": col("gps_time"), "scan_angle_deg": col("scan_angle_deg"),
-           "return_number": number, "number_of_returns": k[rows], "intensity": amp,
-           "pulse_id": first_pulse + rows, "echo_time_ns": t, "range_m": rng, "amplitude_dn": amp,
+           "return_number": number, "number_of_returns": count, "intensity": amp,
+           "pulse_id": first_pulse + pulse, "echo_time_ns": t, "range_m": rng, "amplitude_dn": amp,
            "sigma_ns": sig, "fwhm_ns": dec.fwhm_ns[has], "energy_dn_ns": dec.energy[has],
-           "residual_dn": dec.rms_residual[rows], "flags": dec.flags[rows], "cross_section": cross}
-    if "wave_packet_index" in batch.column_names:  # point format 9: the pulse's packet, t in ps, -dir * c/2 per ps
+           "residual_dn": dec.rms_residual[rows], "flags": pulse_flags(dec.flags, firsts)[pulse], "cross_section": cross}
+    if "wave_packet_index" in batch.column_names:  # point format 9: the echo's packet, t in ps, -dir * c/2 per ps
         out.update({c: batch.column(c).to_numpy()[rows] for c in
                     ("wave_packet_index", "wave_packet_offset", "wave_packet_bytes")})
         out["return_point_ps"] = t * 1000.0
@@ -171,7 +199,7 @@ def decompose_file(las_path, out_path, settings: DecomposeSettings, *, cfd_path=
     wdp = out_path.with_suffix(".wdp")
     locate, _ = sensor_locator(trajectory, nominal_range_m)
     reader = WaveformPulseReader(las_path, locate=locate, agc_attribute=None, batch_pulses=settings.batch_pulses,
-                                 tmp_dir=out_path.parent, packets=keep_waves)
+                                 tmp_dir=out_path.parent, packets=keep_waves, by_packet=True)
     las = reader.las
     if keep_waves and wdp.resolve() in (las.waveform.path.resolve(), las_path.with_suffix(".wdp").resolve()):
         raise WaveforestError(f"{out_path}: its waveforms would go to {wdp}, the input's own; choose another name")
@@ -203,10 +231,10 @@ def decompose_file(las_path, out_path, settings: DecomposeSettings, *, cfd_path=
                                     pulse_fwhm_ns=summary.pulse_fwhm_ns, fixed_width=settings.fixed_width,
                                     min_snr=settings.min_snr, max_echoes=settings.max_echoes)
                     w.write(echo_columns(batch, dec, settings, summary.n_pulses))
-                    _count(summary, dec)
-                    if bar.total is not None and bar.n + batch.num_rows > bar.total:
-                        bar.total = bar.n + batch.num_rows  # past the estimate: never a bare counter
-                    bar.update(batch.num_rows)
+                    pulses = _count(summary, dec, batch.column("pulse_id").to_numpy())
+                    if bar.total is not None and bar.n + pulses > bar.total:
+                        bar.total = bar.n + pulses  # past the estimate: never a bare counter
+                    bar.update(pulses)
             finally:
                 batches.close()
             bar.total = bar.n  # the true count
@@ -216,18 +244,24 @@ def decompose_file(las_path, out_path, settings: DecomposeSettings, *, cfd_path=
             size = WAVEFORM_HEADER_SIZE + wf.record_length if wf.storage == "internal" and wf.header_ok else wf.size
             with atomic_path(wdp) as tmp:
                 copy_waveform_data(wf.path, wf.base, size, tmp)
-        summary.n_pulses_packets_skipped = reader.stats.n_split_pulses
+        summary.n_pulses_several_packets = reader.stats.n_split_pulses
         summary.seconds = time.perf_counter() - started
         write_json(summary.as_dict(), out_path.with_name(out_path.name + ".json"))
     return summary
 
 
-def _count(summary: DecomposeSummary, dec) -> None:
-    summary.n_pulses += len(dec.n_echoes)
-    summary.n_echoes += int(dec.n_echoes.sum())
-    for k, c in zip(*np.unique(dec.n_echoes, return_counts=True)):
+def _count(summary: DecomposeSummary, dec, pulse_id: np.ndarray) -> int:
+    """Add a batch's pulses (rows grouped by ``pulse_id``), echoes and flags to ``summary``; return its pulses."""
+    _, firsts = pulse_numbers(pulse_id)
+    n_echoes = np.add.reduceat(dec.n_echoes.astype(np.int64), firsts) if len(firsts) else np.zeros(0, np.int64)
+    flags = pulse_flags(dec.flags, firsts)
+    summary.n_pulses += len(firsts)
+    summary.n_packets += len(pulse_id)
+    summary.n_echoes += int(n_echoes.sum())
+    for k, c in zip(*np.unique(n_echoes, return_counts=True)):
         summary.echoes_per_pulse[int(k)] = summary.echoes_per_pulse.get(int(k), 0) + int(c)
     for bit, name in FLAGS.items():
-        c = int(np.count_nonzero(dec.flags & bit))
+        c = int(np.count_nonzero(flags & bit))
         if c:
             summary.flags[name] = summary.flags.get(name, 0) + c
+    return len(firsts)

@@ -62,7 +62,7 @@ def decompose(las_file, out, cfd, min_snr, max_echoes, fixed_width, calibration_
         s = decompose_file(las_file, out, settings, cfd_path=cfd, trajectory=trajectory,
                            nominal_range_m=nominal_range, progress=progress)
     flagged = ", ".join(f"{name} {n:,}" for name, n in s.flags.items()) or "none"
-    skipped = (f"; {s.n_pulses_packets_skipped:,} pulses with more than one waveform packet (later packets "
-               "not decomposed)" if s.n_pulses_packets_skipped else "")
-    click.echo(f"decompose: {s.n_pulses:,} waveforms, {s.n_echoes:,} echoes "
-               f"({s.n_pulses / max(s.seconds, 1e-9):,.0f} waveforms/s); flagged: {flagged}{skipped} -> {s.out}")
+    several = (f" ({s.n_pulses_several_packets:,} with returns in several waveform packets, each decomposed)"
+               if s.n_pulses_several_packets else "")
+    click.echo(f"decompose: {s.n_pulses:,} pulses{several}, {s.n_echoes:,} echoes "
+               f"({s.n_packets / max(s.seconds, 1e-9):,.0f} waveforms/s); flagged: {flagged} -> {s.out}")

@@ -241,37 +241,61 @@ class PointScanner:
 
 @dataclass(frozen=True)
 class PulseIndex:
-    """Points of a bucket grouped into pulses, without copying them.
+    """Points of a bucket grouped into pulses (or packets of pulses), without copying them.
 
     Attributes
     ----------
     order : (n,) int64
-        Point indices sorted by GPS time, return number, packet offset.
-    starts : (n_pulses + 1,) int64
-        Pulse ``j`` is ``rec[order[starts[j]:starts[j + 1]]]``.
-    chosen : (n_pulses,) int64
-        Position in ``order`` of the pulse's first return with a waveform, ``n`` if none.
+        Point indices sorted by GPS time, then (packets) descriptor and offset, return number.
+    starts : (n_groups + 1,) int64
+        Group ``j`` is ``rec[order[starts[j]:starts[j + 1]]]``.
+    chosen : (n_groups,) int64
+        Position in ``order`` of the group's first return with a waveform, ``n`` if none.
+    pulse : (n_groups,) int64
+        The pulse of each group, numbered from 0 within the bucket in GPS-time order (a pulse
+        is one group, or several groups when grouped by packet).
     """
 
     order: np.ndarray
     starts: np.ndarray
     chosen: np.ndarray
+    pulse: np.ndarray
 
     @property
     def n_pulses(self) -> int:
+        """Groups in the index (pulses, or packets of pulses)."""
         return len(self.chosen)
 
 
-def sort_points(rec: np.ndarray) -> PulseIndex:
-    """Group compact point records (:data:`COMPACT_DTYPE`) into pulses by GPS time."""
+def sort_points(rec: np.ndarray, by_packet: bool = False) -> PulseIndex:
+    """Group compact point records (:data:`COMPACT_DTYPE`) into pulses by GPS time; with
+    ``by_packet``, into the waveform packets of each pulse (points without a packet dropped,
+    a pulse without any packet kept as one group without a waveform)."""
     n = len(rec)
-    order = np.lexsort((rec["off"], rec["ret"], rec["gps"]))
+    if by_packet:
+        order = np.lexsort((rec["ret"], rec["off"], rec["wpi"], rec["gps"]))
+    else:
+        order = np.lexsort((rec["off"], rec["ret"], rec["gps"]))
     gps = rec["gps"][order]
-    new = np.ones(n, dtype=bool)
-    new[1:] = gps[1:] != gps[:-1]
+    new_pulse = np.ones(n, dtype=bool)
+    new_pulse[1:] = gps[1:] != gps[:-1]
     del gps
+    if by_packet and n:
+        pid = np.cumsum(new_pulse) - 1
+        has = rec["wpi"][order] > 0
+        keep = has | ~np.maximum.reduceat(has, np.flatnonzero(new_pulse))[pid]  # a pulse without packets: one group
+        order, pid = order[keep], pid[keep]
+        n = len(order)
+        wpi, off = rec["wpi"][order], rec["off"][order]
+        new_pulse = np.ones(n, dtype=bool)
+        new_pulse[1:] = pid[1:] != pid[:-1]
+        new = new_pulse.copy()
+        new[1:] |= (wpi[1:] != wpi[:-1]) | (off[1:] != off[:-1])
+    else:
+        new = new_pulse
     starts = np.append(np.flatnonzero(new), n).astype(np.int64)
     if n == 0:
-        return PulseIndex(order, starts, np.zeros(0, np.int64))
+        return PulseIndex(order, starts, np.zeros(0, np.int64), np.zeros(0, np.int64))
+    pulse = (np.cumsum(new_pulse) - 1)[starts[:-1]]
     pos = np.where(rec["wpi"][order] > 0, np.arange(n), n)
-    return PulseIndex(order, starts, np.minimum.reduceat(pos, starts[:-1]))
+    return PulseIndex(order, starts, np.minimum.reduceat(pos, starts[:-1]), pulse)

@@ -129,6 +129,11 @@ class WaveformPulseReader:
         ``wave_packet_index`` (uint8, the descriptor), ``wave_packet_offset`` (uint64, bytes
         from the start of the waveform data record) and ``wave_packet_bytes`` (uint32,
         samples x bytes per sample of the descriptor).
+    by_packet : bool
+        One row per waveform packet of a pulse instead of one per pulse: a pulse whose returns
+        lie in several packets (RIEGL's segments) gives several rows with its ``pulse_id`` and
+        GPS time, each with its packet's samples, anchor and returns; returns without a packet
+        are left out. ``stats.n_split_pulses`` counts those pulses either way.
 
     Attributes
     ----------
@@ -150,6 +155,7 @@ class WaveformPulseReader:
         tmp_dir: str | os.PathLike | None = None,
         on_points: Callable[[int], None] | None = None,
         packets: bool = False,
+        by_packet: bool = False,
     ) -> None:
         for name, value in (("chunk_points", chunk_points), ("bucket_points", bucket_points), ("batch_pulses", batch_pulses)):
             if int(value) < 1:
@@ -164,6 +170,7 @@ class WaveformPulseReader:
         self.tmp_dir = Path(tmp_dir) if tmp_dir is not None else None
         self.on_points = on_points or (lambda n: None)
         self.packets = bool(packets)
+        self.by_packet = bool(by_packet)
         self.stats = ReadStats()
         self.n_passes = 1 if self.las.n_points <= self.bucket_points else 2
         """Passes over the point records (progress total = n_passes * n_points)."""
@@ -318,18 +325,24 @@ class WaveformPulseReader:
                 buf = np.frombuffer(mm, dtype=np.uint8)[wf.base - page_base :]
             try:
                 for rec in self.buckets():
-                    index = sort_points(rec)
-                    for p0 in range(0, index.n_pulses, self.batch_pulses):
+                    index = sort_points(rec, self.by_packet)
+                    n_pulses = int(index.pulse[-1]) + 1 if len(index.pulse) else 0
+                    if self.by_packet:
+                        self.stats.n_split_pulses += int(np.count_nonzero(np.bincount(index.pulse) > 1))
+                    p0 = 0
+                    while p0 < index.n_pulses:  # batches end between pulses
                         p1 = min(index.n_pulses, p0 + self.batch_pulses)
+                        p1 = int(np.searchsorted(index.pulse, index.pulse[p1 - 1], side="right"))
                         table = self._batch(rec, index, p0, p1, next_id, lut, buf)
+                        p0 = p1
                         if mm is not None and _MADV_DONTNEED is not None:
                             mm.madvise(_MADV_DONTNEED)  # drop the batch's pages from the resident set
                         if table is not None:
                             self.stats.n_written += table.num_rows
                             yield table
                         del table
-                    next_id += index.n_pulses
-                    self.stats.n_pulses += index.n_pulses
+                    next_id += n_pulses
+                    self.stats.n_pulses += n_pulses
                     del rec, index
             finally:
                 del buf
@@ -349,7 +362,7 @@ class WaveformPulseReader:
         self.stats.n_without_waveform += int(np.count_nonzero(~keep))
         if not np.any(keep):
             return None
-        ids = first_id + np.arange(p0, p1, dtype=np.int64)[keep]
+        ids = first_id + index.pulse[p0:p1][keep]
         r = np.take(rec, index.order[ch[keep]])  # the chosen return of each kept pulse
         n = len(r)
         d = r["d"].astype(np.float64)
