@@ -149,6 +149,7 @@ def run(cmd: list[str], src: Path) -> dict:
 def old_tree(ref: str, into: Path) -> Path:
     """``git archive ref src`` unpacked into ``into``; returns its src folder."""
     tar = subprocess.run(["git", "-C", str(ROOT), "archive", ref, "src"], capture_output=True, check=True).stdout
+    into.mkdir(parents=True, exist_ok=True)
     tmp = into / "archive.tar"
     tmp.write_bytes(tar)
     with tarfile.open(tmp) as tf:
