@@ -103,6 +103,57 @@ def test_a_sensor_inside_the_scene(tmp_path, capsys):
     _fails(tmp_path, capsys, survey=survey, expect="platform/legs/1: the sensor flies inside the scene")
 
 
+def test_scanner_and_output_values_that_cannot_work_fail_before_any_tracing(tmp_path, capsys):
+    """A record too short to hold an echo past its pre-trigger (its pulses had no return and were
+    left out of the LAS, unsaid), a sampling interval LAS cannot store (the merge failed after
+    all tracing), a CRS that is no WKT or gives degrees for the scene's metres, and a start time
+    a trajectory would ignore: one line naming the key."""
+    short = {**SURVEY, "scanner": {**SURVEY["scanner"], "record_ns": 26.0}}
+    _fails(tmp_path, capsys, survey=short, expect="scanner/record_ns: 26 ns cannot hold an echo")
+    odd = {**SURVEY, "scanner": {**SURVEY["scanner"], "sampling_ns": 0.3333}}
+    _fails(tmp_path, capsys, survey=odd, expect="scanner/sampling_ns: 0.3333 ns is not a whole number of picoseconds")
+    for wkt, why in (("EPSG:32635", "expected OGC WKT"), ('PROJCS["x",GEOGCS["y"]', "brackets and quotes close"),
+                     ('GEOGCS["WGS 84",DATUM["WGS_1984"],UNIT["degree",0.0174532925199433]]', "degrees")):
+        line = _fails(tmp_path, capsys, survey={**SURVEY, "output": {"crs_wkt": wkt}}, expect="output/crs_wkt: ")
+        assert why in line, line
+    (tmp_path / "traj.csv").write_text("gps_time,x,y,z,roll_deg,pitch_deg,heading_deg\n0,0,-3,300,0,0,0\n1,0,3,300,0,0,0\n")
+    timed = {**SURVEY, "platform": {"trajectory": "traj.csv", "start_gps_time_s": 5000.0}}
+    _fails(tmp_path, capsys, survey=timed, expect="platform/start_gps_time_s: expected null with a trajectory")
+
+
+def test_pulses_without_a_return_are_counted(tmp_path, capsys):
+    """Beams between two plates cross the scene's box but return nothing, so they have no point
+    in the LAS: the summary and the command's line say how many."""
+    write_obj(tmp_path / "plate.obj", tilted_plane(2.0, 1.0))
+    plate = {"file": "plate.obj", "materials": {"m": {"rho": 0.4}}}
+    scene = {"objects": [{**plate, "translate": [-6.0, 0.0, 0.0]}, {**plate, "translate": [6.0, 0.0, 0.0]}],
+             "ground": {"type": "none"}}
+    sc, sv = _files(tmp_path, scene, {**SURVEY, "scanner": {**SURVEY["scanner"], "pulse_rate_hz": 200.0}})
+    out = tmp_path / "out"
+    code, said, _ = run_cli(["survey", sc, sv, "--out", out, "--no-progress"], capsys)
+    assert code == 0
+    summary = json.loads((out / "summary.json").read_text())
+    las = laspy.read(out / "survey.las")
+    n, rec = summary["pulses_traced"], summary["pulses_recorded"]
+    assert 0 < rec < n and rec == len(np.unique(np.asarray(las.gps_time)))
+    assert f"{n} pulses, {rec} recorded ({n - rec} without a discrete return" in said
+
+
+def test_a_damaged_cached_tile_is_traced_again(tmp_path):
+    """A tile file cut short after its run (its record written) is traced again, not a traceback
+    at the merge; the files are those of a run from scratch."""
+    write_obj(tmp_path / "plane.obj", tilted_plane(20.0, 1.0))
+    kw = dict(altitude=300.0, length=6.0, quality={"rays_per_pulse": 64, "max_order": 1, "tile_m": 2.0})
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        fly(tmp_path, PLANE, SURVEY["scanner"], part=(0, 2), **kw)
+        tile = next(next(p for p in tmp_path.iterdir() if p.name.startswith(".out.survey-")).glob("tile_*.parquet"))
+        tile.write_bytes(tile.read_bytes()[:300])
+        fly(tmp_path, PLANE, SURVEY["scanner"], **kw)
+        fly(tmp_path, PLANE, SURVEY["scanner"], out="again", **kw)
+    assert (tmp_path / "out" / "survey.las").read_bytes() == (tmp_path / "again" / "survey.las").read_bytes()
+
+
 def test_force_never_deletes_the_scene_it_flies(tmp_path, capsys):
     """--out the folder holding SCENE.yaml, SURVEY.yaml and the mesh: refused even with --force."""
     sc, sv = _files(tmp_path)
@@ -228,6 +279,21 @@ def test_plants_are_instances_of_a_bounded_set_of_prototypes(tmp_path):
             load_scene(tmp_path / "SCENE.yaml")
 
 
+def test_the_plant_table_is_a_closed_set_of_columns(tmp_path, capsys):
+    """A misnamed column (Z for z, rotation for rotation_deg) would be ignored silently: it is an
+    error naming it; blanks after the commas are allowed; a header without rows is an error."""
+    scene = {"plants": {"table": "plants.csv"}, "ground": {"type": "plane", "z": 0.0, "rho": 0.2}}
+    (tmp_path / "plants.csv").write_text("species,x,y,height,seed,Z\nbirch,0,0,6,1,10\n")
+    _fails(tmp_path, capsys, scene=scene, expect="plants.csv: unknown column(s) Z (expected species, x, y")
+    (tmp_path / "plants.csv").write_text("species, x, y, height, seed\n")
+    _fails(tmp_path, capsys, scene=scene, expect="plants.csv: no plant rows")
+    (tmp_path / "plants.csv").write_text("species, x, y, height, seed, rotation_deg\nfireweed, 0, 0, 1.0, 1, 30\n")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        _files(tmp_path, scene)
+        assert load_scene(tmp_path / "SCENE.yaml").plants is not None
+
+
 def test_plants_without_z_stand_on_the_ground(tmp_path):
     """No z column: each plant at the ground's height under it (a plane's z, a mesh's surface);
     a plant beyond the ground mesh is an error naming its row."""
@@ -248,7 +314,7 @@ def test_plants_without_z_stand_on_the_ground(tmp_path):
 def test_the_workflow_inputs_are_the_files_the_yamls_name(tmp_path):
     """input_files (the Snakemake target's inputs): every mesh, the plant table, the trajectory;
     a YAML that cannot be read gives none."""
-    from waveforest.survey.spec import input_files
+    from waveforest.survey.scene import input_files
 
     (tmp_path / "plants.csv").write_text("species,x,y,height,seed\nfireweed,0,0,1.0,1\n")
     write_obj(tmp_path / "roof.obj", tilted_plane(5.0, 10.0))
@@ -258,8 +324,12 @@ def test_the_workflow_inputs_are_the_files_the_yamls_name(tmp_path):
              "ground": {"type": "mesh", "file": "dtm.obj"}}
     (tmp_path / "SCENE.yaml").write_text(yaml.safe_dump(scene))
     (tmp_path / "SURVEY.yaml").write_text(yaml.safe_dump({"platform": {"trajectory": "traj.csv"}}))
+    (tmp_path / "mats").mkdir()
+    (tmp_path / "mats" / "roof.mtl").write_text("newmtl m\nhelios_reflectance 0.3\n")
+    roof = tmp_path / "roof.obj"
+    roof.write_text("mtllib mats/roof.mtl missing.mtl\n" + roof.read_text())
     files = input_files(tmp_path / "SCENE.yaml", tmp_path / "SURVEY.yaml")
-    assert sorted(Path(f).name for f in files) == ["dtm.obj", "plants.csv", "roof.obj", "traj.csv"]
+    assert sorted(Path(f).name for f in files) == ["dtm.obj", "plants.csv", "roof.mtl", "roof.obj", "traj.csv"]
     (tmp_path / "SURVEY.yaml").write_text("platform: [")
     assert input_files(tmp_path / "SCENE.yaml", tmp_path / "SURVEY.yaml") == []
 
@@ -358,14 +428,15 @@ def test_ctrl_c_leaves_no_output_and_the_rerun_resumes(tmp_path, capsys, monkeyp
 
 
 def test_obj_faces_materials_and_indices(tmp_path):
-    """Triangles and a quad (fanned, file order), v/vt/vn corners, relative indices, materials from
-    the MTL (helios_reflectance) and from SCENE.yaml, and a face before any usemtl."""
+    """Triangles and a quad (fanned, file order), v/vt/vn corners, relative indices, comments
+    after a line's values, materials from the MTL (helios_reflectance) and from SCENE.yaml, and a
+    face before any usemtl."""
     from waveforest.survey.scene import read_obj
 
     (tmp_path / "a.mtl").write_text("newmtl bark\nhelios_reflectance 0.25\nnewmtl leaf\nKd 1 1 1\n")
     (tmp_path / "a.obj").write_text(
-        "mtllib a.mtl\nv 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\n"
-        "f 1 2 3\n"                              # no usemtl yet: material "default"
+        "mtllib a.mtl\nv 0 0 0\nv 1 0 0  # a comment after the numbers\nv 1 1 0\nv 0 1 0\n"
+        "f 1 2 3 # and after a face\n"            # no usemtl yet: material "default"
         "usemtl bark\nf 1/1/1 2/2/2 3/3/3 4/4/4\n"  # a quad: (1 2 3), (1 3 4)
         "usemtl leaf\nv 0 0 5\nv 1 0 5\nv 0 1 5\nf -3 -2 -1\n")
     props = {"leaf": {"rho": 0.4, "tau": 0.5, "kind": "leaf"}, "default": {"rho": 0.1}}

@@ -130,26 +130,34 @@ def test_a_flight_past_a_gps_week_is_written_in_adjusted_standard_time(tmp_path)
 
 
 @pytest.mark.parametrize("pattern", ["oscillating", "polygon", "conic"])
-def test_scan_direction_and_edge_flags_follow_the_mirror(tmp_path, pattern):
-    """LAS 1.4 R15: scan direction flag 1 while the beam sweeps left to right across track, edge
-    of flight line on the last pulse before the sweep turns (or the facet changes); in the LAS
-    points as in the pulses."""
+@pytest.mark.parametrize("hz", [10.0, 7.0])  # 50 pulses a sweep (one at each turn), 71.4 (none)
+def test_scan_direction_and_edge_flags_follow_the_mirror(tmp_path, pattern, hz):
+    """LAS 1.4 R15: the scan direction flag is 1 while the mirror travels left to right when the
+    pulse leaves, the edge of flight line marks the last pulse of a sweep before it turns (or the
+    facet changes), the pulse at the turn itself included; in the LAS points as in the pulses."""
     from waveforest.survey.scan import EDGE_OF_LINE, SCAN_POSITIVE
 
-    scanner = {"pulse_rate_hz": 1000.0, "scan_frequency_hz": 10.0, "scan_angle_deg": 10.0, "pattern": pattern}
+    scanner = {"pulse_rate_hz": 1000.0, "scan_frequency_hz": hz, "scan_angle_deg": 10.0, "pattern": pattern}
     long_leg = {"legs": [{"start": [0, 0], "end": [0, 62], "speed_m_s": 62.0}]}
     sv = _survey(tmp_path, {"platform": long_leg, "scanner": scanner})
     p = fly(sv, leg_tracks(sv))
-    step = np.diff(p.scan_angle_deg)  # level flight: the scan angle follows the mirror
+    phase = np.mod(np.round((p.gps_time - p.gps_time[0]) * 1000.0) / 1000.0 * hz, 1.0)
+    # the mirror's across-track motion at the phase: oscillating a (1 - 4 |p - 1/2|), conic
+    # sin(a) sin(2 pi p), arriving at the pulse (at a turn: the sweep that ends there)
+    left_to_right = {"oscillating": (phase > 0) & (phase <= 0.5 + 1e-9),
+                     "conic": np.cos(2 * np.pi * (phase - 1e-9)) > 0, "polygon": np.ones(len(phase), bool)}[pattern]
+    last = left_to_right[:-1] != left_to_right[1:] if pattern != "polygon" else phase[1:] < phase[:-1]
     positive = (p.scan_flags & SCAN_POSITIVE) > 0
     edge = (p.scan_flags & EDGE_OF_LINE) > 0
-    if pattern == "polygon":  # every facet left to right; a line ends where the angle jumps back
-        assert positive.all() and np.array_equal(edge[:-1], step < -10.0)
-    else:
-        assert np.array_equal(positive[:-1], step > 0)
-        assert np.array_equal(edge[:-2], (step[:-1] > 0) != (step[1:] > 0))
-    lines = {"oscillating": 20, "polygon": 10, "conic": 20}[pattern]  # sweeps in 1 s of flight
+    assert np.array_equal(positive, left_to_right)
+    assert np.array_equal(edge[:-1], last)
+    if hz == 10.0 and pattern == "oscillating":  # the pulse at the turn is its sweep's outermost
+        a = np.abs(p.scan_angle_deg)
+        assert np.all(a[edge[:-1].nonzero()[0]] == pytest.approx(10.0))
+    lines = {"oscillating": 2 * hz, "polygon": hz, "conic": 2 * hz}[pattern]  # sweeps in 1 s of flight
     assert abs(int(edge.sum()) - lines) <= 1
+    if hz != 10.0:
+        return
     scene = {"ground": {"type": "plane", "z": 0.0, "rho": 0.3, "extent": [-300, -300, 300, 300]}}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")

@@ -5,7 +5,7 @@
 # `rule all`. On SLURM: the existing profile (workflow/profiles/), one part per job.
 import os
 
-from waveforest.survey.spec import input_files
+from waveforest.survey.scene import input_files
 
 SURVEY_PARTS = int(os.environ.get("WAVEFOREST_SURVEY_PARTS", "4"))
 

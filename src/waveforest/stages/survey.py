@@ -15,7 +15,7 @@ import click
 from waveforest.cliutil import EXISTING_FILE, OUT_DIR, force_option, stage_options, warnings_to_stderr
 from waveforest.settings import mcrt_setup, reference_system, sensor_settings
 from waveforest.survey import load_scene, load_survey, run_survey, sensor_setup, survey_mcrt
-from waveforest.survey.spec import input_files
+from waveforest.survey.scene import input_files
 
 
 def _part(ctx, param, value: str | None) -> tuple[int, int] | None:
@@ -75,9 +75,10 @@ def _run(scene_file, survey_file, out, part, progress, force, cfg):
     if result is None:
         click.echo(f"part {part[0]}/{part[1]}: tiles traced (run without --part to merge into {out})")
     else:
-        click.echo(f"{out}: {result['pulses_traced']} pulses, {result['returns']} returns, "
+        n, n_rec, n_sat = result["pulses_traced"], result["pulses_recorded"], result["saturated_pulses"]
+        silent = f" ({n - n_rec} without a discrete return: no point, so no waveform, in the LAS)" if n_rec < n else ""
+        click.echo(f"{out}: {n} pulses, {n_rec} recorded{silent}, {result['returns']} returns, "
                    f"{result['cpu_ms_per_pulse']:.1f} ms CPU per pulse, peak {result['peak_memory_mb']:.0f} MB")
-        n, n_sat = result["pulses_traced"], result["saturated_pulses"]
         if n_sat:
             warnings.warn(f"{n_sat} of {n} pulses ({n_sat / n:.0%}) reach the digitiser's full scale "
                           f"({setup.digitizer_max} DN): their waveforms are clipped and their discrete returns "

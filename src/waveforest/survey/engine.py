@@ -155,14 +155,26 @@ def survey_mcrt(mcrt: MCRTSetup, survey: Survey) -> MCRTSetup:
     return replace(mcrt, max_order=int(survey.max_order or mcrt.max_order))
 
 
+RECORD_PAST_TRIGGER_FWHM = 2.0
+"""A record must reach this many system-pulse FWHMs past the latest pre-trigger start."""
+
+
 def sensor_setup(survey: Survey, sensor: SensorSettings) -> SensorSetup:
     """The sensor twin of the survey's scanner: the config's sensor model (pre-trigger, CFD
     delay and dead time, features) with the scanner's S(t), noise, sampling, bits, record
-    length, CFD fraction and arming."""
+    length, CFD fraction and arming. A record too short to hold an echo past its pre-trigger
+    is a :class:`SurveyError`."""
     sc = survey.scanner
     cfd = replace(sensor.cfd, fraction=float(sc.cfd_fraction), arming_sd=float(sc.cfd_arming_sd))
     settings = replace(sensor, record_ns=float(sc.record_ns), digitizer_max=2 ** int(sc.bits) - 1, cfd=cfd)
-    return settings.setup(system_waveform(survey, cfd), sc.noise_mean, sc.noise_sd, sc.sampling_ns)
+    setup = settings.setup(system_waveform(survey, cfd), sc.noise_mean, sc.noise_sd, sc.sampling_ns)
+    lead = max(setup.pre_trigger_m) / RANGE_PER_NS
+    need = lead + RECORD_PAST_TRIGGER_FWHM * setup.system.fwhm_ns
+    if sc.record_ns < need:
+        raise SurveyError(f"{survey.source}: scanner/record_ns: {sc.record_ns:g} ns cannot hold an echo: the record "
+                          f"starts up to {lead:.1f} ns before the trigger (config sensor.pre_trigger_m); expected "
+                          f"at least {need:.1f} ns (that and {RECORD_PAST_TRIGGER_FWHM:g} pulse widths)")
+    return setup
 
 
 def max_zenith_tan(pulses: Pulses) -> float:
@@ -297,6 +309,8 @@ def truth_table(pulse_id: np.ndarray, gps_time: np.ndarray, res) -> pa.Table:
 class TileResult:
     pulses: int = 0
     returns: int = 0
+    recorded: int = 0
+    """Pulses with a discrete return (the others have no point, hence no waveform, in the LAS)."""
     rays: int = 0
     cpu_s: float = 0.0
     saturated: int = 0
@@ -351,8 +365,9 @@ def run_tile(k: int, plan_: Plan, scenes: TileScenes, survey: Survey, mcrt: MCRT
         with atomic_path(tpath) as tmp:
             empty = pa.table({"pulse_id": pa.array([], pa.int64())})
             pq.write_table(pa.concat_tables(truths) if truths else empty, tmp)
-    returns = int(table.column("n_echoes").to_numpy().astype(np.int64).sum())
-    return TileResult(len(rows), returns, rays, time.process_time() - cpu, saturated, sigma, late)
+    echoes = table.column("n_echoes").to_numpy().astype(np.int64)
+    return TileResult(len(rows), int(echoes.sum()), int(np.count_nonzero(echoes)), rays, time.process_time() - cpu,
+                      saturated, sigma, late)
 
 
 def _empty_sim() -> SimPulses:
@@ -394,7 +409,8 @@ def summary(plan_: Plan, results: list[TileResult], wall_s: float, peak_mb: floa
     """The run summary written as summary.json."""
     cpu = sum(r.cpu_s for r in results)
     n = sum(r.pulses for r in results)
-    return {"pulses_flown": plan_.n_flown, "pulses_traced": n, "returns": sum(r.returns for r in results),
+    return {"pulses_flown": plan_.n_flown, "pulses_traced": n, "pulses_recorded": sum(r.recorded for r in results),
+            "returns": sum(r.returns for r in results),
             "saturated_pulses": sum(r.saturated for r in results),
             "tiles": len(plan_.tiles), "rays_per_pulse": mcrt.n_rays if mcrt.tolerance is None else None,
             "tolerance": mcrt.tolerance, "max_order": mcrt.max_order,

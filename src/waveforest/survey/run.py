@@ -16,6 +16,7 @@ import json
 import resource
 import shutil
 import time
+import warnings
 from contextlib import suppress
 from pathlib import Path
 
@@ -25,6 +26,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from waveforest.atomic import OutputFolder, atomic_path
+from waveforest.errors import WaveforestWarning
 from waveforest.io.las.write import GPS_WEEK_S, WaveformLasWriter, creation_today
 from waveforest.model.forward import MCRTSetup, SensorSetup
 from waveforest.survey.engine import (
@@ -75,7 +77,7 @@ def run_tiles(scene: SurveyScene, survey: Survey, mcrt: MCRTSetup, setup: Sensor
     cache.mkdir(parents=True, exist_ok=True)
     todo = [k for k in range(len(pl.tiles)) if k % part[1] == part[0]]
     counts = np.bincount(np.searchsorted(pl.tiles, pl.tile), minlength=len(pl.tiles))
-    missing = [k for k in todo if not (cache / f"tile_{k:06d}.json").exists()]
+    missing = [k for k in todo if not tile_complete(cache, k, survey.truth)]
     bar = None
     if progress:
         from tqdm import tqdm
@@ -92,6 +94,12 @@ def run_tiles(scene: SurveyScene, survey: Survey, mcrt: MCRTSetup, setup: Sensor
             with atomic_path(cache / f"tile_{k:06d}.json") as tmp:  # written last: the tile is complete
                 tmp.write_text(json.dumps(res.__dict__))
             traced += 1
+    except BaseException:  # interrupted or failed: say what a rerun of the same command resumes from
+        done = len(todo) - len(missing) + traced
+        if done:
+            warnings.warn(f"{done} of {len(todo)} tiles complete in {cache}: the same command resumes from them",
+                          WaveforestWarning, stacklevel=2)
+        raise
     finally:
         if bar is not None:
             bar.close()
@@ -102,6 +110,21 @@ def run_tiles(scene: SurveyScene, survey: Survey, mcrt: MCRTSetup, setup: Sensor
                 tmp.write_text(json.dumps({"prototype_build_s": scene.build_s + prepare_s,
                                            "wall_s": time.perf_counter() - wall, "peak_memory_mb": peak_memory_mb()}))
     return pl, cache
+
+
+def tile_complete(cache: Path, k: int, truth: bool) -> bool:
+    """Tile ``k`` is in ``cache``: its record (written last) and readable Parquet files, the pulse
+    table with the record's recorded pulses (a file damaged after its run is traced again)."""
+    record = cache / f"tile_{k:06d}.json"
+    if not record.exists():
+        return False
+    try:
+        recorded = json.loads(record.read_text())["recorded"]
+        files = [cache / f"tile_{k:06d}.parquet"] + ([cache / f"tile_{k:06d}.truth.parquet"] if truth else [])
+        rows = [pq.read_metadata(f).num_rows for f in files]
+    except (OSError, ValueError, KeyError, pa.ArrowException):
+        return False
+    return rows[0] == recorded
 
 
 def in_time_order(tiles: list[Path], window: int):
@@ -134,7 +157,7 @@ def merge(pl: Plan, cache: Path, scene: SurveyScene, survey: Survey, out_dir: Pa
     largest of theirs."""
     t0 = time.perf_counter()
     folder = OutputFolder(out_dir, COMMAND, force=force, inputs=inputs)
-    missing = [k for k in range(len(pl.tiles)) if not (cache / f"tile_{k:06d}.json").exists()]
+    missing = [k for k in range(len(pl.tiles)) if not tile_complete(cache, k, survey.truth)]
     if missing:
         raise SurveyError(f"{cache}: tiles {missing[0]} and {len(missing) - 1} more not traced yet "
                           "(run every part first)")

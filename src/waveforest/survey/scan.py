@@ -143,17 +143,28 @@ def fly_blocks(survey: Survey, tracks: list[Track], block: int = 1_000_000):
             yield Pulses(np.full(len(t), i, np.int64), t, xyz, d, scan, scan_flags(sc, dt))
 
 
+SLOPE_PHASE = 1e-6
+"""Phase step (of a scan period) before a pulse over which the mirror's direction is taken."""
+
+
 def scan_flags(scanner: Scanner, dt: np.ndarray) -> np.ndarray:
     """(n,) uint8 :data:`SCAN_POSITIVE` | :data:`EDGE_OF_LINE` of pulses ``dt`` s into their leg,
-    from the mirror alone (not the platform's attitude): a polygon sweeps left to right on every
-    facet, its line ending where the phase wraps; an oscillating or conic mirror's across-track
-    angle at this pulse, the next and the one after give its direction and its turns."""
+    from the mirror alone (not the platform's attitude), as LAS 1.4 R15 defines them: the
+    direction the mirror travels when the pulse leaves (a polygon sweeps left to right on every
+    facet), and the last pulse of a sweep before the mirror turns (or the facet changes). An
+    oscillating or conic mirror's direction is that of its across-track angle arriving at the
+    pulse's phase, so a pulse at the turn ends its sweep."""
     step, f = 1.0 / scanner.pulse_rate_hz, scanner.scan_frequency_hz
-    phase = [np.mod((dt + k * step) * f, 1.0) for k in range(3)]
     if scanner.pattern == "polygon":
-        return (SCAN_POSITIVE + (phase[1] < phase[0]) * EDGE_OF_LINE).astype(np.uint8)
-    ang = [np.arctan2(b[:, 0], -b[:, 2]) for b in (body_directions(scanner, ph) for ph in phase)]
-    now, then = ang[1] > ang[0], ang[2] > ang[1]
+        phase, after = np.mod(dt * f, 1.0), np.mod((dt + step) * f, 1.0)
+        return (SCAN_POSITIVE + (after < phase) * EDGE_OF_LINE).astype(np.uint8)
+
+    def rising(t):
+        ang = [np.arctan2(b[:, 0], -b[:, 2]) for b in
+               (body_directions(scanner, np.mod(u * f, 1.0)) for u in (t - SLOPE_PHASE / f, t))]
+        return ang[1] > ang[0]
+
+    now, then = rising(dt), rising(dt + step)
     return (now * SCAN_POSITIVE + (now != then) * EDGE_OF_LINE).astype(np.uint8)
 
 
@@ -168,7 +179,8 @@ def fly(survey: Survey, tracks: list[Track]) -> Pulses:
 
 
 def trajectory_table(tracks: list[Track], hz: float) -> pd.DataFrame:
-    """The written trajectory: gps_time, x, y, z, roll_deg, pitch_deg, heading_deg, leg (``hz`` per s)."""
+    """The written trajectory: gps_time, x, y, z, roll_deg, pitch_deg, heading_deg, leg (``hz`` per s;
+    leg from 1, the point source ID of its points)."""
     parts = []
     for i, tr in enumerate(tracks):
         n = int(np.ceil((tr.gps_time[-1] - tr.gps_time[0]) * hz - 1e-9)) + 1
@@ -180,7 +192,7 @@ def trajectory_table(tracks: list[Track], hz: float) -> pd.DataFrame:
             a = np.interp(t, tr.gps_time, tr.attitude[:, k])
             a = np.round(a, 6)  # as written (6 decimals), so that a heading just below 360 is written 0
             cols[c] = np.mod(a, 360.0) if c == "heading_deg" else (a + 180.0) % 360.0 - 180.0
-        cols["leg"] = i
+        cols["leg"] = i + 1
         parts.append(pd.DataFrame(cols))
     return pd.concat(parts, ignore_index=True)
 

@@ -12,6 +12,7 @@ import math
 import re
 import time
 import warnings
+from contextlib import suppress
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -22,7 +23,7 @@ from waveforest.constants import KIND_GROUND
 from waveforest.errors import WaveforestError
 from waveforest.mcrt import prepare
 from waveforest.scene import Scene, SceneError, fan_triangles, read_ply
-from waveforest.survey.spec import SCENE_SCHEMA, SurveyError, read_document
+from waveforest.survey.spec import SCENE_SCHEMA, SURVEY_SCHEMA, SurveyError, read_document, resolve
 from waveforest.vegetation import build, species_params
 
 KINDS = {"ground": 0, "leaf": 1, "wood": 2, "other": 3}
@@ -72,8 +73,8 @@ def rotation_z(deg) -> np.ndarray:
 DEFAULT_MATERIAL = "default"
 """Material name of OBJ faces before any ``usemtl``."""
 
-_V = re.compile(r"^[ \t]*v[ \t]+([^\r\n]*)", re.M)
-_F = re.compile(r"^[ \t]*f[ \t]+([^\r\n]*)", re.M)
+_V = re.compile(r"^[ \t]*v[ \t]+([^\r\n#]*)", re.M)  # a comment after the numbers is left out
+_F = re.compile(r"^[ \t]*f[ \t]+([^\r\n#]*)", re.M)
 _USEMTL = re.compile(r"^[ \t]*usemtl[ \t]+([^\r\n]*?)[ \t]*$", re.M)
 _MTLLIB = re.compile(r"^[ \t]*mtllib[ \t]+([^\r\n]*?)[ \t]*$", re.M)
 
@@ -217,17 +218,29 @@ def _place(scene: Scene, scale: float, rotate_deg: float, translate) -> Scene:
     return Scene(tri, scene.rho, scene.tau, scene.kind)
 
 
+PLANT_COLUMNS = ("species", "x", "y", "height", "seed", "z", "rotation_deg")
+"""Columns of the plant CSV: the five required, then the optional."""
+
+
 def plant_table(path: Path, source: str) -> pd.DataFrame:
     """The plant CSV: species, x, y, height, seed (+ z, rotation_deg, default 0)."""
     if not path.exists():
         raise SurveyError(f"{source}: plants/table: {path}: no such file")
     try:
-        df = pd.read_csv(path)
+        df = pd.read_csv(path, skipinitialspace=True)
     except Exception as exc:  # pandas raises several types on malformed CSV
         raise SurveyError(f"{source}: plants/table: {path}: not a readable CSV ({exc})") from None
-    missing = [c for c in ("species", "x", "y", "height", "seed") if c not in df.columns]
+    df.columns = [str(c).strip() for c in df.columns]
+    missing = [c for c in PLANT_COLUMNS[:5] if c not in df.columns]
     if missing:
-        raise SurveyError(f"{path}: missing column(s) {', '.join(missing)} (expected species, x, y, height, seed)")
+        raise SurveyError(f"{path}: missing column(s) {', '.join(missing)} (expected {', '.join(PLANT_COLUMNS[:5])}, "
+                          f"optional {', '.join(PLANT_COLUMNS[5:])}; found {', '.join(df.columns)})")
+    unknown = [c for c in df.columns if c not in PLANT_COLUMNS]
+    if unknown:
+        raise SurveyError(f"{path}: unknown column(s) {', '.join(unknown)} (expected {', '.join(PLANT_COLUMNS[:5])}, "
+                          f"optional {', '.join(PLANT_COLUMNS[5:])})")
+    if not len(df):
+        raise SurveyError(f"{path}: no plant rows (expected one row per plant under the header)")
     if "rotation_deg" not in df.columns:
         df["rotation_deg"] = 0.0
     on_ground = "z" not in df.columns
@@ -366,3 +379,27 @@ def ground_plane(x0: float, y0: float, x1: float, y1: float, z: float, rho: floa
     """Two upward-facing triangles covering [x0, x1] x [y0, y1] at height z."""
     a, b, c, d = (x0, y0, z), (x1, y0, z), (x1, y1, z), (x0, y1, z)
     return Scene(np.array([[a, b, c], [a, c, d]], np.float64), rho, 0.0, KIND_GROUND)
+
+
+def input_files(scene_path: str | Path, survey_path: str | Path) -> list[str]:
+    """The files SCENE.yaml and SURVEY.yaml name that exist (meshes with an OBJ's MTL files,
+    plant table, trajectory, S(t)): a workflow's inputs, so that editing one reruns the survey,
+    and the files an output folder must not hold. A file that cannot be read gives none (the
+    survey's own run reports it)."""
+    out = []
+    try:
+        scene, survey = read_document(scene_path, SCENE_SCHEMA), read_document(survey_path, SURVEY_SCHEMA)
+    except SurveyError:
+        return out
+    names = ([(scene_path, o["file"]) for o in scene["objects"]]
+             + [(scene_path, scene["ground"]["file"]), (scene_path, scene["plants"]["table"]),
+                (survey_path, survey["platform"]["trajectory"]), (survey_path, survey["scanner"]["system_waveform"])])
+    for doc, name in names:
+        path = resolve(Path(doc).parent, name)
+        if path is not None and path.exists():
+            out.append(str(path))
+            if path.suffix.lower() == ".obj":
+                with suppress(OSError):
+                    libs = _MTLLIB.findall(path.read_text(errors="replace"))
+                    out += [str(m) for m in _mtl_files(path, libs) if m.exists()]
+    return out

@@ -17,6 +17,7 @@ import yaml
 
 from waveforest.config import YAML_LOADER, validate_document
 from waveforest.errors import WaveforestError
+from waveforest.io.las.write import SPACING_TOL_PS, wkt_problem
 from waveforest.model.forward import SensorSettings
 from waveforest.sensor.reference import ReferenceSystem
 
@@ -65,25 +66,6 @@ def read_document(path: str | Path, which: str) -> dict:
     if not isinstance(doc, dict):
         raise SurveyError(f"{path}: expected a mapping of {which} keys at the top level")
     return validate_document(_schemas()[which], doc, str(path), SurveyError)
-
-
-def input_files(scene_path: str | Path, survey_path: str | Path) -> list[str]:
-    """The files SCENE.yaml and SURVEY.yaml name that exist (meshes, plant table, trajectory,
-    S(t); not an OBJ's MTL files): a workflow's inputs, so that editing one reruns the survey.
-    A file that cannot be read gives none (the survey's own run reports it)."""
-    out = []
-    try:
-        scene, survey = read_document(scene_path, SCENE_SCHEMA), read_document(survey_path, SURVEY_SCHEMA)
-    except SurveyError:
-        return out
-    names = ([(scene_path, o["file"]) for o in scene["objects"]]
-             + [(scene_path, scene["ground"]["file"]), (scene_path, scene["plants"]["table"]),
-                (survey_path, survey["platform"]["trajectory"]), (survey_path, survey["scanner"]["system_waveform"])])
-    for doc, name in names:
-        path = resolve(Path(doc).parent, name)
-        if path is not None and path.exists():
-            out.append(str(path))
-    return out
 
 
 def resolve(base: Path, name) -> Path | None:
@@ -224,6 +206,15 @@ def load_survey(path: str | Path, sensor: SensorSettings, reference: ReferenceSy
     trajectory = resolve(base, p["trajectory"])
     if trajectory is not None and not trajectory.exists():
         raise SurveyError(f"{path}: platform/trajectory: {trajectory}: no such file")
+    ps = values["sampling_ns"] * 1000.0
+    if abs(ps - round(ps)) > SPACING_TOL_PS:
+        raise SurveyError(f"{path}: scanner/sampling_ns: {values['sampling_ns']:g} ns is not a whole number of "
+                          f"picoseconds (LAS stores the sampling interval in ps); expected e.g. {round(ps) / 1000:g}")
+    if o["crs_wkt"] is not None and (problem := wkt_problem(o["crs_wkt"], metric=True)):
+        raise SurveyError(f"{path}: output/crs_wkt: {problem}")
+    if trajectory is not None and p["start_gps_time_s"] is not None:
+        raise SurveyError(f"{path}: platform/start_gps_time_s: expected null with a trajectory (its gps_time "
+                          "column times the flight)")
     if o["laz"] and o["waveforms"] == "internal":
         raise SurveyError(f"{path}: output/laz: expected waveforms external with LAZ points")
     if q["tolerance"] is not None and q["rays_per_pulse"] is not None:
@@ -231,7 +222,7 @@ def load_survey(path: str | Path, sensor: SensorSettings, reference: ReferenceSy
                           "(a fixed one), not both")
     return Survey(
         source=path, seed=int(doc["seed"]), legs=legs, trajectory=trajectory,
-        start_gps_time_s=float(p["start_gps_time_s"]), turn_s=float(p["turn_s"]),
+        start_gps_time_s=float(p["start_gps_time_s"] or 0.0), turn_s=float(p["turn_s"]),
         trajectory_hz=float(p["trajectory_hz"]), scanner=Scanner(**values),
         tolerance=q["tolerance"], rays_per_pulse=q["rays_per_pulse"], max_order=q["max_order"], tile_m=float(q["tile_m"]),
         las_version=str(o["las_version"]), waveforms=str(o["waveforms"]), laz=bool(o["laz"]),

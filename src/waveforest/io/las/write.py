@@ -130,6 +130,41 @@ def creation_today() -> tuple[int, int]:
     return day.timetuple().tm_yday, day.year
 
 
+WKT_CRS = {"PROJCS", "PROJCRS", "PROJECTEDCRS", "LOCAL_CS", "ENGCRS", "ENGINEERINGCRS", "COMPD_CS", "COMPOUNDCRS",
+           "GEOGCS", "GEOGCRS", "GEOGRAPHICCRS", "GEODCRS", "GEODETICCRS", "GEOCCS", "VERT_CS", "VERTCRS",
+           "VERTICALCRS", "BOUNDCRS"}
+"""Top-level keywords of an OGC WKT 1 or 2 coordinate reference system."""
+
+
+def wkt_problem(wkt: str, metric: bool = False) -> str | None:
+    """What keeps ``wkt`` from being the OGC WKT of a CRS (a keyword of :data:`WKT_CRS`, then
+    brackets and quotes that close), or with ``metric`` from holding coordinates in metres (a
+    geographic CRS: degrees); None when nothing does."""
+    text = wkt.strip()
+    kind = re.match(r"([A-Za-z_]+)\s*[\[(]", text)
+    if kind is None or kind.group(1).upper() not in WKT_CRS:
+        return (f"expected OGC WKT of a coordinate reference system (PROJCS[...], PROJCRS[...], ...), got "
+                f"{text[:40]!r}{'...' if len(text) > 40 else ''}")
+    depth, quoted = 0, False
+    for ch in text:
+        if ch == '"':
+            quoted = not quoted
+        elif not quoted and ch in "[(":
+            depth += 1
+        elif not quoted and ch in "])":
+            depth -= 1
+            if depth < 0:
+                break
+    if depth or quoted:
+        return "expected OGC WKT whose brackets and quotes close"
+    top = kind.group(1).upper()
+    if metric and (top in ("GEOGCS", "GEOGCRS", "GEOGRAPHICCRS") or (top in ("GEODCRS", "GEODETICCRS")
+                                                                    and "ELLIPSOIDAL" in text.upper())):
+        return ("a geographic CRS gives coordinates in degrees, but the scene's are metres; expected a projected "
+                "or local CRS")
+    return None
+
+
 def geokeys(wkt: str) -> tuple[bytes, bytes]:
     """GeoKeyDirectory and GeoAsciiParams bodies (uint16 records, ``|``-terminated ASCII) of an
     OGC WKT (1 or 2): projected or geographic with the EPSG code of its top-level AUTHORITY / ID,
@@ -316,6 +351,8 @@ class WaveformLasWriter:
         self.generating_software = generating_software
         self.creation = (int(creation[0]), int(creation[1]))
         self.file_source_id = int(file_source_id)
+        if wkt is not None and (problem := wkt_problem(wkt)):
+            raise WaveforestError(f"{self.path}: wkt: {problem}")
         self.wkt = wkt
         self.gps_time_type = gps_time_type
         extra = [(agc_attribute, "<f8")] if self.agc_extra else []
