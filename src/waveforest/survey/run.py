@@ -182,14 +182,14 @@ def merge(pl: Plan, cache: Path, scene: SurveyScene, survey: Survey, out_dir: Pa
             las.unlink()
         trajectory_table(pl.tracks, survey.trajectory_hz).to_csv(tmp / "trajectory.csv", index=False,
                                                                  float_format="%.6f")
-        if survey.truth:
+        if survey.truth:  # in GPS-time order, as the LAS points
+            truths = [f for f in (cache / f"tile_{k:06d}.truth.parquet" for k in range(len(pl.tiles)))
+                      if pq.read_metadata(f).num_rows]
             writer = None
             try:
-                for k in range(len(pl.tiles)):
-                    t = pq.read_table(cache / f"tile_{k:06d}.truth.parquet")
-                    if t.num_rows:
-                        writer = writer or pq.ParquetWriter(tmp / "truth.parquet", t.schema)
-                        writer.write_table(t)
+                for t in in_time_order(truths, survey.chunk_pulses):
+                    writer = writer or pq.ParquetWriter(tmp / "truth.parquet", t.schema)
+                    writer.write_table(t)
             finally:
                 if writer is not None:
                     writer.close()
