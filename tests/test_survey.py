@@ -455,8 +455,9 @@ def test_obj_faces_materials_and_indices(tmp_path):
     assert list(np.asarray(sc.kind) * np.ones(4, int)) == [3, 3, 3, 1]
     with pytest.raises(SurveyError, match="material 'leaf' has no optical properties"):
         read_obj(tmp_path / "a.obj", {"default": {"rho": 0.1}}, "S")
-    (tmp_path / "a.mtl").write_text("newmtl\tbark\nhelios_reflectance\t0.25\n")  # tabs separate too
-    assert np.allclose(read_obj(tmp_path / "a.obj", props, "S").rho[1], 0.25)
+    (tmp_path / "a.mtl").write_text("newmtl\tbark\nhelios_reflectance\t0.25\nhelios_specularity 0.2\n")  # tabs too
+    with pytest.warns(UserWarning, match=r"a.mtl: helios_specularity \(line 3\): not used"):
+        assert np.allclose(read_obj(tmp_path / "a.obj", props, "S").rho[1], 0.25)
     for bad, got in (("1.5", "'1.5'"), ("abc", "'abc'"), ("", "no value")):
         (tmp_path / "a.mtl").write_text(f"newmtl bark\nhelios_reflectance {bad}\n")
         with pytest.raises(SurveyError, match=f"a.mtl: line 2: helios_reflectance of material 'bark': "

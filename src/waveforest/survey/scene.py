@@ -20,7 +20,7 @@ import numpy as np
 import pandas as pd
 
 from waveforest.constants import KIND_GROUND
-from waveforest.errors import WaveforestError
+from waveforest.errors import WaveforestError, WaveforestWarning
 from waveforest.mcrt import prepare
 from waveforest.scene import Scene, SceneError, fan_triangles, read_ply
 from waveforest.survey.spec import SCENE_SCHEMA, SURVEY_SCHEMA, SurveyError, read_document, resolve
@@ -173,12 +173,13 @@ def _mtl_files(obj: Path, libs: list[str]) -> list[Path]:
 
 def _read_mtl(path: Path, source: str) -> dict[str, float]:
     """name -> helios_reflectance (in [0, 1]) of an MTL file (materials without it are left out);
-    SurveyError naming the file, line and material for a value that is not a reflectance."""
+    SurveyError naming the file, line and material for a value that is not a reflectance; a
+    warning naming the other HELIOS++ keys (``helios_specularity``, ...), which are not used."""
     try:
         lines = path.read_text(errors="replace").splitlines()
     except OSError as exc:
         raise SurveyError(f"{source}: {path}: cannot read ({exc.strerror or exc})") from None
-    out, name = {}, None
+    out, name, ignored = {}, None, {}
     for number, line in enumerate(lines, 1):
         head, *rest = line.split(None, 1) or [""]
         if head == "newmtl":
@@ -193,6 +194,12 @@ def _read_mtl(path: Path, source: str) -> dict[str, float]:
                 raise SurveyError(f"{source}: {path}: line {number}: helios_reflectance of material {name!r}: "
                                   f"expected a number in [0, 1], got {got}")
             out[name] = rho
+        elif head.startswith("helios_") and head != "helios_reflectance":
+            ignored.setdefault(head, number)
+    if ignored:
+        warnings.warn(f"{path}: {', '.join(f'{k} (line {n})' for k, n in ignored.items())}: not used (surfaces are "
+                      "Lambertian with the reflectance of helios_reflectance, or the rho and tau of SCENE.yaml)",
+                      WaveforestWarning, stacklevel=2)
     return out
 
 
