@@ -76,6 +76,11 @@ def test_every_schema_object_is_closed_and_described():
     ({"simulate": {"species": ["oak"]}}, "simulate/species: unknown species 'oak'; expected one of scots_pine"),
     ({"simulate": {"height_range_m": {"brich": [1, 2]}}}, "simulate/height_range_m: unknown species 'brich'"),
     ({"classify": {"groups": ["conifer", "trees"]}}, "classify/groups: unknown functional group 'trees'"),
+    ({"diagnose": {"datasets": []}}, "diagnose/datasets: expected at least one dataset"),
+    ({"diagnose": {"datasets": ["2010_12_1", "2099_01_1"]}},
+     "diagnose/datasets: '2099_01_1' is not a comparison dataset that is processed; expected one of 2010_12_1, "),
+    ({"datasets": ["2010_12_1"], "diagnose": {"datasets": ["2012_10_1"]}},
+     "diagnose/datasets: '2012_10_1' is not a comparison dataset that is processed; expected one of 2010_12_1"),
 ])
 def test_misspelled_nested_keys_and_names(tmp_path, cfg, where):
     p = tmp_path / "c.yaml"

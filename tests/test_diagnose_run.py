@@ -157,8 +157,9 @@ def test_a_blurred_crown_profile_cancels_in_one_cell_and_shows_split_at_the_stem
 
 def test_max_pulses_keeps_whole_samples_the_same_in_every_dataset_and_nested():
     """diagnose.max_pulses: whole field samples per dataset x species, in one seeded order of the
-    samples for every dataset, at most the cap of pulses (at least one sample); a smaller cap
-    keeps a subset of a larger one's samples; null keeps every comparison pulse."""
+    samples for every dataset, at most the cap of pulses (at least the two samples a compared
+    cell needs); a smaller cap keeps a subset of a larger one's samples; null keeps every
+    comparison pulse."""
     from waveforest.diagnose.strata import pulse_keys
 
     rng = np.random.default_rng(3)
@@ -182,14 +183,18 @@ def test_max_pulses_keeps_whole_samples_the_same_in_every_dataset_and_nested():
     for cap in (1, 12, 30, 60):
         k = keys(cap)
         by = k.groupby("dataset")
-        assert (by.size() <= max(cap, sizes.max())).all()
+        assert (by.size() <= max(cap, 2 * sizes.max())).all()
         per_ds = [set(g["sample_id"]) for _, g in by]
         assert per_ds[0] == per_ds[1]  # the same samples in both datasets (same pulses per sample here)
         counts = k.groupby(["dataset", "sample_id"]).size()
         assert (counts.to_numpy() == sizes[[int(s[1:]) for _, s in counts.index]]).all()  # whole samples
         samples[cap] = per_ds[0]
-    assert samples[1] <= samples[12] <= samples[30] <= samples[60] and len(samples[1]) == 1
+    assert samples[1] <= samples[12] <= samples[30] <= samples[60] and len(samples[1]) == 2
     assert len(samples[60]) < 40
+    # a cell of three samples whose second overflows the cap keeps two, enough to be compared
+    rows = [dict(dataset="2012_10_1", pulse_id=i, sample_id=f"t{i // 50}", species="fireweed", is_tree=False,
+                 comparison_set=True, below_crown_set=False) for i in range(150)]
+    assert pulse_keys({"2012_10_1": _select_table(rows)}, _strata(max_pulses=60))["sample_id"].nunique() == 2
 
 
 def test_real_below_crown_echoes_are_found_as_a_twins_are():

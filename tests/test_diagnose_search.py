@@ -117,6 +117,35 @@ def test_two_effects_are_named_over_two_rounds():
     assert sorted(e.round for e in res.named) == [1, 2]
 
 
+def test_a_large_reduction_is_significant_though_its_replicates_skew():
+    """A gap is a sum of squares: as it grows its replicates skew right, and so do a large
+    reduction's. With every replicate of R above 0, R -+ t SE* reaches below 0; the interval on
+    log(G_base / G_new) does not. Near the null the two agree."""
+    from waveforest.diagnose.search import reduction_interval
+    from waveforest.stats.bootstrap import wald_interval
+
+    rng = np.random.default_rng(5)
+    base = 2.0 * rng.lognormal(0.0, 0.6, 200)  # skewed replicates of a large gap
+    new = 0.1 * rng.lognormal(0.0, 0.3, 200)
+    assert np.all(base - new > 0)
+    wald = wald_interval(2.0 - 0.1, base - new, 12)
+    lo, hi = reduction_interval(2.0, 0.1, base, new, 12, 0.05)
+    assert wald[0] < 0 < lo < 1.9 < hi
+    same = 1.0 + 0.05 * rng.standard_normal(200)  # a candidate that changes nothing
+    lo, hi = reduction_interval(1.0, 1.0, same, same * (1 + 0.02 * rng.standard_normal(200)), 12, 0.05)
+    w = wald_interval(0.0, same - same * (1 + 0.02 * rng.standard_normal(200)), 12)
+    assert lo < 0 < hi and hi - lo == pytest.approx(w[1] - w[0], rel=0.3)
+
+
+def test_too_thin_halves_are_inconclusive_not_unexplained():
+    """A gap above its floor whose halves hold no cell to fit and test a candidate on: no
+    candidate is tried, so the data cannot tell (not "no candidate explains it")."""
+    study = SyntheticStudy(samples_per_species=2, pulses_per_sample=8, seed=1)
+    res = search(study.keys, study.real({"hotspot": 1.6}), study.simulate, SETTINGS, seed=3, significant=True)
+    assert res.verdict == "inconclusive" and len(res.candidates) == 0
+    assert "too few field samples" in res.reason
+
+
 def test_unproducible_disagreement_is_unexplained():
     # a shift of FWHM for every species together with a wider FWHM spread: no toy effect makes it
     res = run_search({}, perturb={"FWHM": 1.0, "H": -1.0})

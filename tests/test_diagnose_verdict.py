@@ -13,7 +13,6 @@ from fixtures.study import SyntheticStudy
 
 from waveforest.diagnose.gap import FEATURES
 from waveforest.diagnose.missing_effects import (
-    VERDICTS,
     base_gap_significant,
     final_verdict,
     find_missing_effects,
@@ -21,6 +20,7 @@ from waveforest.diagnose.missing_effects import (
 )
 from waveforest.diagnose.power import LIMIT_COLUMNS, FloorCalibration
 from waveforest.diagnose.search import SearchSettings, search
+from waveforest.io.results import VERDICTS
 
 SETTINGS = SearchSettings(features=FEATURES, rounds=1, n_boot=100, candidates=("hotspot", "understory"))
 
@@ -53,11 +53,13 @@ def test_a_gap_above_its_floor_never_reads_none():
             assert rec["verdict"] in VERDICTS and rec["search_verdict"] == result.verdict
             assert rec["gap"]["above_floor"] == base_gap_significant(gap)
             if rec["gap"]["above_floor"]:
-                assert rec["verdict"] in ("named", "unexplained")
+                assert rec["verdict"] in ("named", "unexplained", "inconclusive")
             else:
                 assert rec["verdict"] in ("none", "inconclusive")
                 assert "not above its noise floor" in rec["reason"]
     assert result.verdict == "named" and result.named[0].name == "hotspot"  # the hidden effect is found
+    e = result.named[0]  # the verdict's words name it, with its value and interval, before the limits
+    assert rec["text"].startswith(f"named: hotspot {e.value:.3g} [{e.ci_low:.3g}, {e.ci_high:.3g}]; ")
 
 
 def test_none_becomes_inconclusive_when_an_effect_of_realistic_size_is_not_seen():

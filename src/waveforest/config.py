@@ -170,7 +170,25 @@ def validate(config: dict, source: str = "<config>", overrides: dict | None = No
         parts, text = _message(error)
         raise ConfigError(f"{COMMAND_LINE if _given(parts, overrides) else source}: {text}")
     _check_names(config, source, overrides)
+    _check_diagnosed(config, source, overrides)
     return config
+
+
+def _check_diagnosed(config: dict, source: str, overrides: dict | None) -> None:
+    """``diagnose.datasets`` names comparison datasets that are processed (``simulate.datasets``
+    within ``datasets``), at least one: checked here, not after the upstream stages have run."""
+    chosen = config["diagnose"]["datasets"]
+    if chosen is None:
+        return
+    compared = [d for d in config["simulate"]["datasets"] if d in config["datasets"]]
+    where = COMMAND_LINE if _given(["diagnose", "datasets"], overrides) else source
+    if not chosen:
+        raise ConfigError(f"{where}: diagnose/datasets: expected at least one dataset (null: every comparison "
+                          f"dataset, {', '.join(compared)})")
+    for d in chosen:
+        if d not in compared:
+            raise ConfigError(f"{where}: diagnose/datasets: {d!r} is not a comparison dataset that is processed; "
+                              f"expected one of {', '.join(compared) or '(none: simulate.datasets within datasets)'}")
 
 
 def load(path: str | Path | None = None, overrides: dict | None = None) -> dict[str, Any]:

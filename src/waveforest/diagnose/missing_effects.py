@@ -138,15 +138,8 @@ def base_gap_significant(gap: pd.DataFrame) -> bool:
     return bool(tot["before_ci_low"] > tot["noise_floor"])
 
 
-VERDICTS = ("none", "named", "unexplained", "inconclusive")
-"""Outcomes of a diagnosis: no gap above its floor and the data see every candidate at its test
-value (``none``); effects named; a gap above the floor that no candidate explains
-(``unexplained``); no gap above the floor, but the data cannot see some candidates at their
-test values (``inconclusive``, :func:`final_verdict`)."""
-
-
 def final_verdict(search_verdict: str, limits: pd.DataFrame) -> tuple[str, list[str]]:
-    """(verdict of :data:`VERDICTS`, the candidates these data cannot see at their test value).
+    """(verdict of :data:`waveforest.io.results.VERDICTS`, the candidates these data cannot see at their test value).
 
     ``none`` of the search becomes ``inconclusive`` when a candidate's detection limit
     (:func:`.power.detection_limits`) is not reached within its range or lies beyond its
@@ -157,11 +150,29 @@ def final_verdict(search_verdict: str, limits: pd.DataFrame) -> tuple[str, list[
     return search_verdict, blind
 
 
+def verdict_text(result: SearchResult, limits: pd.DataFrame) -> str:
+    """The verdict in words (:func:`final_verdict`, ``verdict.json``'s ``text``): what was named
+    with its value and interval, or for ``unexplained`` the best candidate tried, or why no
+    candidate could be tried; then the detection limits (:func:`.power.verdict_with_limits`)."""
+    verdict = final_verdict(result.verdict, limits)[0]
+    lead = ""
+    if result.named:
+        lead = ", ".join(f"{e.name} {e.value:.3g} [{e.ci_low:.3g}, {e.ci_high:.3g}]" for e in result.named)
+    elif result.verdict == "unexplained" and len(result.candidates):
+        best = result.candidates.sort_values(["round", "gap_reduction"], ascending=[True, False]).iloc[0]
+        lead = (f"a gap above its noise floor that no candidate explains (best fit {best['name']} "
+                f"{best['value']:.3g}, reduction {best['gap_reduction']:.3g} [{best['reduction_ci_low']:.3g}, "
+                f"{best['reduction_ci_high']:.3g}], not significant)")
+    elif result.verdict == "inconclusive":
+        lead = "a gap above its noise floor, but too few field samples to fit and test candidates on separate halves"
+    return verdict_with_limits(verdict, limits, lead)
+
+
 def verdict_record(result: SearchResult, gap: pd.DataFrame, limits: pd.DataFrame,
                    floor: FloorCalibration | None = None) -> dict:
     """The machine-readable verdict (``verdict.json``).
 
-    Keys: ``verdict`` (:data:`VERDICTS`), ``search_verdict`` (``model.yaml``'s), ``text`` (the
+    Keys: ``verdict`` (:data:`waveforest.io.results.VERDICTS`), ``search_verdict`` (``model.yaml``'s), ``text`` (the
     verdict with its limits, as in ``diagnose.md``), ``reason``, ``gap`` (the base model's total
     gap, its interval, noise floor, excess and its interval, ``above_floor``: the interval's lower
     bound above the floor), ``named`` (name, value, interval), ``blind_to`` (per candidate not seen
@@ -176,7 +187,7 @@ def verdict_record(result: SearchResult, gap: pd.DataFrame, limits: pd.DataFrame
     return {
         "verdict": verdict,
         "search_verdict": result.verdict,
-        "text": verdict_with_limits(verdict, limits),
+        "text": verdict_text(result, limits),
         "reason": _reason(result, gap),
         "gap": {"total": num(tot["gap_before"]), "ci": [num(tot["before_ci_low"]), num(tot["before_ci_high"])],
                 "noise_floor": num(tot["noise_floor"]), "excess": num(tot["gap_before"] - tot["noise_floor"]),
@@ -263,7 +274,7 @@ def summary_markdown(result: SearchResult, gap: pd.DataFrame, cand: pd.DataFrame
     lines = [
         "# Diagnosis: where simulation and measurement disagree",
         "",
-        f"**Verdict: {verdict_with_limits(final_verdict(result.verdict, limits)[0], limits)}.** "
+        f"**Verdict: {verdict_text(result, limits)}.** "
         f"{_reason(result, gap)}.",
         "",
         f"Datasets {', '.join(datasets)}; {n_pulses} real pulses from {n_samples} field samples; "

@@ -347,7 +347,7 @@ def detection_limits(keys: pd.DataFrame, simulate: Simulator, settings: SearchSe
     return pd.DataFrame(limits, columns=list(LIMIT_COLUMNS)), pd.DataFrame(curve, columns=list(CURVE_COLUMNS))
 
 
-def verdict_with_limits(verdict: str, limits: pd.DataFrame) -> str:
+def verdict_with_limits(verdict: str, limits: pd.DataFrame, lead: str = "") -> str:
     """The verdict with the detection limits, e.g. ``none: seen in >= 80 % of the model's twins
     from understory 0.8 LAI, xy_error 0.15 m`` or ``inconclusive: these data cannot see
     nonlinearity at 150 DN (not reached up to 50 DN); seen in >= 80 % of the model's twins from
@@ -356,10 +356,10 @@ def verdict_with_limits(verdict: str, limits: pd.DataFrame) -> str:
     A limit is a power (``limits.power``) on pseudo-real data, the model's own twins: no promise
     that a larger effect is absent from data that differ from the model in other ways, so the
     text never says "no effect larger than". A limit not reached reads "not reached up to" the
-    strongest value tried.
+    strongest value tried. ``lead`` (what was named, or why none was) comes first.
     """
     if limits.empty:
-        return verdict
+        return f"{verdict}: {lead}" if lead else verdict
     sees = limits["sees_test_value"].astype(bool) if "sees_test_value" in limits else limits[
         "smallest_detectable"].notna()
     found = limits[limits["smallest_detectable"].notna() & sees]
@@ -370,7 +370,7 @@ def verdict_with_limits(verdict: str, limits: pd.DataFrame) -> str:
             return f"not reached up to {r.upper_bound:.3g} {r.unit}"
         return f"limit {r.smallest_detectable:.3g} {r.unit}"
 
-    parts = []
+    parts = [lead] if lead else []
     if len(blind):
         parts.append("these data cannot see " + ", ".join(
             f"{r.effect} at {r.test_value:.3g} {r.unit} ({limit_of(r)})" if "test_value" in limits

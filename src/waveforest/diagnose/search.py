@@ -17,10 +17,11 @@ docs/method.md §(j) (the search). Procedure (one *round*; :func:`search` runs u
 3. **Test** the fitted candidate on all pulses of the *other* half: the reduction
    R = G_current - G_candidate with a paired cluster bootstrap. With ``crossfit`` the roles
    are swapped too and both fits and both reductions are averaged. A candidate is
-   *significant* when ``R -+ t * SE*`` (:func:`waveforest.stats.bootstrap.wald_interval`)
-   lies above 0, R >= ``min_relative_reduction`` x the current excess gap on the tested
-   samples, and the fitted value's interval excludes the effect's off value. No
-   multiplicity correction over the candidates.
+   *significant* when R's interval (:func:`reduction_interval`: a Wald interval on
+   log(G_current / G_candidate), as a large reduction's replicates skew) lies above 0,
+   R >= ``min_relative_reduction`` x the current excess gap on the tested samples (x their
+   gap when their own floor reaches it), and the fitted value's interval excludes the
+   effect's off value. No multiplicity correction over the candidates.
 4. **Name** the candidate with the largest R fitted inside its range (:func:`at_bound`) if
    it is significant; candidates ranked above it with a fit at the bound are reported, not
    named, and so are significant candidates not told apart from it (:func:`look_alikes`).
@@ -31,7 +32,8 @@ docs/method.md §(j) (the search). Procedure (one *round*; :func:`search` runs u
    ``rounds`` effects are named, or when the model's gap is within the noise floor.
 
 Verdict (:data:`waveforest.io.results.VERDICTS`): ``none`` when the base model's gap is not significant
-above its noise floor; ``named`` when at least one effect was named; ``unexplained``
+above its noise floor; ``named`` when at least one effect was named; ``inconclusive`` when a
+half of the field samples is too thin to fit and test a candidate on; ``unexplained``
 otherwise. Gaps are in squared pooled SDs; search coordinates u in [0, 1]. Errors:
 :class:`waveforest.errors.WaveforestError` for a pulse table without dataset, sample_id or
 species, no field sample, or fit pulses outside the tested pulses. Measured behaviour
@@ -276,7 +278,7 @@ class SearchResult:
     Attributes
     ----------
     verdict : str
-        ``none``, ``named`` or ``unexplained``.
+        ``none``, ``named``, ``inconclusive`` (halves too thin to try a candidate) or ``unexplained``.
     named : list of NamedEffect
         In the order named (values after the last re-fit).
     candidates : DataFrame
@@ -448,11 +450,12 @@ def _fit(name: str, current: dict, ctx: _Context) -> tuple[Estimate, list[Fit]]:
 
 
 def _test(current: dict, models_by_fold: list[dict], ctx: _Context):
-    """Reduction of the gap on the test halves: (gap_base, gap_new, excess, R, R replicates).
+    """The gaps on the test halves: (gap_base, gap_new, excess of gap_base over its floor, and the
+    bootstrap replicates (B,) of gap_base and of gap_new).
 
     ``models_by_fold[k]`` is the model tested on fold k's test half (with fold k's fit).
     """
-    gb, gn, ex, rep = [], [], [], []
+    gb, gn, ex, rep_b, rep_n = [], [], [], [], []
     for (_, t), eff in zip(ctx.settings.folds, models_by_fold):
         base, cand = ctx.test_data(t, current), ctx.test_data(t, eff)
         valid = base.valid & cand.valid
@@ -460,10 +463,30 @@ def _test(current: dict, models_by_fold: list[dict], ctx: _Context):
         gb.append(total_gap(base, valid=valid))
         gn.append(total_gap(cand, valid=valid))
         ex.append(gb[-1] - total_noise_floor(base, w, valid))
-        rep.append(total_gap(base, w, valid) - total_gap(cand, w, valid))
+        rep_b.append(total_gap(base, w, valid))
+        rep_n.append(total_gap(cand, w, valid))
     # folds test disjoint halves with independent resamples: replicate-wise mean is a replicate of the mean
-    return float(np.mean(gb)), float(np.mean(gn)), float(np.mean(ex)), float(np.mean(gb) - np.mean(gn)), \
-        np.mean(rep, axis=0)
+    return (float(np.mean(gb)), float(np.mean(gn)), float(np.mean(ex)), np.mean(rep_b, axis=0),
+            np.mean(rep_n, axis=0))
+
+
+def reduction_interval(gap_base: float, gap_new: float, reps_base: np.ndarray, reps_new: np.ndarray, df: int,
+                       alpha: float) -> tuple[float, float]:
+    """Interval of R = G_base - G_new from paired bootstrap replicates (B,) of both gaps.
+
+    A gap is a sum of squares whose replicates skew right as it grows, and so does a large
+    reduction's: a symmetric interval R -+ t SE* then reaches below 0 though every replicate
+    lies above it. The Wald interval (:func:`wald_interval`, t with ``df``) is taken on
+    log(G_base / G_new), near symmetric whatever the effect's size, and mapped back through
+    R = G_base (1 - G_new / G_base); with a gap or too many replicates at 0 or NaN, on R itself.
+    """
+    ok = np.isfinite(reps_base) & np.isfinite(reps_new) & (reps_base > 0) & (reps_new > 0)
+    if gap_base > 0 and gap_new > 0 and ok.sum() >= max(10, ok.size // 2):
+        log_ratio = np.log(reps_base[ok] / reps_new[ok])
+        lo, hi = wald_interval(np.log(gap_base / gap_new), log_ratio, df, alpha)
+        return float(gap_base * (1 - np.exp(-lo))), float(gap_base * (1 - np.exp(-hi)))
+    lo, hi = wald_interval(gap_base - gap_new, reps_base - reps_new, df, alpha)
+    return float(lo), float(hi)
 
 
 def _refit(named: list[NamedEffect], current: dict, ctx: _Context) -> dict:
@@ -583,9 +606,12 @@ def _evaluate(rnd: int, name: str, state: _State, ctx: _Context, df: int) -> Can
         state.curves += [{"round": rnd, "name": name, "half": f.half, "u": u, "value": cat.from_u(name, u),
                           "gap": g} for u, g in zip(f.u, f.gap)]
     tested_models = [cat.with_effect(current, name, cat.from_u(name, f.u_hat)) for f in fits]
-    gb, gn, excess, red, reps = _test(current, tested_models, ctx)
-    lo, hi = wald_interval(red, reps, df, settings.alpha)
-    rel = red / excess if excess > 0 else math.nan
+    gb, gn, excess, reps_b, reps_n = _test(current, tested_models, ctx)
+    red, reps = gb - gn, reps_b - reps_n
+    lo, hi = reduction_interval(gb, gn, reps_b, reps_n, df, settings.alpha)
+    # the share of the tested halves' excess removed; halves whose own floor reaches their gap
+    # (thin cells) have no excess to share: the share of their gap
+    rel = red / excess if excess > 0 else (red / gb if gb > 0 else math.nan)
     sig = bool(lo > 0 and rel >= settings.min_relative_reduction and est.excludes_off)
     return Candidate(round=rnd, estimate=est, gap_base=gb, gap_new=gn, excess_base=excess,
                      reduction=red, reduction_ci_low=float(lo), reduction_ci_high=float(hi),
@@ -708,12 +734,15 @@ def search(
     baseline = report({})
     significant = baseline.significant if significant is None else bool(significant)
     state = _State(reason=_reason_not_to_search(significant, ctx, ids))
-    if not state.reason:
+    untried = bool(state.reason)
+    if not untried:
         for rnd in range(1, settings.rounds + 1):
             if _run_round(rnd, state, ctx, df, report):
                 break
     residual = report(state.current)
-    verdict = "none" if not significant else "named" if state.named else "unexplained"
+    # a gap above the floor with halves too thin to try a candidate: the data cannot tell
+    verdict = ("none" if not significant else "named" if state.named else
+               "inconclusive" if untried else "unexplained")
     sims, test_sims = ctx.sims, ctx.test_sims
     return SearchResult(
         verdict=verdict, named=state.named, candidates=pd.DataFrame(state.rows), curves=pd.DataFrame(state.curves),

@@ -37,6 +37,7 @@ import pyarrow as pa
 import pyarrow.compute as pc
 
 from waveforest.constants import RANGE_PER_NS
+from waveforest.diagnose.gap import MIN_CELL_SAMPLES
 from waveforest.errors import WaveforestError
 from waveforest.io.pulses import list_to_padded, padded_to_list
 from waveforest.model.forward import SensorSettings, twin_echoes
@@ -205,15 +206,18 @@ def own_cfd_echoes(pulses: pa.Table, calibration, sensor: SensorSettings) -> pa.
 
 def _whole_samples(df: pd.DataFrame, cap: int, seed: int) -> pd.DataFrame:
     """Rows of whole field samples, in a seeded order of the samples (the same in every dataset),
-    per species x stratum, while their pulses number at most ``cap`` (at least one sample).
-    A smaller cap keeps a subset of a larger one's samples."""
+    per species x stratum, while their pulses number at most ``cap``, and at least the first
+    :data:`~waveforest.diagnose.gap.MIN_CELL_SAMPLES` (a cell of fewer is not compared: a cap that
+    left one sample would drop the cell). A smaller cap keeps a subset of a larger one's samples."""
     codes, uniq = pd.factorize(df["sample_id"].astype(str))
     rank = np.array([stable_hash(seed, "diagnose sample", u) for u in uniq], np.int64)[codes]
     df = df.assign(_rank=rank).sort_values(["_rank", "sample_id", "pulse_id"])
     size = df.groupby(["species", "stratum", "sample_id"], sort=False)["pulse_id"].transform("size")
     first = ~df.duplicated(["species", "stratum", "sample_id"])
-    total = (size * first).groupby([df["species"], df["stratum"]], sort=False).cumsum()
-    keep_sample = (total <= cap) | (total == size)  # within the cap, or the first sample of its cell
+    cell = [df["species"], df["stratum"]]
+    total = (size * first).groupby(cell, sort=False).cumsum()
+    ordinal = first.astype(int).groupby(cell, sort=False).cumsum()  # 1 for a cell's first sample
+    keep_sample = (total <= cap) | (ordinal <= MIN_CELL_SAMPLES)
     keep = keep_sample.where(first).groupby([df["species"], df["stratum"], df["sample_id"]], sort=False).transform("first")
     return df[keep.astype(bool)].drop(columns="_rank")
 

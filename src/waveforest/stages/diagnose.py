@@ -46,8 +46,14 @@ from waveforest.cliutil import (
     stage_options,
 )
 from waveforest.diagnose.figures import gap_figure, power_figure
-from waveforest.diagnose.missing_effects import final_verdict, run_diagnosis, summary_markdown, verdict_record
-from waveforest.diagnose.power import FloorCalibration, verdict_with_limits
+from waveforest.diagnose.missing_effects import (
+    final_verdict,
+    run_diagnosis,
+    summary_markdown,
+    verdict_record,
+    verdict_text,
+)
+from waveforest.diagnose.power import FloorCalibration
 from waveforest.diagnose.search import SearchResult, SearchSettings
 from waveforest.diagnose.strata import StrataSettings, with_pulses_under_crowns
 from waveforest.diagnose.twins import StudySimulator
@@ -98,6 +104,8 @@ class DiagnoseOutputs:
     n_simulations: int
     seconds: float
     limits: pd.DataFrame
+    text: str = ""
+    """The verdict in words (``verdict.json``'s ``text``)."""
 
 
 def write_outputs(out_dir, result: SearchResult, gap: pd.DataFrame, cand: pd.DataFrame, sigs: pd.DataFrame, *,
@@ -317,7 +325,7 @@ def run(selected_paths, real_paths, calibration_paths, out_dir, cfg: dict, *, da
                            gap_before=float(tot["gap_before"]), gap_after=float(tot["gap_after"]),
                            n_pulses=int(len(found.keys)), n_samples=int(found.keys["sample_id"].nunique()),
                            n_simulations=int(found.result.n_simulations), seconds=time.perf_counter() - t_start,
-                           limits=found.limits)
+                           limits=found.limits, text=verdict_text(found.result, found.limits))
 
 
 def _progress_bar():
@@ -371,4 +379,4 @@ def diagnose(selected, features_real, calibration, system, agc, datasets, target
     click.echo(f"diagnose: verdict {res.verdict} ({named}); gap {res.gap_before:.3g} -> {res.gap_after:.3g}; "
                f"{res.n_pulses} pulses, {res.n_samples} samples, {res.n_simulations} simulations, "
                f"{res.seconds:.0f} s -> {out}")
-    click.echo(f"diagnose: {verdict_with_limits(res.verdict, res.limits)}")
+    click.echo(f"diagnose: {res.text}")
