@@ -8,6 +8,7 @@ import numpy as np
 import pandas as pd
 
 from waveforest.atomic import atomic_path
+from waveforest.diagnose import catalogue as cat
 from waveforest.plotting import pyplot
 
 BEFORE_COLOUR, AFTER_COLOUR = "#7f7f7f", "#c55a11"
@@ -88,9 +89,10 @@ def draw_gap_figure(gap: pd.DataFrame, candidates: pd.DataFrame, *, title: str =
 
 def power_figure(curve: pd.DataFrame, limits: pd.DataFrame, path: str | Path, *, title: str = "") -> Path:
     """Write ``power.png``: per candidate, the power of the test (share of pseudo-real
-    replicates whose gap lies above the noise floor) against the effect's value, with 95 %
-    Wilson intervals, the power required (dashed), the detection limit (dotted) and the
-    test value (grey).
+    replicates whose gap lies above the noise floor) against the effect's strength (its
+    distance from off in the search coordinate, so off is at the left also where its value is
+    at infinity, as clumping's and nonlinearity's; the ticks give the values), with 95 % Wilson
+    intervals, the power required (dashed), the detection limit (dotted) and the test value (grey).
 
     Parameters
     ----------
@@ -112,7 +114,13 @@ def power_figure(curve: pd.DataFrame, limits: pd.DataFrame, path: str | Path, *,
         axes[0, 0].text(0.5, 0.5, "no candidate", ha="center", va="center", transform=axes[0, 0].transAxes)
     for ax, name in zip(axes.flat, names):
         c = curve[curve["effect"] == name].sort_values("strength")
-        v = c["value"].to_numpy(float)
+        v = c["strength"].to_numpy(float)
+        u0 = cat.to_u(name, cat.effect(name).off)
+
+        def at(value, name=name, u0=u0):  # a value's strength
+            return abs(cat.to_u(name, float(value)) - u0)
+
+        ax.set_xticks(v, ["off"] + [f"{x:.3g}" for x in c["value"].to_numpy(float)[1:]])
         p = c["power"].to_numpy(float)
         lo = c["power_ci_low"].to_numpy(float) if "power_ci_low" in c else p
         hi = c["power_ci_high"].to_numpy(float) if "power_ci_high" in c else p
@@ -123,9 +131,9 @@ def power_figure(curve: pd.DataFrame, limits: pd.DataFrame, path: str | Path, *,
             r = lim.iloc[0]
             ax.axhline(float(r["power"]), color="k", linestyle="--", linewidth=0.8)
             if "test_value" in lim:
-                ax.axvline(float(r["test_value"]), color=OTHER_COLOUR, linewidth=2)
+                ax.axvline(at(r["test_value"]), color=OTHER_COLOUR, linewidth=2)
             if np.isfinite(float(r["smallest_detectable"])):
-                ax.axvline(float(r["smallest_detectable"]), color=AFTER_COLOUR, linestyle=":", linewidth=1.5)
+                ax.axvline(at(r["smallest_detectable"]), color=AFTER_COLOUR, linestyle=":", linewidth=1.5)
             unit = str(r["unit"])
         else:
             unit = ""
@@ -136,7 +144,7 @@ def power_figure(curve: pd.DataFrame, limits: pd.DataFrame, path: str | Path, *,
     for ax in axes[:, 0]:
         ax.set_ylabel("power", fontsize=8)
     reps = int(curve["replicates"].iloc[0]) if len(curve) else 0
-    fig.suptitle((title + "\n" if title else "") + f"power per value ({reps} pseudo-real replicates, 95 % Wilson "
+    fig.suptitle((title + "\n" if title else "") + f"power per value, off at the left ({reps} pseudo-real replicates, 95 % Wilson "
                  "intervals); dashed: power required, dotted: limit, grey: test value", fontsize=9)
     path = Path(path)
     with atomic_path(path) as tmp:
