@@ -122,6 +122,9 @@ def test_bounds_too_small_to_see_give_an_empty_limit():
     assert text.endswith("; seen in >= 80% of the model's twins from understory "
                          + f"{limits['smallest_detectable'].iloc[1]:.3g} LAI")
     assert "no effect larger" not in text  # a power on the model's twins, no proof of absence
+    assert "side of off only" not in text  # neither effect takes values on both sides of off
+    two_sided = limits.assign(effect=limits["effect"].replace({"hotspot": "lad_shift"}))
+    assert verdict_with_limits("none", two_sided).endswith("; limits of lad_shift on the test value's side of off only")
     assert verdict_with_limits("named", limits).startswith("named: ")
     assert final_verdict("none", limits) == ("inconclusive", ["hotspot"])
     assert final_verdict("unexplained", limits)[0] == "unexplained"

@@ -356,7 +356,9 @@ def verdict_with_limits(verdict: str, limits: pd.DataFrame, lead: str = "") -> s
     A limit is a power (``limits.power``) on pseudo-real data, the model's own twins: no promise
     that a larger effect is absent from data that differ from the model in other ways, so the
     text never says "no effect larger than". A limit not reached reads "not reached up to" the
-    strongest value tried. ``lead`` (what was named, or why none was) comes first.
+    strongest value tried. ``lead`` (what was named, or why none was) comes first; the limits of
+    an effect with values on both sides of off (lad_shift, leaf_albedo) are said to lie on its
+    test value's side only (the ladder runs from off towards it).
     """
     if limits.empty:
         return f"{verdict}: {lead}" if lead else verdict
@@ -371,6 +373,7 @@ def verdict_with_limits(verdict: str, limits: pd.DataFrame, lead: str = "") -> s
         return f"limit {r.smallest_detectable:.3g} {r.unit}"
 
     parts = [lead] if lead else []
+    two_sided = [e for e in limits["effect"] if cat.effect(e).bounds[0] < cat.effect(e).off < cat.effect(e).bounds[1]]
     if len(blind):
         parts.append("these data cannot see " + ", ".join(
             f"{r.effect} at {r.test_value:.3g} {r.unit} ({limit_of(r)})" if "test_value" in limits
@@ -379,4 +382,6 @@ def verdict_with_limits(verdict: str, limits: pd.DataFrame, lead: str = "") -> s
         values = ", ".join(f"{r.effect} {r.smallest_detectable:.3g} {r.unit}" for r in found.itertuples())
         power = float(limits["power"].iloc[0]) if "power" in limits else 0.8
         parts.append(f"seen in >= {power:.0%} of the model's twins from {values}")
+    if two_sided and len(parts) > bool(lead):
+        parts.append(f"limits of {', '.join(two_sided)} on the test value's side of off only")
     return f"{verdict}: " + "; ".join(parts) if parts else verdict
