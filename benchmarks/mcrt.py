@@ -76,6 +76,13 @@ noise SDs (``<m>_wave_err_rms``, ``_p95``, ``_frac_below_third``), the Monte Car
 and FWHM over their SD between :data:`INSTANCES` plant instances, rays and CPU per pulse, and
 each efficiency against ``random_30k`` with a bootstrap 95 % interval over the seeds.
 
+Control variates across neighbouring pulses (``--sections neighbours``; :func:`bench_neighbours`):
+the correlation of the recorded waveform's Monte Carlo error between two pulses whose beams are
+``NEIGHBOUR_OFFSETS_M`` apart and share their random numbers (the same seed and pulse index:
+``neighbours_corr_<dx>m``), against two independent seeds (``neighbours_corr_independent_<dx>m``),
+and ``neighbours_cv_gain_<dx>m`` = 1 / (1 - rho^2), the most a control variate built on the
+neighbour (its expectation known exactly) could divide the variance by.
+
 The virtual campaign's Monte Carlo noise (``--sections campaign``; :func:`bench_campaign`): fixed
 ray counts (``--campaign-rays``) and its adaptive budget at ``--campaign-tolerances``, against the
 true sensor's digitiser noise.
@@ -87,7 +94,7 @@ one-pulse BVH quality) and prints its ``n_rays`` (unused by an adaptive method) 
 
 Wall times are the minimum of ``--repeat`` runs (the machine is shared). Run:
 ``python benchmarks/mcrt.py [--pulses 16] [--repeat 3] [--species birch raspberry fireweed]
-[--sections speed error sensor campaign] [--quick]``.
+[--sections speed error sensor neighbours campaign] [--quick]``.
 """
 
 from __future__ import annotations
@@ -592,6 +599,39 @@ def bench_sensor(prefix: str, scene, instance, beams, args, methods) -> dict:
     return found
 
 
+NEIGHBOUR_OFFSETS_M = (0.01, 0.02, 0.05, 0.1, 0.2)
+"""Distances between the two beams of the neighbours section, m (the canopy's leaves are 2.6 cm)."""
+
+
+def bench_neighbours(prefix: str, scene, beams, args) -> None:
+    """Correlation of two neighbouring pulses' Monte Carlo errors under common random numbers
+    (``--sections neighbours``): for each offset, the recorded waveforms' errors (against
+    :data:`REF_RAYS`-ray references) of ``beams`` and of the same beams moved by the offset,
+    traced with the default's 16,384 Sobol' rays and roulette (a fixed count, so that every ray
+    has its twin) over ``--seeds`` seeds, correlated over seeds, pulses and samples; and the same
+    with the moved beams on other seeds (independent, the estimate's own noise)."""
+    prepared = prepare(scene, quality="high")
+    kw = dict(max_order=MAX_ORDER, **trace_kwargs(METHODS["sobol_rr_16k"]))
+
+    def errors(b, ref, seed):
+        return recorded(trace(prepared, b, seed=seed, **kw))[0] - ref
+
+    def corr(a, b):
+        return float((a * b).sum() / np.sqrt((a * a).sum() * (b * b).sum()))
+
+    for dx in NEIGHBOUR_OFFSETS_M:
+        moved = Beams(beams.origin + np.array([dx, 0.0, 0.0]), beams.direction, beams.footprint_m, beams.range_m)
+        refs = [recorded(trace(prepared, b, n_rays=REF_RAYS, sampler="sobol", roulette=0.0, seed=10**6,
+                               max_order=MAX_ORDER))[0] for b in (beams, moved)]
+        support = (refs[0] >= 0.1 * NOISE_SD_DN) | (refs[1] >= 0.1 * NOISE_SD_DN)
+        a, b, c = ([np.where(support, errors(bm, ref, seed + shift), 0.0) for seed in range(args.seeds)]
+                   for bm, ref, shift in ((beams, refs[0], 0), (moved, refs[1], 0), (moved, refs[1], 10**4)))
+        rho = corr(np.array(a), np.array(b))
+        print(f"{prefix}neighbours_corr_{dx:g}m: {rho:.3f} ratio", flush=True)
+        print(f"{prefix}neighbours_corr_independent_{dx:g}m: {corr(np.array(a), np.array(c)):.3f} ratio", flush=True)
+        print(f"{prefix}neighbours_cv_gain_{dx:g}m: {1.0 / (1.0 - rho**2):.3f} x", flush=True)
+
+
 CAMPAIGN_DATASET = "2010_12_1"
 """The dataset whose true sensor the campaign section records with."""
 
@@ -656,7 +696,7 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--species", nargs="*", default=list(SPECIES), help="species to benchmark (none: canopy only)")
-    ap.add_argument("--sections", nargs="+", default=["speed", "error"], choices=["speed", "error", "sensor", "campaign"])
+    ap.add_argument("--sections", nargs="+", default=["speed", "error"], choices=["speed", "error", "sensor", "neighbours", "campaign"])
     ap.add_argument("--campaign-rays", type=int, nargs="+", default=[256, 1024],
                     help="campaign section: fixed ray counts (default 256 1024)")
     ap.add_argument("--campaign-tolerances", type=float, nargs="*", default=[0.33, 0.2, 0.1],
@@ -709,6 +749,8 @@ def main() -> None:
                                   divergence_mrad=DIVERGENCE_MRAD)
             bench_sensor(prefix, scene, builders[prefix], eb, args,
                          [m for m in (args.methods or SENSOR_METHODS)])
+        if "neighbours" in args.sections:
+            bench_neighbours(prefix, scene, beams[:args.error_pulses], args)
         if "campaign" in args.sections:
             bench_campaign(prefix, scene, beams[:args.error_pulses], args)
     print(f"load_average_1min_end: {os.getloadavg()[0]:.2f} processes")

@@ -658,3 +658,42 @@ def test_scene_cache_keeps_base_plants_at_once_and_candidate_plants_from_their_s
     assert cache.built == 3 and len(cache.scenes) == 2 and cache("birch", 1.2, 7, **kw, leaf_albedo=0.8) is c
     np.testing.assert_array_equal(b.scene.triangles, c.scene.triangles)  # the same plant either way
     assert not np.array_equal(a.tri_data[:, 3], b.tri_data[:, 3])  # leaf albedo scales rho
+    assert b.intersector is a.intersector  # optics only: the base plant's BVH
+
+
+def test_trace_cache_returns_the_trace_of_the_same_scene_beams_seed_and_keywords():
+    """A cached trace is the trace; another seed, keyword, beam or scene object traces anew;
+    an entry ends with its scene; the cache keeps within its bytes."""
+    import gc
+
+    from fixtures import scenes as syn
+
+    from waveforest.diagnose.twins import TraceCache, sigma_effects
+    from waveforest.mcrt import Beams, prepare, trace
+
+    scene = prepare(syn.sheet_over_ground(6.0, 0.3))
+    beams = Beams.toward(np.zeros((2, 3)), 1000.0, [0.0, 8.0], [0.0, 90.0], divergence_mrad=0.15)
+    kw = dict(n_rays=256, max_order=3, sampler="sobol", roulette=0.5)
+    cache = TraceCache()
+    first = cache(scene, beams, seed=3, threads=1, **kw)
+    np.testing.assert_array_equal(first.sigma, trace(scene, beams, seed=3, **kw).sigma)
+    assert cache(scene, beams, seed=3, threads=2, **kw) is first and cache.hits == 1  # threads change nothing
+    assert cache(scene, beams, seed=4, **kw) is not first
+    assert cache(scene, beams, seed=3, **{**kw, "hotspot": 1.2}) is not first
+    moved = Beams.toward(np.full((2, 3), 0.01), 1000.0, [0.0, 8.0], [0.0, 90.0], divergence_mrad=0.15)
+    assert cache(scene, moved, seed=3, **kw) is not first
+    other = prepare(syn.sheet_over_ground(6.0, 0.3))
+    assert cache(other, beams, seed=3, **kw) is not first and cache.hits == 1
+    assert len(cache.entries) == 5 and cache.bytes == 5 * first.sigma.nbytes
+    del other
+    gc.collect()
+    stale = [k for k, (ref, _) in cache.entries.items() if ref() is None]
+    assert len(stale) == 1  # its scene is gone: the entry can no longer be hit
+    small = TraceCache(max_bytes=2 * first.sigma.nbytes)
+    for seed in range(4):
+        small(scene, beams, seed=seed, **kw)
+    assert len(small.entries) == 2 and small.bytes <= small.max_bytes
+    # the models that trace the base model's sigma(t): sensor effects only, off values aside
+    assert sigma_effects({"nonlinearity": 300.0, "trigger_loss": 0.1}) == sigma_effects({})
+    assert sigma_effects({"specular": 0.0}) == () != sigma_effects({"specular": 0.1})
+    assert sigma_effects({"xy_error": 0.2}) != sigma_effects({}) != sigma_effects({"leaf_albedo": 0.9})

@@ -5,7 +5,15 @@ import pytest
 from fixtures import scenes as syn
 
 from waveforest.constants import C_M_PER_NS
-from waveforest.mcrt import Beams, DirectEmbreeIntersector, EmbreeIntersector, NumpyIntersector, prepare, trace
+from waveforest.mcrt import (
+    Beams,
+    DirectEmbreeIntersector,
+    EmbreeIntersector,
+    NumpyIntersector,
+    prepare,
+    trace,
+    with_optics,
+)
 from waveforest.mcrt.backends import embree as rtc
 from waveforest.scene import Scene
 
@@ -158,6 +166,24 @@ def test_prepare_shifts_to_box_centre_and_keeps_properties():
     with pytest.raises(TypeError):
         prepare("scene.ply")
 
+
+
+def test_with_optics_traces_what_a_new_prepare_of_the_scene_traces():
+    """New optics on the BVH of the same triangles: sigma bit for bit that of a scene prepared
+    anew; other triangles are refused."""
+    sheet = syn.sheet_over_ground(6.0, 0.3, rho=0.4, tau=0.4)
+    brighter = Scene(sheet.triangles, np.where(sheet.kind == 1, 0.5, sheet.rho).astype(np.float32),
+                     sheet.tau, sheet.kind)
+    base = prepare(sheet)
+    mine = with_optics(base, brighter)
+    assert mine.intersector is base.intersector and mine.scene is brighter
+    np.testing.assert_array_equal(mine.tri_data, prepare(brighter).tri_data)
+    np.testing.assert_array_equal(base.rho, prepare(sheet).rho)  # the prepared scene is left alone
+    beams = Beams.toward(np.zeros((3, 3)), 1000.0, [0.0, 5.0, 10.0], [0.0, 90.0, 200.0], divergence_mrad=0.15)
+    kw = dict(n_rays=512, max_order=3, seed=4, sampler="sobol", roulette=0.5)
+    np.testing.assert_array_equal(trace(mine, beams, **kw).sigma, trace(prepare(brighter), beams, **kw).sigma)
+    with pytest.raises(ValueError, match="triangles"):
+        with_optics(base, syn.plane(6.0))
 
 def test_intersector_input_validation():
     with pytest.raises(ValueError, match="triangles"):

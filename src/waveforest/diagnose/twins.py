@@ -3,7 +3,7 @@
 A thin adapter over :func:`waveforest.model.simulate.simulate_pulses` (vegetation ->
 MCRT -> sensor -> CFD; effects routed to the module that applies each) and
 :func:`waveforest.sensor.feature_table` (first-echo features, the same code as for the real
-pulses) with :func:`.waveform.waveform_statistics` (the whole waveform). It adds four things:
+pulses) with :func:`.waveform.waveform_statistics` (the whole waveform). It adds five things:
 
 * **the seed**: ``simulate_pulses`` derives every random number from the settings' master
   seed, the dataset, the sample and the vegetation instance; the adapter passes the search's
@@ -15,7 +15,11 @@ pulses) with :func:`.waveform.waveform_statistics` (the whole waveform). It adds
   ``sensor`` and ``geometry`` stages: specular, hotspot, noise_autocorr, nonlinearity,
   trigger_loss, xy_error) therefore trace the very same instances as the model without them
   (no rebuild, and no extra vegetation noise between values); only the four vegetation
-  effects build new ones;
+  effects build new ones, and ``leaf_albedo``, which changes the leaves' optics only, reuses
+  the BVH of the plant without it;
+* **trace reuse**: a model whose sigma(t) is the base model's (it adds sensor effects only:
+  noise_autocorr, nonlinearity, trigger_loss) takes the base model's traces of the same seed
+  from a cache (:class:`TraceCache`) and renders them under its own sensor;
 * **S(t) of the model tried**: the calibrate stage inverts the sensor effects of the base
   model (``simulate.effects``) on the calibration targets (:func:`waveforest.sensor.calibration.linearise`);
   a candidate ``nonlinearity`` or ``trigger_loss`` shapes those targets too, so with the
@@ -39,9 +43,11 @@ calibration, and when no twin has an echo. Measured costs: docs/validation.md (S
 
 from __future__ import annotations
 
+import hashlib
 import threading
+import weakref
 from collections import OrderedDict
-from dataclasses import replace
+from dataclasses import fields, replace
 
 import numpy as np
 import pandas as pd
@@ -61,7 +67,8 @@ from waveforest.diagnose.waveform import WAVEFORM_FEATURES, waveform_statistics
 from waveforest.effects import CATALOGUE
 from waveforest.errors import WaveforestError
 from waveforest.io.tables import dataset_row
-from waveforest.mcrt import prepare
+from waveforest.mcrt import prepare, trace, with_optics
+from waveforest.model.forward import split_effects
 from waveforest.model.simulate import SimulateSettings, simulate_pulses
 from waveforest.rng import hash_ids, stable_hash
 from waveforest.sensor import feature_table, range_correction_of
@@ -76,6 +83,11 @@ SCENE_CACHE_TRIANGLES = 24_000_000
 per triangle, so ~8 GB; a low-species plot has ~240 000 triangles). The scenes of the
 default study's capped diagnosis (diagnose.max_pulses) fit: a least-recently-used cache
 smaller than the scenes one simulation cycles through misses on every one."""
+
+TRACE_CACHE_BYTES = 1 << 30
+"""Most bytes of sigma(t) the :class:`TraceCache` keeps (least recently used dropped first):
+16 kB per pulse at the default 100-ns window, so the base model's traces of every pulse over
+the power analysis' and the search's seeds."""
 
 
 def _is_tree_model(species: str) -> bool:
@@ -101,7 +113,9 @@ class SceneCache:
     :data:`SCENE_CACHE_TRIANGLES` triangles. Plants of the base model (``base_effects``'
     vegetation effects) are kept from their first build; plants under other vegetation
     effects (a candidate's value, mostly asked for once) only from their second request, so
-    that one-off plants do not push out the ones every other candidate traces again. The BVH
+    that one-off plants do not push out the ones every other candidate traces again. A plant
+    under ``leaf_albedo`` is the plant without it with new leaf optics
+    (:func:`waveforest.mcrt.with_optics`): no BVH of its own. The BVH
     is built at MEDIUM quality: a scene serves a few pulses of ``diagnose.n_rays`` per
     simulation, far below what a HIGH build pays back over
     (:func:`waveforest.mcrt.tracer.bvh_quality`; timings in docs/validation.md).
@@ -132,7 +146,11 @@ class SceneCache:
                 self.hits += 1
                 return self.scenes[key]
         # built outside the lock (simulate_pulses' worker threads build concurrently)
-        scene = prepare(build_scene(species, height, seed, **kwargs), quality="medium")
+        if any(name == "leaf_albedo" for name, _ in fx):  # optics only: the BVH of the plant without it
+            geometry = self(species, height, seed, **{**kwargs, "leaf_albedo": CATALOGUE["leaf_albedo"].off})
+            scene = with_optics(geometry, build_scene(species, height, seed, **kwargs))
+        else:
+            scene = prepare(build_scene(species, height, seed, **kwargs), quality="medium")
         with self.lock:
             self.built += 1
             keep = base or key in self.requested
@@ -146,6 +164,68 @@ class SceneCache:
                 self.triangles -= len(old.scene)
         return scene
 
+
+
+def _digest(beams, seed, kwargs: dict) -> bytes:
+    """A digest of a trace's beams, seed and keywords (arrays by dtype, shape and bytes)."""
+    h = hashlib.blake2b(digest_size=20)
+    items = [(f.name, getattr(beams, f.name)) for f in fields(beams)] + [("seed", seed)] + sorted(kwargs.items())
+    for name, value in items:
+        h.update(name.encode())
+        if isinstance(value, np.ndarray):
+            a = np.ascontiguousarray(value)
+            h.update(f"{a.dtype.str}{a.shape}".encode())
+            h.update(a.tobytes())
+        else:
+            h.update(repr(value).encode())
+    return h.digest()
+
+
+class TraceCache:
+    """``tracer`` for ``simulate_pulses`` that keeps the results of :func:`waveforest.mcrt.trace`.
+
+    A trace is a function of the scene, the beams, the seed and the keywords, not of the
+    threads (:mod:`waveforest.mcrt.tracer`): the key is the scene's identity and a digest of
+    the rest, and each entry holds a weak reference to its scene, so that a scene the
+    :class:`SceneCache` dropped ends its entries. The adapter passes it for the models whose
+    sigma(t) is the base model's (they differ in sensor effects only): with common random
+    numbers their values trace nothing anew. Bounded by :data:`TRACE_CACHE_BYTES` of sigma.
+    """
+
+    def __init__(self, max_bytes: int = TRACE_CACHE_BYTES):
+        self.max_bytes = int(max_bytes)
+        self.entries: OrderedDict = OrderedDict()
+        self.bytes = 0
+        self.hits = 0
+        self.lock = threading.Lock()
+
+    def __call__(self, scene, beams, *, seed, threads=None, **kwargs):
+        key = (id(scene), _digest(beams, seed, kwargs))
+        with self.lock:
+            entry = self.entries.get(key)
+            if entry is not None and entry[0]() is scene:
+                self.entries.move_to_end(key)
+                self.hits += 1
+                return entry[1]
+        res = trace(scene, beams, seed=seed, threads=threads, **kwargs)
+        with self.lock:
+            old = self.entries.pop(key, None)  # a scene of the same id that is gone, or a twin thread's
+            if old is not None:
+                self.bytes -= old[1].sigma.nbytes
+            self.entries[key] = (weakref.ref(scene), res)
+            self.bytes += res.sigma.nbytes
+            while len(self.entries) > 1 and self.bytes > self.max_bytes:
+                _, (_, dropped) = self.entries.popitem(last=False)
+                self.bytes -= dropped.sigma.nbytes
+        return res
+
+
+def sigma_effects(effects: dict) -> tuple:
+    """The effects of ``effects`` that change sigma(t) (all but the sensor's), off values dropped:
+    two models with equal ones trace the same sigma(t) from the same seed."""
+    veg, mcrt, _, xy = split_effects(effects)
+    on = {**veg, **mcrt, "xy_error": xy}
+    return tuple(sorted((k, v) for k, v in on.items() if v != CATALOGUE[k].off))
 
 class StudySimulator:
     """``simulate(pulses, effects, seed) -> feature table`` over the study's real chain.
@@ -185,6 +265,7 @@ class StudySimulator:
         self.range_correction = bool(settings.range_correction)
         self.threads = threads
         self.scenes = SceneCache(base_effects=self.base_effects)
+        self.traces = TraceCache()
         self.pulses_simulated = 0
         self.calibration_pulses = dict(calibration_pulses or {})
         self.recalibrated: dict = {}
@@ -211,8 +292,10 @@ class StudySimulator:
         """Feature table of the twins of the rows of ``sub`` (one dataset); None when none has an echo."""
 
         cal, meta = self.calibration(ds, model)
+        base_sigma = sigma_effects(model) == sigma_effects(self.base_effects)
         sim, _ = simulate_pulses(sub, self.info[ds], cal, simulate, effects=model, progress=False,
-                                 threads=self.threads, scene_builder=self.scenes, stream=stream)
+                                 threads=self.threads, scene_builder=self.scenes, stream=stream,
+                                 tracer=self.traces if base_sigma else None)
         self.pulses_simulated += sub.num_rows
         if sim.num_rows == 0:
             return None

@@ -15,7 +15,14 @@ Modules: :mod:`.beams` (pulses), :mod:`.prepare` (a scene made ready, :func:`pre
 
 from waveforest.mcrt.backends import DirectEmbreeIntersector, EmbreeIntersector, NumpyIntersector
 from waveforest.mcrt.beams import DEFAULT_DIVERGENCE_MRAD, Beams, BeamSpec, direction_from_angles
-from waveforest.mcrt.prepare import PreparedScene, Prototypes, prepare, prepare_instances, prepare_prototypes
+from waveforest.mcrt.prepare import (
+    PreparedScene,
+    Prototypes,
+    prepare,
+    prepare_instances,
+    prepare_prototypes,
+    with_optics,
+)
 from waveforest.mcrt.tracer import DEFAULT_WINDOW_NS, TraceResult, trace
 
 __all__ = [
@@ -31,6 +38,7 @@ __all__ = [
     "Prototypes",
     "prepare_prototypes",
     "prepare_instances",
+    "with_optics",
     "trace",
     "TraceResult",
     "DEFAULT_WINDOW_NS",

@@ -156,6 +156,21 @@ def prepare(scene: Scene | PreparedScene, backend: str = "embree", quality: str 
     )
 
 
+
+def with_optics(prepared: PreparedScene, scene: Scene) -> PreparedScene:
+    """``scene`` prepared on the BVH of ``prepared``, whose triangles it must have (checked):
+    only its rho, tau and kind differ, so it costs the per-triangle records, not a BVH build.
+
+    Raises ValueError when ``prepared`` holds no scene (instances) or other triangles."""
+    own = prepared.scene
+    if own is None or own.triangles.shape != scene.triangles.shape or not np.array_equal(own.triangles,
+                                                                                         scene.triangles):
+        raise ValueError("scene: expected the triangles of the prepared scene (only the optics may differ)")
+    tri_data = prepared.tri_data.copy()
+    tri_data[:, 3], tri_data[:, 4], tri_data[:, 5] = scene.rho, scene.tau, scene.kind
+    return PreparedScene(scene=scene, intersector=prepared.intersector, shift=prepared.shift, tri_data=tri_data,
+                         bounds=prepared.bounds)
+
 @dataclass(frozen=True, eq=False)
 class Prototypes:
     """Parts prepared once, to be copied into many arrangements (:func:`prepare_instances`).

@@ -373,18 +373,19 @@ def noise_free_waveform(result, system, noise_sd: float, range_m: float, i: int 
 
 def trace_and_render(scene, beams, range_m: np.ndarray, mcrt: MCRTSetup, setup: SensorSetup,
                      trace_seed: int, rng: np.random.Generator, threads: int | None = None,
-                     gain: np.ndarray | None = None):
+                     gain: np.ndarray | None = None, tracer=trace):
     """MCRT of ``beams`` through ``scene`` (a Scene or PreparedScene), then :func:`render_sigma`
     (``gain``: the AGC gains of the real pulses twinned, see there). The ray budget is
     ``mcrt``'s: adaptive to ``setup``'s S(t) and noise at each pulse's R and gain (:meth:`MCRTSetup.budget`)
-    unless its tolerance is None.
+    unless its tolerance is None. ``tracer``: :func:`waveforest.mcrt.trace` or a stand-in with its
+    signature and results (a cache of them).
 
     Returns
     -------
     (SimPulses, TraceResult)
     """
 
-    res = trace(scene, beams, seed=int(trace_seed), threads=threads, **mcrt.kwargs(),
+    res = tracer(scene, beams, seed=int(trace_seed), threads=threads, **mcrt.kwargs(),
                 **mcrt.budget(setup.system, setup.noise_sd, range_m, gain))
     sim = render_sigma(res.sigma, res.t0_ns, np.asarray(range_m, dtype=float), setup, rng,
                        sigma_total=res.total, first_hit_counts=res.first_hit_counts, gain=gain)

@@ -57,7 +57,7 @@ from waveforest.constants import RANGE_PER_NS
 from waveforest.errors import WaveforestError
 from waveforest.io.pulses import PULSE_SCHEMA, padded_to_list
 from waveforest.io.tables import divergence_mrad
-from waveforest.mcrt import Beams
+from waveforest.mcrt import Beams, trace
 from waveforest.mcrt.threads import default_threads
 from waveforest.model.forward import (
     MCRTSetup,
@@ -201,8 +201,8 @@ class SimulateSummary:
 
 def simulate_pulses(selected: pa.Table, dataset_info: pd.Series, calibration: Calibration,
                     settings: SimulateSettings, *, chunk: int = 0, chunks: int = 1, effects: dict | None = None,
-                    progress: bool = True, threads: int | None = None, scene_builder=None, stream: int = 0
-                    ) -> tuple[pa.Table, SimulateSummary]:
+                    progress: bool = True, threads: int | None = None, scene_builder=None, stream: int = 0,
+                    tracer=None) -> tuple[pa.Table, SimulateSummary]:
     """Simulate the pulses of ``selected`` that fall into ``chunk`` (see module docstring).
 
     Parameters
@@ -228,6 +228,8 @@ def simulate_pulses(selected: pa.Table, dataset_info: pd.Series, calibration: Ca
     stream : int
         0: the study's random numbers; k > 0: an independent draw of the rays, noise,
         sampling phase and ``xy_error`` offsets over the same plants.
+    tracer : callable, optional
+        :func:`waveforest.mcrt.trace` (default) or a stand-in with its signature and results.
 
     Returns
     -------
@@ -243,7 +245,7 @@ def simulate_pulses(selected: pa.Table, dataset_info: pd.Series, calibration: Ca
     p = p[(p["chunk_hash"] % chunks) == chunk]
     workers = threads if threads is not None else default_threads()
     chain = _chain(settings, dataset_info, calibration, fx, scene_builder or build_scene, carry,
-                   1 if workers > 1 else threads, stream)
+                   1 if workers > 1 else threads, stream, tracer or trace)
     groups = [g for _, g in p.groupby("group", sort=True)]
     pieces, n_no_echo = _run_groups(chain, scal, groups, workers,
                                     f"simulate {dataset} chunk {chunk}" if progress else None)
@@ -280,6 +282,7 @@ class _Chain:
     threads: int | None
     carry: pa.Schema
     stream: int
+    tracer: Callable
 
     def group(self, scal: pd.DataFrame, g: pd.DataFrame) -> tuple[pa.Table | None, int]:
         """The twins of the plan rows ``g`` (one group): scene, seeds, :func:`_simulate_group`."""
@@ -292,11 +295,11 @@ class _Chain:
         ss = hashed_sequence(self.seed, self.dataset, "pulses", sample_id, inst,
                              *((int(self.stream),) if self.stream else ()))
         return _simulate_group(d, scene, ss, inst, self.divergence_mrad, self.xy_error, self.mcrt, self.setup,
-                               self.threads, self.carry)
+                               self.threads, self.carry, self.tracer)
 
 
 def _chain(settings: SimulateSettings, dataset_info: pd.Series, calibration: Calibration, effects: tuple,
-           scene_builder, carry: pa.Schema, threads: int | None, stream: int) -> _Chain:
+           scene_builder, carry: pa.Schema, threads: int | None, stream: int, tracer: Callable) -> _Chain:
     """The chain of one dataset: the calibrated sensor, the tracer and ``effects`` as
     :func:`.forward.split_effects` splits them."""
     veg_fx, mcrt_fx, sensor_fx, xy_error = effects
@@ -307,7 +310,7 @@ def _chain(settings: SimulateSettings, dataset_info: pd.Series, calibration: Cal
                   vegetation=veg_fx, ground_rho=float(settings.ground_rho), lai_jitter=float(settings.lai_jitter),
                   divergence_mrad=divergence_mrad(dataset_info), xy_error=xy_error,
                   mcrt=replace(settings.mcrt, effects=mcrt_fx), setup=setup, threads=threads, carry=carry,
-                  stream=int(stream))
+                  stream=int(stream), tracer=tracer)
 
 
 def _run_groups(chain: _Chain, scal: pd.DataFrame, groups: list[pd.DataFrame], workers: int,
@@ -333,7 +336,8 @@ def _run_groups(chain: _Chain, scal: pd.DataFrame, groups: list[pd.DataFrame], w
 
 
 def _simulate_group(d: pd.DataFrame, scene, ss: np.random.SeedSequence, inst: int, div, xy_error: float,
-                    mcrt: MCRTSetup, setup: SensorSetup, threads, carry: pa.Schema) -> tuple[pa.Table | None, int]:
+                    mcrt: MCRTSetup, setup: SensorSetup, threads, carry: pa.Schema,
+                    tracer: Callable) -> tuple[pa.Table | None, int]:
     """The twins of one (sample, instance) group: beams, MCRT, Eq. 7 at each pulse's AGC gain, CFD.
 
     ``ss`` seeds the group: its first spawned child gives the MCRT seed (63 bits), ``ss`` itself
@@ -354,7 +358,7 @@ def _simulate_group(d: pd.DataFrame, scene, ss: np.random.SeedSequence, inst: in
     origin = sensor - d[["sample_x", "sample_y", "ground_z"]].to_numpy(float) + offset
     beams = Beams.from_divergence(origin, direction, div, r)
     gain = gain_or_one(d[GAIN_COLUMN].to_numpy(float)) if GAIN_COLUMN in d else np.ones(len(d))
-    sim, _ = trace_and_render(scene, beams, r, mcrt, setup, trace_seed, rng, threads, gain=gain)
+    sim, _ = trace_and_render(scene, beams, r, mcrt, setup, trace_seed, rng, threads, gain=gain, tracer=tracer)
     keep = sim.n_echoes > 0
     lost += int((~keep).sum())
     if not keep.any():
