@@ -165,7 +165,6 @@ class SceneCache:
         return scene
 
 
-
 def _digest(beams, seed, kwargs: dict) -> bytes:
     """A digest of a trace's beams, seed and keywords (arrays by dtype, shape and bytes)."""
     h = hashlib.blake2b(digest_size=20)
