@@ -83,6 +83,31 @@ def test_large_signature_gives_a_monotone_curve_and_a_finite_limit():
         assert np.all(c["power_ci_high"] - c["power_ci_low"] > 0.3)  # 3 replicates say little
 
 
+
+def test_the_ladders_simulate_seed_by_seed_and_give_each_candidates_own_limits():
+    """The walks down the candidates' ladders run side by side, each step's simulations grouped
+    by pool seed (a seed's base plants then stay in the study's scene cache); the limits and
+    curves are those of each candidate walked alone."""
+    study = SyntheticStudy(samples_per_species=12, pulses_per_sample=8, seed=1)
+    seeds = []
+
+    def simulate(keys, effects, seed):
+        seeds.append(seed)
+        return study.simulate(keys, effects, seed)
+
+    limits, curve = limits_of(study, simulate)
+    changes = int(np.count_nonzero(np.diff(seeds)))
+    steps = len(curve) - len(limits)  # ladder values tried, over all candidates
+    longest = int(curve.groupby("effect").size().max()) - 1
+    # the base model's pool, then two switches per step of the walks side by side; one candidate
+    # at a time switched seed at every value tried: 2 x steps - 1
+    assert changes <= 2 * longest + 1 < 2 * steps - 1
+    for name in SETTINGS.candidates:
+        alone = replace(SETTINGS, candidates=(name,))
+        one, one_curve = limits_of(study, settings=alone)
+        pd.testing.assert_frame_equal(one, limits[limits["effect"] == name].reset_index(drop=True))
+        pd.testing.assert_frame_equal(one_curve, curve[curve["effect"] == name].reset_index(drop=True))
+
 def test_a_limit_never_lies_outside_the_values_tried():
     """One replicate, detected only at the bound: the interpolated crossing may not fall beyond
     the weakest value detected; ``smallest_detectable`` lies between off and the bound."""

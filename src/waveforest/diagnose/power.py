@@ -41,14 +41,16 @@ stays 1.
 The off value is evaluated in every replicate too: its power is the false-alarm rate of the
 test on this design (in-sample: the factor comes from the same replicates). A limit is never outside the values tried: "not reached" (NaN) when the
 strongest is detected with less power. Cost: ``pool`` x (1 + values evaluated) simulations of
-all pulses (one more set with ``pulses_per_value`` > 1), whatever ``replicates``.
+all pulses (one more set with ``pulses_per_value`` > 1), whatever ``replicates``. The
+candidates' walks run side by side, and each step simulates its values seed by seed: a seed's
+plants (the study's scene cache holds about one seed's) serve every value of the step.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import pandas as pd
@@ -255,6 +257,36 @@ def calibrate_floor(keys: pd.DataFrame, simulate: Simulator, settings: SearchSet
     return floor_calibration(_null_replicates(keys, simulate, settings, power, seed, progress)[2])
 
 
+@dataclass
+class _LadderWalk:
+    """One candidate's walk down its ladder ``us`` (search coordinate), from the far bound
+    towards off, while a value is detected in at least ``needed`` replicates: ``k`` the value
+    under test (at the end: the first not detected, -1 if all were), ``lbs`` and ``rows`` each
+    tested value's lower bounds and results."""
+
+    name: str
+    us: np.ndarray
+    k: int
+    lbs: dict = field(default_factory=dict)
+    rows: dict = field(default_factory=dict)
+    done: bool = False
+
+    @classmethod
+    def start(cls, name: str, values: int) -> _LadderWalk:
+        """The walk of ``name`` over :func:`ladder` (``values`` values), at its far bound."""
+        us = ladder(name, values)
+        return cls(name, us, len(us) - 1)
+
+    def record(self, res: np.ndarray, needed: int) -> None:
+        """The results (R, 3) of value ``k``; the walk stops at a value not detected or at off."""
+        self.lbs[self.k], self.rows[self.k] = res[:, 2], res
+        if (res[:, 2] > 0).sum() < needed:
+            self.done = True
+        else:
+            self.k -= 1
+            self.done = self.k < 0
+
+
 def detection_limits(keys: pd.DataFrame, simulate: Simulator, settings: SearchSettings, power: PowerSettings,
                      seed: int, *, progress: Callable[[str], None] | None = None, tables: dict | None = None,
                      calibration: dict | None = None) -> tuple[pd.DataFrame, pd.DataFrame]:
@@ -302,20 +334,19 @@ def detection_limits(keys: pd.DataFrame, simulate: Simulator, settings: SearchSe
     if calibration is not None:
         calibration["floor"] = cal
     off = _calibrated(off, cal.scale)
+    walks = {name: _LadderWalk.start(name, power.values) for name in settings.candidates}
+    while active := [w for w in walks.values() if not w.done]:
+        tried = [cat.with_effect({}, w.name, cat.from_u(w.name, w.us[w.k])) for w in active]
+        for k in range(len(pool.seeds)):  # seed by seed: each seed's base plants stay in the scene cache
+            for effects in tried:
+                pool.get(effects, k)
+        for w, effects in zip(active, tried):
+            w.record(_calibrated([r.test(effects) for r in reps], cal.scale), power.needed)
     limits, curve = [], []
     for name in settings.candidates:
-        us = ladder(name, power.values)
+        w = walks[name]
+        us, k, lbs, rows = w.us, w.k, w.lbs, w.rows
         u0 = cat.off_u(name)
-        lbs: dict[int, np.ndarray] = {}
-        rows = {}
-        k = len(us) - 1
-        while k >= 0:
-            res = _calibrated([r.test(cat.with_effect({}, name, cat.from_u(name, us[k]))) for r in reps],
-                              cal.scale)
-            lbs[k], rows[k] = res[:, 2], res
-            if (res[:, 2] > 0).sum() < power.needed:
-                break
-            k -= 1
         limit = math.nan
         if k < len(us) - 1:  # the far bound is detected: interpolate below the weakest detected value
             u_lo, lb_lo = (u0, off[:, 2]) if k < 0 else (us[k], lbs[k])
