@@ -156,7 +156,6 @@ def prepare(scene: Scene | PreparedScene, backend: str = "embree", quality: str 
     )
 
 
-
 def with_optics(prepared: PreparedScene, scene: Scene) -> PreparedScene:
     """``scene`` prepared on the BVH of ``prepared``, whose triangles it must have (checked):
     only its rho, tau and kind differ, so it costs the per-triangle records, not a BVH build.
@@ -170,6 +169,7 @@ def with_optics(prepared: PreparedScene, scene: Scene) -> PreparedScene:
     tri_data[:, 3], tri_data[:, 4], tri_data[:, 5] = scene.rho, scene.tau, scene.kind
     return PreparedScene(scene=scene, intersector=prepared.intersector, shift=prepared.shift, tri_data=tri_data,
                          bounds=prepared.bounds)
+
 
 @dataclass(frozen=True, eq=False)
 class Prototypes:

@@ -386,7 +386,7 @@ def trace_and_render(scene, beams, range_m: np.ndarray, mcrt: MCRTSetup, setup: 
     """
 
     res = tracer(scene, beams, seed=int(trace_seed), threads=threads, **mcrt.kwargs(),
-                **mcrt.budget(setup.system, setup.noise_sd, range_m, gain))
+                 **mcrt.budget(setup.system, setup.noise_sd, range_m, gain))
     sim = render_sigma(res.sigma, res.t0_ns, np.asarray(range_m, dtype=float), setup, rng,
                        sigma_total=res.total, first_hit_counts=res.first_hit_counts, gain=gain)
     sim.rays = res.rays
