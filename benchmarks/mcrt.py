@@ -613,22 +613,26 @@ def bench_neighbours(prefix: str, scene, beams, args) -> None:
     prepared = prepare(scene, quality="high")
     kw = dict(max_order=MAX_ORDER, **trace_kwargs(METHODS["sobol_rr_16k"]))
 
-    def errors(b, ref, seed):
-        return recorded(trace(prepared, b, seed=seed, **kw))[0] - ref
+    def reference(b):
+        return recorded(trace(prepared, b, n_rays=REF_RAYS, sampler="sobol", roulette=0.0, seed=10**6,
+                              max_order=MAX_ORDER))[0]
+
+    def errors(b, ref, first_seed):
+        return np.array([recorded(trace(prepared, b, seed=first_seed + s, **kw))[0] - ref for s in range(args.seeds)])
 
     def corr(a, b):
         return float((a * b).sum() / np.sqrt((a * a).sum() * (b * b).sum()))
 
+    ref0 = reference(beams)
+    err0 = errors(beams, ref0, 0)  # the unmoved beams: the same for every offset
     for dx in NEIGHBOUR_OFFSETS_M:
         moved = Beams(beams.origin + np.array([dx, 0.0, 0.0]), beams.direction, beams.footprint_m, beams.range_m)
-        refs = [recorded(trace(prepared, b, n_rays=REF_RAYS, sampler="sobol", roulette=0.0, seed=10**6,
-                               max_order=MAX_ORDER))[0] for b in (beams, moved)]
-        support = (refs[0] >= 0.1 * NOISE_SD_DN) | (refs[1] >= 0.1 * NOISE_SD_DN)
-        a, b, c = ([np.where(support, errors(bm, ref, seed + shift), 0.0) for seed in range(args.seeds)]
-                   for bm, ref, shift in ((beams, refs[0], 0), (moved, refs[1], 0), (moved, refs[1], 10**4)))
-        rho = corr(np.array(a), np.array(b))
+        ref1 = reference(moved)
+        support = (ref0 >= 0.1 * NOISE_SD_DN) | (ref1 >= 0.1 * NOISE_SD_DN)
+        a, b, c = (np.where(support, e, 0.0) for e in (err0, errors(moved, ref1, 0), errors(moved, ref1, 10**4)))
+        rho = corr(a, b)
         print(f"{prefix}neighbours_corr_{dx:g}m: {rho:.3f} ratio", flush=True)
-        print(f"{prefix}neighbours_corr_independent_{dx:g}m: {corr(np.array(a), np.array(c)):.3f} ratio", flush=True)
+        print(f"{prefix}neighbours_corr_independent_{dx:g}m: {corr(a, c):.3f} ratio", flush=True)
         print(f"{prefix}neighbours_cv_gain_{dx:g}m: {1.0 / (1.0 - rho**2):.3f} x", flush=True)
 
 
