@@ -197,6 +197,26 @@ def test_max_pulses_keeps_whole_samples_the_same_in_every_dataset_and_nested():
     assert pulse_keys({"2012_10_1": _select_table(rows)}, _strata(max_pulses=60))["sample_id"].nunique() == 2
 
 
+def test_max_pulses_keeps_samples_that_differ_between_seeds_as_independent_draws():
+    """The samples that a cap keeps under different master seeds overlap as independent random
+    subsets would. An order by a CRC-32 of seed and id is affine in the id's bits: two of seeds
+    2014-2023 then kept either none or 72 of the same 80 samples."""
+    from dataclasses import replace
+
+    from waveforest.diagnose.strata import pulse_keys
+
+    ids = [f"2012-{stand:02d}-{k:03d}" for stand in range(1, 15) for k in range(1, 41)]
+    rows = [dict(dataset="2012_10_1", pulse_id=i, sample_id=s, species="raspberry", is_tree=False,
+                 comparison_set=True, below_crown_set=False) for i, s in enumerate(ids)]
+    table = {"2012_10_1": _select_table(rows)}
+    base = _strata(max_pulses=80)
+    kept = [set(pulse_keys(table, replace(base, seed=s))["sample_id"]) for s in range(2014, 2024)]
+    assert all(len(k) == 80 for k in kept)
+    overlap = [len(a & b) for i, a in enumerate(kept) for b in kept[i + 1:]]
+    # 80 of 560 drawn independently twice share 11.4 samples on average (hypergeometric SD 2.9)
+    assert 9 <= np.mean(overlap) <= 14 and min(overlap) >= 3 and max(overlap) <= 25, overlap
+
+
 def test_real_below_crown_echoes_are_found_as_a_twins_are():
     """own_cfd_echoes arms the CFD on the recorded noise, SD / AGC gain, as render_sigma does
     for a twin: a weak early return under the arming level at gain 1 is the first echo at

@@ -208,9 +208,15 @@ def _whole_samples(df: pd.DataFrame, cap: int, seed: int) -> pd.DataFrame:
     """Rows of whole field samples, in a seeded order of the samples (the same in every dataset),
     per species x stratum, while their pulses number at most ``cap``, and at least the first
     :data:`~waveforest.diagnose.gap.MIN_CELL_SAMPLES` (a cell of fewer is not compared: a cap that
-    left one sample would drop the cell). A smaller cap keeps a subset of a larger one's samples."""
+    left one sample would drop the cell). A smaller cap keeps a subset of a larger one's samples.
+
+    The order is the SplitMix64 mix (:func:`~waveforest.rng.hash_ids`) of each id's CRC under a
+    key of ``seed``: a CRC-32 of seed and id is affine in the id's bits, so the orders of two seeds
+    were XOR-translates of one another, not independent draws (docs/validation.md, Diagnose: the
+    noise floor)."""
     codes, uniq = pd.factorize(df["sample_id"].astype(str))
-    rank = np.array([stable_hash(seed, "diagnose sample", u) for u in uniq], np.int64)[codes]
+    ids = np.array([stable_hash(u) for u in uniq], np.int64)
+    rank = hash_ids(stable_hash(seed, "diagnose sample"), ids)[codes]
     df = df.assign(_rank=rank).sort_values(["_rank", "sample_id", "pulse_id"])
     size = df.groupby(["species", "stratum", "sample_id"], sort=False)["pulse_id"].transform("size")
     first = ~df.duplicated(["species", "stratum", "sample_id"])
