@@ -90,10 +90,10 @@ def main(argv: list[str] | None = None) -> None:
         d = t[f"all_{f}"]
         z = t[f"diagnosed_{f}"] / t[f"caps_sd_{f}"]
         tval = d.mean() / (d.std(ddof=1) / np.sqrt(n)) if n > 1 else np.nan
-        print(f"all_d_{f}: {d.mean():+.4f} pooled SDs (t {tval:+.1f} over {n})")
-        print(f"diagnosed_minus_all_{f}: {t[f'diagnosed_{f}'].mean():+.4f} pooled SDs")
-        print(f"caps_minus_all_{f}: {t[f'caps_{f}'].mean():+.4f} pooled SDs")
-        print(f"caps_sd_{f}: {t[f'caps_sd_{f}'].mean():.4f} pooled SDs")
+        print(f"all_d_{f}: {d.mean():+.4f} real SDs (t {tval:+.1f} over {n})")
+        print(f"diagnosed_minus_all_{f}: {t[f'diagnosed_{f}'].mean():+.4f} real SDs")
+        print(f"caps_minus_all_{f}: {t[f'caps_{f}'].mean():+.4f} real SDs")
+        print(f"caps_sd_{f}: {t[f'caps_sd_{f}'].mean():.4f} real SDs")
         print(f"diagnosed_z_{f}: {z.mean():+.2f} (SE {1 / np.sqrt(n):.2f} for a random subset)")
     print(f"wall_time: {time.perf_counter() - t0:.1f} s")
     print(f"cpu_time: {time.process_time() - c0:.1f} s")

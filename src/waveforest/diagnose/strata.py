@@ -211,9 +211,9 @@ def _whole_samples(df: pd.DataFrame, cap: int, seed: int) -> pd.DataFrame:
     left one sample would drop the cell). A smaller cap keeps a subset of a larger one's samples.
 
     The order is the SplitMix64 mix (:func:`~waveforest.rng.hash_ids`) of each id's CRC under a
-    key of ``seed``: a CRC-32 of seed and id is affine in the id's bits, so the orders of two seeds
-    were XOR-translates of one another, not independent draws (docs/validation.md, Diagnose: the
-    noise floor)."""
+    key of ``seed``, so that each seed draws an independent subset. A CRC-32 of seed and id is
+    affine in the id's bits: the orders of two seeds would be XOR-translates of one another
+    (docs/validation.md, Diagnose: the noise floor)."""
     codes, uniq = pd.factorize(df["sample_id"].astype(str))
     ids = np.array([stable_hash(u) for u in uniq], np.int64)
     rank = hash_ids(stable_hash(seed, "diagnose sample"), ids)[codes]
