@@ -83,7 +83,6 @@ def test_large_signature_gives_a_monotone_curve_and_a_finite_limit():
         assert np.all(c["power_ci_high"] - c["power_ci_low"] > 0.3)  # 3 replicates say little
 
 
-
 def test_the_ladders_simulate_seed_by_seed_and_give_each_candidates_own_limits():
     """The walks down the candidates' ladders run side by side, each step's simulations grouped
     by pool seed (a seed's base plants then stay in the study's scene cache); the limits and
@@ -107,6 +106,7 @@ def test_the_ladders_simulate_seed_by_seed_and_give_each_candidates_own_limits()
         one, one_curve = limits_of(study, settings=alone)
         pd.testing.assert_frame_equal(one, limits[limits["effect"] == name].reset_index(drop=True))
         pd.testing.assert_frame_equal(one_curve, curve[curve["effect"] == name].reset_index(drop=True))
+
 
 def test_a_limit_never_lies_outside_the_values_tried():
     """One replicate, detected only at the bound: the interpolated crossing may not fall beyond
