@@ -6,10 +6,10 @@ Usage::
     python benchmarks/diagnose_subset.py RESULTS [RESULTS ...] [--species birch] [--sims 2] [--caps 30]
 
 Each RESULTS is a study's results folder on a virtual campaign without hidden effects. For each,
-every comparison pulse of ``--species`` (no ``diagnose.max_pulses`` cap, one cell per dataset) is
+every comparison pulse of ``--species`` (no ``diagnose.pulses_per_species`` budget, one cell per dataset) is
 simulated under the base model with ``--sims`` seeds (1, 2, ...), and per feature the mean over the
 datasets of d = (mean twin - mean real) / SD of the real pulses is computed on three sets of
-pulses: every comparison pulse (``all``); the subset that ``diagnose.max_pulses`` keeps under the
+pulses: every comparison pulse (``all``); the subset that ``diagnose.pulses_per_species`` keeps under the
 study's own seed (``diagnosed``); and the subsets it keeps under ``--caps`` other seeds
 (``caps``), whose spread is what the subset's d scatters by from seed to seed. Prints one row per
 campaign, then, over the campaigns, ``all_d_<f>`` and its t, ``diagnosed_minus_all_<f>``,
@@ -30,10 +30,10 @@ from diagnose_floor import study_inputs
 
 from waveforest import config
 from waveforest.diagnose.gap import ALL_FEATURES
-from waveforest.diagnose.strata import _whole_samples
+from waveforest.diagnose.strata import _whole_samples, dataset_share
 from waveforest.settings import diagnose_settings
 
-UNCAPPED = {"diagnose": {"max_pulses": None, "near_stem_m": None}}
+UNCAPPED = {"diagnose": {"pulses_per_species": None, "near_stem_m": None}}
 """The diagnosis's settings with every comparison pulse, one cell per dataset x species."""
 
 OTHER_SEEDS = 5000
@@ -50,13 +50,14 @@ def d_bar(real: pd.DataFrame, twins: pd.DataFrame, keys: pd.DataFrame, sd: pd.Da
 
 
 def capped(keys: pd.DataFrame, cap: int, seed: int) -> pd.DataFrame:
-    """The pulses of ``keys`` that ``diagnose.max_pulses`` = ``cap`` keeps under ``seed``."""
+    """The pulses of ``keys`` that a share of ``cap`` pulses per dataset keeps under ``seed``."""
     return pd.concat([_whole_samples(g, cap, seed) for _, g in keys.groupby("dataset")], ignore_index=True)
 
 
 def campaign_row(results: Path, species: str, sims: int, caps: int) -> dict:
     settings, keys, real, simulate = study_inputs(results, overrides=UNCAPPED)
-    cap = diagnose_settings(config.load(results / "config" / "diagnose.yaml")).strata.max_pulses
+    diagnosed = diagnose_settings(config.load(results / "config" / "diagnose.yaml"))
+    cap = dataset_share(diagnosed.strata.pulses_per_species, len(diagnosed.datasets))
     keys = keys[keys["species"] == species]
     real = real[real["species"] == species]
     features = [f for f in ALL_FEATURES if f in real]

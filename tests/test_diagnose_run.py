@@ -116,7 +116,7 @@ def test_tree_pulses_near_the_stem_are_a_stratum_of_the_same_pulses():
     assert (off["stratum"] != NEAR_STEM).all()
     assert on.drop(columns="stratum").equals(off.drop(columns="stratum"))
     for cap in (10, 25):
-        assert keys(max_pulses=cap).index.tolist() == keys(max_pulses=cap, near_stem_m=None).index.tolist()
+        assert keys(pulses_per_species=cap).index.tolist() == keys(pulses_per_species=cap, near_stem_m=None).index.tolist()
     # the fit subset (a cap per species) keeps the whole's cells, though its own parts are smaller
     fit = pulse_keys(tables, _strata(below_crown=True), cap=8).set_index("pulse_id")
     assert fit["stratum"].to_dict() == {i: want[i] for i in fit.index} and (fit["stratum"] == NEAR_STEM).any()
@@ -155,11 +155,12 @@ def test_a_blurred_crown_profile_cancels_in_one_cell_and_shows_split_at_the_stem
     assert gap(True) > 3 * gap(False)
 
 
-def test_max_pulses_keeps_whole_samples_the_same_in_every_dataset_and_nested():
-    """diagnose.max_pulses: whole field samples per dataset x species, in one seeded order of the
-    samples for every dataset, at most the cap of pulses (at least the two samples a compared
-    cell needs); a smaller cap keeps a subset of a larger one's samples; null keeps every
-    comparison pulse."""
+def test_pulses_per_species_keeps_whole_samples_the_same_in_every_dataset_and_nested():
+    """diagnose.pulses_per_species: whole field samples per dataset x species, in one seeded order
+    of the samples for every dataset, at most the dataset's share of the budget (the budget over
+    the datasets, rounded up; at least the two samples a compared cell needs); a smaller budget
+    keeps a subset of a larger one's samples; null keeps every comparison pulse; fewer datasets
+    spend the same budget on more samples of each."""
     from waveforest.diagnose.strata import pulse_keys
 
     rng = np.random.default_rng(3)
@@ -174,30 +175,34 @@ def test_max_pulses_keeps_whole_samples_the_same_in_every_dataset_and_nested():
                 pid += 1
         tables[ds] = _select_table(rows)
 
-    def keys(cap):
-        return pulse_keys(tables, _strata(max_pulses=cap))
+    def keys(budget, datasets=tables):
+        return pulse_keys(datasets, _strata(pulses_per_species=budget))
 
     every = keys(None)
     assert len(every) == 2 * sizes.sum()
     samples = {}
-    for cap in (1, 12, 30, 60):
-        k = keys(cap)
+    for budget in (1, 24, 60, 120):
+        k = keys(budget)
         by = k.groupby("dataset")
-        assert (by.size() <= max(cap, 2 * sizes.max())).all()
+        assert (by.size() <= max(-(-budget // 2), 2 * sizes.max())).all()
         per_ds = [set(g["sample_id"]) for _, g in by]
         assert per_ds[0] == per_ds[1]  # the same samples in both datasets (same pulses per sample here)
         counts = k.groupby(["dataset", "sample_id"]).size()
         assert (counts.to_numpy() == sizes[[int(s[1:]) for _, s in counts.index]]).all()  # whole samples
-        samples[cap] = per_ds[0]
-    assert samples[1] <= samples[12] <= samples[30] <= samples[60] and len(samples[1]) == 2
-    assert len(samples[60]) < 40
-    # a cell of three samples whose second overflows the cap keeps two, enough to be compared
+        samples[budget] = per_ds[0]
+        alone = keys(budget, {"2012_10_1": tables["2012_10_1"]})  # one dataset: the whole budget
+        assert len(alone) <= max(budget, 2 * sizes.max()) and set(alone["sample_id"]) >= per_ds[1]
+        if budget >= 24:
+            assert len(alone) > by.size().max() and abs(len(alone) - len(k)) <= sizes.max()
+    assert samples[1] <= samples[24] <= samples[60] <= samples[120] and len(samples[1]) == 2
+    assert len(samples[120]) < 40
+    # a cell of three samples whose second overflows the budget keeps two, enough to be compared
     rows = [dict(dataset="2012_10_1", pulse_id=i, sample_id=f"t{i // 50}", species="fireweed", is_tree=False,
                  comparison_set=True, below_crown_set=False) for i in range(150)]
-    assert pulse_keys({"2012_10_1": _select_table(rows)}, _strata(max_pulses=60))["sample_id"].nunique() == 2
+    assert pulse_keys({"2012_10_1": _select_table(rows)}, _strata(pulses_per_species=60))["sample_id"].nunique() == 2
 
 
-def test_max_pulses_keeps_samples_that_differ_between_seeds_as_independent_draws():
+def test_pulses_per_species_keeps_samples_that_differ_between_seeds_as_independent_draws():
     """The samples that a cap keeps under different master seeds overlap as independent random
     subsets would. An order by a CRC-32 of seed and id is affine in the id's bits: of the 45 pairs
     of seeds 2014-2023, 37 then share none of their 80 samples and four 68 or 72."""
@@ -209,7 +214,7 @@ def test_max_pulses_keeps_samples_that_differ_between_seeds_as_independent_draws
     rows = [dict(dataset="2012_10_1", pulse_id=i, sample_id=s, species="raspberry", is_tree=False,
                  comparison_set=True, below_crown_set=False) for i, s in enumerate(ids)]
     table = {"2012_10_1": _select_table(rows)}
-    base = _strata(max_pulses=80)
+    base = _strata(pulses_per_species=80)
     kept = [set(pulse_keys(table, replace(base, seed=s))["sample_id"]) for s in range(2014, 2024)]
     assert all(len(k) == 80 for k in kept)
     overlap = [len(a & b) for i, a in enumerate(kept) for b in kept[i + 1:]]
@@ -483,7 +488,7 @@ SLOW_CONFIG = {
     "simulate": {"chunks": 1},
     "sensitivity": {"pulses": 20},
     "sensor_study": {"pulses": 20},
-    "diagnose": {"rounds": 2, "bootstrap": 200, "max_pulses": None},  # every comparison pulse, as measured below
+    "diagnose": {"rounds": 2, "bootstrap": 200, "pulses_per_species": None},  # every comparison pulse, as measured below
 }
 """A small study on which each hidden effect is diagnosed (the chain up to ``compare`` takes
 ~5 minutes on the 2-core machine; ``diagnose`` 2 minutes when nothing clears the noise floor,
@@ -679,6 +684,27 @@ def test_scene_cache_keeps_base_plants_at_once_and_candidate_plants_from_their_s
     np.testing.assert_array_equal(b.scene.triangles, c.scene.triangles)  # the same plant either way
     assert not np.array_equal(a.tri_data[:, 3], b.tri_data[:, 3])  # leaf albedo scales rho
     assert b.intersector is a.intersector  # optics only: the base plant's BVH
+
+
+def test_scene_cache_smaller_than_a_simulations_plants_keeps_serving_part_of_them():
+    """Plants requested in the same order by every simulation (a pass): with room for 3 of 5, a
+    least-recently-used cache would miss every request; this one keeps 3 for the next pass and
+    drops them for a pass over other plants."""
+    from waveforest.diagnose.twins import SceneCache
+
+    cache = SceneCache(size=3)
+    for _ in range(3):
+        cache.new_pass()
+        for seed in range(5):
+            cache("birch", 1.2, seed)
+    assert (cache.built, cache.hits) == (5 + 2 * 2, 2 * 3) and len(cache.scenes) == 3
+    cache.new_pass()
+    for seed in (11, 12, 13):  # another model's plants: the previous pass's make room
+        cache("birch", 1.2, seed)
+    cache.new_pass()
+    for seed in (11, 12, 13):
+        cache("birch", 1.2, seed)
+    assert cache.hits == 2 * 3 + 3 and {k[2] for k in cache.scenes} == {11, 12, 13}
 
 
 def test_trace_cache_returns_the_trace_of_the_same_scene_beams_seed_and_keywords():

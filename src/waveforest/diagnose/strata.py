@@ -84,8 +84,8 @@ class StrataSettings:
         ``diagnose.near_stem_m``.
     below_crown : bool
         ``diagnose.below_crown``.
-    max_pulses : int or None
-        ``diagnose.max_pulses``.
+    pulses_per_species : int or None
+        ``diagnose.pulses_per_species``: the budget shared by the diagnosed datasets.
     seed : int
         The study's master seed (the seeded caps).
     sensor : SensorSettings
@@ -96,7 +96,7 @@ class StrataSettings:
     compare_min_h_m: Mapping[str, float]
     near_stem_m: float | None
     below_crown: bool
-    max_pulses: int | None
+    pulses_per_species: int | None
     seed: int
     sensor: SensorSettings
 
@@ -228,6 +228,12 @@ def _whole_samples(df: pd.DataFrame, cap: int, seed: int) -> pd.DataFrame:
     return df[keep.astype(bool)].drop(columns="_rank")
 
 
+def dataset_share(budget: int | None, datasets: int) -> int | None:
+    """Pulses per species of each of ``datasets`` diagnosed datasets under the budget
+    ``diagnose.pulses_per_species`` (None = all): the budget over the datasets, rounded up."""
+    return None if budget is None else -(-int(budget) // max(1, int(datasets)))
+
+
 def pulse_keys(selected: dict, strata: StrataSettings, cap: int | None = None) -> pd.DataFrame:
     """The pulses the diagnosis simulates (module docstring).
 
@@ -239,7 +245,8 @@ def pulse_keys(selected: dict, strata: StrataSettings, cap: int | None = None) -
     cap : int, optional
         At most this many pulses per dataset x species x stratum (a seeded random subset: a
         smaller cap gives a subset of a larger one); None = all. Applied after
-        ``diagnose.max_pulses`` (whole field samples, :func:`_whole_samples`).
+        ``diagnose.pulses_per_species`` (whole field samples, :func:`_whole_samples`, up to
+        each dataset's :func:`dataset_share` of the budget).
 
     Returns
     -------
@@ -252,6 +259,7 @@ def pulse_keys(selected: dict, strata: StrataSettings, cap: int | None = None) -
     near_m = strata.near_stem_m
     optional = ("is_tree", "below_crown_set", "sample_distance_m")  # select tables of other tools may lack them
     parts = []
+    share = dataset_share(strata.pulses_per_species, len(selected))
     for ds, table in sorted(selected.items()):
         missing = [c for c in KEY_COLUMNS if c not in table.column_names and c not in optional]
         if missing:
@@ -264,8 +272,8 @@ def pulse_keys(selected: dict, strata: StrataSettings, cap: int | None = None) -
         df = df[(df["comparison_set"].fillna(False).astype(bool) | below) & df["species"].astype(str).isin(species)]
         df = df.assign(stratum=np.where(below[df.index], BELOW_CROWN, "")).drop(
             columns=["comparison_set", "below_crown_set"])
-        if strata.max_pulses is not None:
-            df = _whole_samples(df, int(strata.max_pulses), int(strata.seed))
+        if share is not None:
+            df = _whole_samples(df, share, int(strata.seed))
         # which species to split at the stem: decided before the fit cap, so fits and tests share cells
         split = [] if near_m is None else _split_species(df, float(near_m))
         if cap is not None:

@@ -81,8 +81,8 @@ SCENE_CACHE_SIZE = 512
 SCENE_CACHE_TRIANGLES = 24_000_000
 """... and most triangles in them (a prepared scene with its Embree BVH takes ~300-400 bytes
 per triangle, so ~8 GB; a low-species plot has ~240 000 triangles). The scenes of the
-default study's capped diagnosis (diagnose.max_pulses) fit: a least-recently-used cache
-smaller than the scenes one simulation cycles through misses on every one."""
+default study's diagnosis (diagnose.pulses_per_species) fit; beyond it, every simulation builds
+the plants that do not fit again (:class:`SceneCache` keeps the others)."""
 
 TRACE_CACHE_BYTES = 1 << 30
 """Most bytes of sigma(t) the :class:`TraceCache` keeps (least recently used dropped first):
@@ -110,7 +110,11 @@ class SceneCache:
 
     Keyed by (species, height, scene seed, vegetation keyword arguments); least recently
     used scenes are dropped beyond :data:`SCENE_CACHE_SIZE` scenes or
-    :data:`SCENE_CACHE_TRIANGLES` triangles. Plants of the base model (``base_effects``'
+    :data:`SCENE_CACHE_TRIANGLES` triangles, except those used in the current pass
+    (:meth:`new_pass`: one simulation): when the plants of one simulation do not all fit, the
+    newest is dropped instead, so that the next simulation over the same plants finds the
+    others (a least-recently-used cache smaller than the cycle it serves misses on every
+    request). Plants of the base model (``base_effects``'
     vegetation effects) are kept from their first build; plants under other vegetation
     effects (a candidate's value, mostly asked for once) only from their second request, so
     that one-off plants do not push out the ones every other candidate traces again. A plant
@@ -129,6 +133,8 @@ class SceneCache:
         self.triangles = 0
         self.scenes: OrderedDict = OrderedDict()
         self.requested: set = set()  # keys of plants built once and not kept
+        self.used: dict = {}  # key -> pass of its last request
+        self.passes = 0
         self.built = 0
         self.hits = 0
         self.lock = threading.Lock()
@@ -143,6 +149,7 @@ class SceneCache:
         with self.lock:
             if key in self.scenes:
                 self.scenes.move_to_end(key)
+                self.used[key] = self.passes
                 self.hits += 1
                 return self.scenes[key]
         # built outside the lock (simulate_pulses' worker threads build concurrently)
@@ -158,11 +165,19 @@ class SceneCache:
                 self.requested.add(key)
             elif key not in self.scenes:
                 self.scenes[key] = scene
+                self.used[key] = self.passes
                 self.triangles += len(scene.scene)
             while len(self.scenes) > 1 and (len(self.scenes) > self.size or self.triangles > self.max_triangles):
-                _, old = self.scenes.popitem(last=False)
-                self.triangles -= len(old.scene)
+                oldest = next(iter(self.scenes))
+                drop = next(reversed(self.scenes)) if self.used[oldest] == self.passes else oldest
+                self.triangles -= len(self.scenes.pop(drop).scene)
+                del self.used[drop]
         return scene
+
+    def new_pass(self) -> None:
+        """Start a pass (one simulation): plants requested before it may be dropped first."""
+        with self.lock:
+            self.passes += 1
 
 
 def _digest(beams, seed, kwargs: dict) -> bytes:
@@ -346,6 +361,7 @@ class StudySimulator:
         """
         simulate = replace(self.simulate, seed=int(seed) % 2**63)
         model = {**self.base_effects, **effects}
+        self.scenes.new_pass()
         parts = []
         for ds, rows in pulses.groupby("dataset", sort=True):
             if ds not in self.selected:
