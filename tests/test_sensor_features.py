@@ -2,6 +2,7 @@
 
 import math
 
+import numba
 import numpy as np
 import pytest
 from reference_sensor import features_reference, make_pulse_table
@@ -9,6 +10,9 @@ from scipy.special import erf
 
 from waveforest.constants import RANGE_PER_NS
 from waveforest.sensor import FeatureParams, feature_table, first_echo_features
+from waveforest.sensor import cfd as cfd_module
+from waveforest.sensor import decompose as decompose_module
+from waveforest.sensor import features as features_module
 
 FWHM_PER_SD = 2.0 * math.sqrt(2.0 * math.log(2.0))
 FWHM_TOL = 0.02  # "FWHM within 2 %"
@@ -137,3 +141,24 @@ def test_feature_table_heights_and_columns():
     assert df2["H"].isna().all() and np.allclose(df2["E"], f["E"][:5])
     with pytest.raises(ValueError, match="no noise estimate"):
         feature_table(table, {"other": (1.0, 1.0)})
+
+
+def test_read_only_inputs_do_not_compile_the_kernels_again():
+    """Arrow columns arrive read-only, and Numba types a read-only array apart from a writable
+    one: each wrapper copies them, so one call of each kind compiles each kernel once."""
+    kernels = (decompose_module._decompose_kernel, features_module._features_kernel, cfd_module.cfd_kernel)
+    if numba.config.DISABLE_JIT:
+        pytest.skip("kernels run as Python")
+    x = np.full((2, 64), 10.0, np.float32)
+    x[:, 20:26] += [5.0, 30.0, 60.0, 60.0, 30.0, 5.0]
+    counts = []
+    for frozen in (False, True):
+        args = [x.copy(), np.full(2, 64), np.ones(2), np.full(2, 22.0), np.full(2, 10.0), np.ones(2)]
+        for a in args:
+            a.flags.writeable = not frozen
+        samples, lengths, dt, te, mean, sd = args
+        decompose_module.decompose(samples, lengths, dt, mean, sd, pulse_fwhm_ns=4.0)
+        features_module.first_echo_features(samples, lengths, dt, te, mean, sd)
+        cfd_module.detect_echoes(samples, lengths, dt, mean, sd, fwhm_ns=4.0)
+        counts.append([len(k.signatures) for k in kernels])
+    assert counts[1] == counts[0]

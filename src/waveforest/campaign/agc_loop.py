@@ -143,9 +143,9 @@ def agc_sequence(t_s, a0_dn, strip, params: AGCParams, rng: np.random.Generator,
     observed_dn : (n,) float64
         Peak amplitude the loop saw (gained, saturated), DN.
     """
-    t_s = np.ascontiguousarray(t_s, dtype=np.float64)
-    a0 = np.ascontiguousarray(a0_dn, dtype=np.float64)
-    strip = np.ascontiguousarray(strip, dtype=np.int64)
+    t_s = np.require(t_s, np.float64, ["C", "W"])  # writable: Numba compiles read-only arrays as another type
+    a0 = np.require(a0_dn, np.float64, ["C", "W"])
+    strip = np.require(strip, np.int64, ["C", "W"])
     n = t_s.shape[0]
     if t_s.ndim != 1 or a0.shape != (n,) or strip.shape != (n,):
         raise ValueError("t_s, a0_dn, strip: expected 1-D arrays of one length")

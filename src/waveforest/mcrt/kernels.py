@@ -468,7 +468,8 @@ def emit_rays(frame: BeamFrame, footprint_m, range_m, plane_m, n_rays: int, samp
     nb = len(frame)
     if n_rays < 1:
         raise ValueError(f"n_rays: expected >= 1, got {n_rays}")
-    first = np.ascontiguousarray(np.broadcast_to(np.asarray(first_ray, np.int64), (nb,)))
+    # writable copies: Numba compiles a read-only array (a size-1 broadcast) as another type
+    first = np.require(np.broadcast_to(np.asarray(first_ray, np.int64), (nb,)), requirements=["C", "W"])
     if nb and not (first.min() >= 0 and first.max() + n_rays <= 2**31 - 1):
         raise ValueError(f"first_ray: expected 0 <= first_ray and first_ray + n_rays < 2**31, got {first_ray}")
     if sampler not in SAMPLERS:
@@ -477,9 +478,9 @@ def emit_rays(frame: BeamFrame, footprint_m, range_m, plane_m, n_rays: int, samp
     axis = np.ascontiguousarray(frame.axis, np.float64)
     if sensor.shape != (nb, 3) or axis.shape != (nb, 3):
         raise ValueError("frame: sensor and axis must be (nb, 3)")
-    fp = np.ascontiguousarray(np.broadcast_to(np.asarray(footprint_m, np.float64), (nb,)))
+    fp = np.require(np.broadcast_to(np.asarray(footprint_m, np.float64), (nb,)), requirements=["C", "W"])
     rng = np.nan_to_num(np.broadcast_to(np.asarray(range_m, np.float64), (nb,)), nan=0.0)
-    plane = np.ascontiguousarray(np.broadcast_to(np.asarray(plane_m, np.float64), (nb,)))
+    plane = np.require(np.broadcast_to(np.asarray(plane_m, np.float64), (nb,)), requirements=["C", "W"])
     if np.any(fp < 0) or np.any(plane < 0):
         raise ValueError("footprint_m and plane_m must be >= 0")
     if not np.allclose(np.linalg.norm(axis, axis=1), 1.0, atol=1e-9):

@@ -100,7 +100,7 @@ def georeferencing_drift(z: np.ndarray, gps_time: np.ndarray, tau_s: float = GEO
     exp(-dt / tau_s); the offsets of ``xy_error`` are xy_error times these (linear in it, so one
     seed gives common random numbers over its values).
     """
-    return _gauss_markov(np.ascontiguousarray(z, dtype=np.float64), np.ascontiguousarray(gps_time, dtype=np.float64),
+    return _gauss_markov(np.require(z, np.float64, ["C", "W"]), np.require(gps_time, np.float64, ["C", "W"]),
                          float(tau_s))
 
 

@@ -6,7 +6,8 @@ import numpy as np
 
 
 def waveforms(samples, lengths=None, name: str = "samples") -> tuple[np.ndarray, np.ndarray]:
-    """A C-contiguous float32 (n, n_s) waveform array and its (n,) int64 valid lengths.
+    """A C-contiguous, writable float32 (n, n_s) waveform array and its (n,) int64 valid lengths
+    (read-only inputs, such as Arrow columns, are copied: Numba compiles them as another type).
 
     Samples beyond a row's length may be anything (NaN padding of
     :func:`waveforest.io.pulses.list_to_padded`); samples within it must be finite.
@@ -16,7 +17,7 @@ def waveforms(samples, lengths=None, name: str = "samples") -> tuple[np.ndarray,
         raise ValueError(f"{name} must be a 2-D (n_pulses, n_samples) array, got shape {x.shape}")
     if not np.issubdtype(x.dtype, np.floating) and not np.issubdtype(x.dtype, np.integer):
         raise ValueError(f"{name} must be numeric, got dtype {x.dtype}")
-    x = np.ascontiguousarray(x, dtype=np.float32)
+    x = np.require(x, np.float32, ["C", "W"])
     n, width = x.shape
     if lengths is None:
         lens = np.full(n, width, dtype=np.int64)
@@ -27,7 +28,7 @@ def waveforms(samples, lengths=None, name: str = "samples") -> tuple[np.ndarray,
         if not np.issubdtype(lens.dtype, np.integer):
             if not np.all(np.isfinite(lens)) or np.any(lens != np.round(lens)):
                 raise ValueError("lengths must be integers")
-        lens = np.ascontiguousarray(lens, dtype=np.int64)
+        lens = np.require(lens, np.int64, ["C", "W"])
         if n and (lens.min() < 0 or lens.max() > width):
             raise ValueError(f"lengths must lie in [0, {width}] (the samples' width)")
     if n and width:
@@ -39,13 +40,13 @@ def waveforms(samples, lengths=None, name: str = "samples") -> tuple[np.ndarray,
 
 def per_pulse(value, n: int, name: str, *, positive: bool = False, nonnegative: bool = False,
               allow_nan: bool = False) -> np.ndarray:
-    """A scalar or (n,) value as a contiguous float64 (n,) array, checked."""
+    """A scalar or (n,) value as a contiguous, writable float64 (n,) array, checked."""
     v = np.asarray(value, dtype=np.float64)
     if v.ndim == 0:
         v = np.full(n, float(v))
     elif v.shape != (n,):
         raise ValueError(f"{name} must be a scalar or have shape ({n},), got {v.shape}")
-    v = np.ascontiguousarray(v)
+    v = np.require(v, requirements=["C", "W"])
     finite = np.isfinite(v)
     if not allow_nan and not finite.all():
         raise ValueError(f"{name} must be finite")

@@ -219,8 +219,8 @@ def place_leaves(outline: Outline, base, normal, toward, length, width_factor=1.
     n = base.shape[0]
     if np.shape(normal) != (n, 3) or np.shape(toward) != (n, 3):
         raise ValueError("place_leaves: base, normal and toward must all be (n, 3)")
-    length = np.ascontiguousarray(np.broadcast_to(np.asarray(length, dtype=np.float64), (n,)))
-    wf = np.ascontiguousarray(np.broadcast_to(np.asarray(width_factor, dtype=np.float64), (n,)))
+    length = np.require(np.broadcast_to(np.asarray(length, dtype=np.float64), (n,)), requirements=["C", "W"])
+    wf = np.require(np.broadcast_to(np.asarray(width_factor, dtype=np.float64), (n,)), requirements=["C", "W"])
     if np.any(~np.isfinite(length)) or np.any(length < 0) or np.any(wf < 0):
         raise ValueError("place_leaves: lengths and width factors must be finite and >= 0")
     m, b = leaf_frames(normal, toward)
