@@ -1,5 +1,6 @@
 """Intersectors (Embree and NumPy), scene preparation, stuck rays and far sensors."""
 
+import numba
 import numpy as np
 import pytest
 from fixtures import scenes as syn
@@ -15,6 +16,8 @@ from waveforest.mcrt import (
     with_optics,
 )
 from waveforest.mcrt.backends import embree as rtc
+from waveforest.mcrt.kernels import BeamFrame, _emit_kernel, emit_rays
+from waveforest.mcrt.prepare import _triangle_records
 from waveforest.scene import Scene
 
 T_RTOL = 1e-5  # float32 Embree vs float64 NumPy hit distance
@@ -258,3 +261,23 @@ def test_far_sensor_float_precision(rng_m):
     t = res.times_ns()[0] + 0.5 * res.bin_ns
     mean_t = np.sum(t * res.sigma[0]) / res.sigma[0].sum()
     assert mean_t == pytest.approx(2 * rng_m / C_M_PER_NS, abs=0.5 * res.bin_ns)
+
+
+def test_read_only_scene_arrays_and_single_beams_do_not_compile_the_kernels_again():
+    """A scene made of read-only arrays (a PLY buffer, an Arrow column) and a chunk of one beam
+    (whose per-beam values are size-1 broadcasts) reach the kernels as writable arrays: Numba
+    types a read-only array apart, so otherwise each would compile the kernel again."""
+    if numba.config.DISABLE_JIT:
+        pytest.skip("kernels run as Python")
+    tri = np.array([[[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]] * 2, np.float32)
+    counts = []
+    for frozen, nb in ((False, 2), (True, 1)):
+        arrays = [tri.copy(), np.full(2, 0.3, np.float32), np.full(2, 0.1, np.float32), np.ones(2, np.uint8)]
+        for a in arrays:
+            a.flags.writeable = not frozen
+        prepare(Scene(*arrays))
+        frame = BeamFrame(np.tile([0.0, 0.0, 100.0], (nb, 1)), np.tile([0.0, 0.0, -1.0], (nb, 1)), np.zeros(nb),
+                          np.arange(nb, dtype=np.uint64))
+        emit_rays(frame, 0.2, 100.0, 99.0, 8, "sobol")
+        counts.append([len(k.signatures) for k in (_triangle_records, _emit_kernel)])
+    assert counts[1] == counts[0]

@@ -48,13 +48,14 @@ class Scene:
 
     def __post_init__(self) -> None:
         tri = np.asarray(self.triangles)
-        tri = np.ascontiguousarray(tri, dtype=np.float64 if tri.dtype == np.float64 else np.float32)
+        # writable (read-only inputs copied): the kernels that take a scene's arrays compile once
+        tri = np.require(tri, np.float64 if tri.dtype == np.float64 else np.float32, ["C", "W"])
         n = tri.shape[0] if tri.ndim == 3 else -1
         if tri.ndim != 3 or tri.shape[1:] != (3, 3):
             raise SceneError(f"triangles: expected shape (n, 3, 3), got {tri.shape}")
         arrays = {}
         for name, dtype in (("rho", np.float32), ("tau", np.float32), ("kind", np.uint8)):
-            a = np.ascontiguousarray(np.broadcast_to(getattr(self, name), (n,)), dtype=dtype)
+            a = np.require(np.broadcast_to(getattr(self, name), (n,)), dtype, ["C", "W"])
             arrays[name] = a
         if not np.all(np.isfinite(tri)):
             raise SceneError("triangles: non-finite coordinates")

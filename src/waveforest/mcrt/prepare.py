@@ -146,8 +146,7 @@ def prepare(scene: Scene | PreparedScene, backend: str = "embree", quality: str 
         raise ValueError(f"quality: expected one of {', '.join(QUALITIES)}, got {quality!r}")
     bounds = _box(scene.triangles)
     shift = 0.5 * (bounds[0] + bounds[1])
-    optics = (np.require(a, requirements=["C", "W"]) for a in (scene.rho, scene.tau, scene.kind))  # one Numba type
-    internal, tri_data = _triangle_records(scene.triangles, shift, *optics)
+    internal, tri_data = _triangle_records(scene.triangles, shift, scene.rho, scene.tau, scene.kind)
     return PreparedScene(
         scene=scene,
         intersector=BACKENDS[backend](internal, quality),
