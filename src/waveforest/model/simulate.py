@@ -74,8 +74,9 @@ from waveforest.sensor.checks import gain_or_one
 from waveforest.vegetation import build_scene
 from waveforest.workers import unordered_map
 
-SIM_COLUMNS = ("sim_instance", "sigma_total")
-"""Columns a simulated pulse table has beyond the pulse schema and the select columns."""
+_SIM_FIELDS = [pa.field("sim_instance", pa.int64()), pa.field("sigma_total", pa.float64()),
+               pa.field("mcrt_rays", pa.int64())]
+"""Fields a simulated pulse table has after the pulse schema and the carried select columns."""
 
 _CARRY = ("sample_id", "species", "functional_group", "ground_z", "sample_x", "sample_y", "height_m",
           "is_tree", "classification_set", "comparison_set")
@@ -164,11 +165,12 @@ def plan(selected: pd.DataFrame, settings: SimulateSettings, dataset: str) -> pd
     return rows.drop(columns="_rank").sort_index()
 
 
-def beam_geometry(df: pd.DataFrame) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def beam_geometry(rows: Mapping) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Sensor positions, unit directions and R (range to the sample's ground plane).
 
-    Pulses without a sensor position (ingested without a trajectory) get NaN rows and are
-    not simulated.
+    ``rows``: a DataFrame or a mapping of column name -> (n,) array (sensor_x/y/z, dir_x/y/z,
+    ground_z). Pulses without a sensor position (ingested without a trajectory) get NaN rows
+    and are not simulated.
 
     Returns
     -------
@@ -176,12 +178,12 @@ def beam_geometry(df: pd.DataFrame) -> tuple[np.ndarray, np.ndarray, np.ndarray]
     direction : (n, 3) float64, unit
     range_m : (n,) float64, m
     """
-    sensor = df[["sensor_x", "sensor_y", "sensor_z"]].to_numpy(float)
-    d = df[["dir_x", "dir_y", "dir_z"]].to_numpy(float)
+    sensor = np.column_stack([np.asarray(rows[c], float) for c in ("sensor_x", "sensor_y", "sensor_z")])
+    d = np.column_stack([np.asarray(rows[c], float) for c in ("dir_x", "dir_y", "dir_z")])
     d = d / np.linalg.norm(d, axis=1, keepdims=True)
     down = -d[:, 2]
     with np.errstate(divide="ignore", invalid="ignore"):
-        r = (sensor[:, 2] - df["ground_z"].to_numpy(float)) / down
+        r = (sensor[:, 2] - np.asarray(rows["ground_z"], float)) / down
     r = np.where(down > 0, r, np.nan)
     return sensor, d, r
 
@@ -244,13 +246,13 @@ def simulate_pulses(selected: pa.Table, dataset_info: pd.Series, calibration: Ca
     p = plan(scal, settings, dataset)
     p = p[(p["chunk_hash"] % chunks) == chunk]
     workers = threads if threads is not None else default_threads()
-    chain = _chain(settings, dataset_info, calibration, fx, scene_builder or build_scene, carry,
+    chain = _chain(settings, dataset_info, calibration, fx, scene_builder or build_scene,
                    1 if workers > 1 else threads, stream, tracer or trace)
-    groups = [g for _, g in p.groupby("group", sort=True)]
-    pieces, n_no_echo = _run_groups(chain, scal, groups, workers,
+    rows = _Rows({c: scal[c].to_numpy() for c in scal.columns}, selected.select(carry.names))
+    pieces, n_no_echo = _run_groups(chain, rows, _groups(p), workers,
                                     f"simulate {dataset} chunk {chunk}" if progress else None)
     table = pa.concat_tables(pieces) if pieces else _empty(carry)
-    summary = SimulateSummary(dataset, chunk, int(len(p)), table.num_rows, len(groups), n_no_echo)
+    summary = SimulateSummary(dataset, chunk, int(len(p)), table.num_rows, p["group"].nunique(), n_no_echo)
     return table, summary
 
 
@@ -263,6 +265,30 @@ def _scalars(selected: pa.Table, dataset: str) -> tuple[pd.DataFrame, pa.Schema]
                             if c in selected.column_names]).to_pandas()
     carry = pa.schema([selected.schema.field(c) for c in _CARRY if c in selected.column_names])
     return scal, carry
+
+
+@dataclass(frozen=True)
+class _Rows:
+    """A select table's scalar columns as NumPy arrays (``cols``, row i = the table's row i) and
+    its carried columns (``carry``, Arrow): what the groups take their rows from, without a
+    DataFrame per group."""
+
+    cols: dict
+    carry: pa.Table
+
+    def take(self, pos: np.ndarray) -> dict:
+        """Column name -> the values at rows ``pos``."""
+        return {k: v[pos] for k, v in self.cols.items()}
+
+
+def _groups(p: pd.DataFrame) -> list[tuple[np.ndarray, int]]:
+    """The (sample, instance) groups of plan ``p`` in the order of their names: (rows of the
+    select table in pulse_id order, instance)."""
+    codes, _ = pd.factorize(p["group"], sort=True)
+    order = np.lexsort((p["pulse_id"].to_numpy(np.int64), codes))
+    pos, inst = p.index.to_numpy(np.int64)[order], p["instance"].to_numpy(np.int64)[order]
+    cuts = np.flatnonzero(np.diff(codes[order])) + 1
+    return [(r, int(inst[r0])) for r, r0 in zip(np.split(pos, cuts), np.r_[0, cuts])] if len(pos) else []
 
 
 @dataclass(frozen=True)
@@ -280,26 +306,25 @@ class _Chain:
     mcrt: MCRTSetup
     setup: SensorSetup
     threads: int | None
-    carry: pa.Schema
     stream: int
     tracer: Callable
 
-    def group(self, scal: pd.DataFrame, g: pd.DataFrame) -> tuple[pa.Table | None, int]:
-        """The twins of the plan rows ``g`` (one group): scene, seeds, :func:`_simulate_group`."""
-        d = scal.loc[g.sort_values("pulse_id").index.to_numpy()]
-        first = d.iloc[0]
-        sample_id, inst = str(first["sample_id"]), int(g["instance"].iloc[0])
-        scene = self.scene_builder(str(first["species"]), float(first["height_m"]),
+    def group(self, rows: _Rows, group: tuple[np.ndarray, int]) -> tuple[pa.Table | None, int]:
+        """The twins of one group (:func:`_groups`): scene, seeds, :func:`_simulate_group`."""
+        pos, inst = group
+        first = pos[0]
+        sample_id = str(rows.cols["sample_id"][first])
+        scene = self.scene_builder(str(rows.cols["species"][first]), float(rows.cols["height_m"][first]),
                                    hashed_seed63(self.seed, "scene", sample_id, inst),
                                    ground_rho=self.ground_rho, lai_jitter=self.lai_jitter, **self.vegetation)
         ss = hashed_sequence(self.seed, self.dataset, "pulses", sample_id, inst,
                              *((int(self.stream),) if self.stream else ()))
-        return _simulate_group(d, scene, ss, inst, self.divergence_mrad, self.xy_error, self.mcrt, self.setup,
-                               self.threads, self.carry, self.tracer)
+        return _simulate_group(rows, pos, scene, ss, inst, self.divergence_mrad, self.xy_error, self.mcrt,
+                               self.setup, self.threads, self.tracer)
 
 
 def _chain(settings: SimulateSettings, dataset_info: pd.Series, calibration: Calibration, effects: tuple,
-           scene_builder, carry: pa.Schema, threads: int | None, stream: int, tracer: Callable) -> _Chain:
+           scene_builder, threads: int | None, stream: int, tracer: Callable) -> _Chain:
     """The chain of one dataset: the calibrated sensor, the tracer and ``effects`` as
     :func:`.forward.split_effects` splits them."""
     veg_fx, mcrt_fx, sensor_fx, xy_error = effects
@@ -309,11 +334,11 @@ def _chain(settings: SimulateSettings, dataset_info: pd.Series, calibration: Cal
     return _Chain(seed=int(settings.seed), dataset=str(dataset_info["dataset"]), scene_builder=scene_builder,
                   vegetation=veg_fx, ground_rho=float(settings.ground_rho), lai_jitter=float(settings.lai_jitter),
                   divergence_mrad=divergence_mrad(dataset_info), xy_error=xy_error,
-                  mcrt=replace(settings.mcrt, effects=mcrt_fx), setup=setup, threads=threads, carry=carry,
+                  mcrt=replace(settings.mcrt, effects=mcrt_fx), setup=setup, threads=threads,
                   stream=int(stream), tracer=tracer)
 
 
-def _run_groups(chain: _Chain, scal: pd.DataFrame, groups: list[pd.DataFrame], workers: int,
+def _run_groups(chain: _Chain, rows: _Rows, groups: list[tuple[np.ndarray, int]], workers: int,
                 desc: str | None) -> tuple[list[pa.Table], int]:
     """The groups' sim tables in group order over ``workers`` threads, and the pulses lost
     (no geometry or no simulated echo); ``desc``: a tqdm bar's label (None: no bar)."""
@@ -321,53 +346,59 @@ def _run_groups(chain: _Chain, scal: pd.DataFrame, groups: list[pd.DataFrame], w
     if desc is not None:
         from tqdm import tqdm
 
-        bar = tqdm(total=sum(len(g) for g in groups), desc=desc, unit="pulse", leave=False)
+        bar = tqdm(total=sum(len(g[0]) for g in groups), desc=desc, unit="pulse", leave=False)
     done: dict[int, pa.Table] = {}
     n_lost = 0
-    for i, (piece, lost) in unordered_map(lambda g: chain.group(scal, g), groups, workers):
+    for i, (piece, lost) in unordered_map(lambda g: chain.group(rows, g), groups, workers):
         n_lost += lost
         if piece is not None:
             done[i] = piece
         if bar is not None:
-            bar.update(len(groups[i]))
+            bar.update(len(groups[i][0]))
     if bar is not None:
         bar.close()
     return [done[i] for i in sorted(done)], n_lost
 
 
-def _simulate_group(d: pd.DataFrame, scene, ss: np.random.SeedSequence, inst: int, div, xy_error: float,
-                    mcrt: MCRTSetup, setup: SensorSetup, threads, carry: pa.Schema,
+def _simulate_group(rows: _Rows, pos: np.ndarray, scene, ss: np.random.SeedSequence, inst: int, div,
+                    xy_error: float, mcrt: MCRTSetup, setup: SensorSetup, threads,
                     tracer: Callable) -> tuple[pa.Table | None, int]:
-    """The twins of one (sample, instance) group: beams, MCRT, Eq. 7 at each pulse's AGC gain, CFD.
+    """The twins of one (sample, instance) group, the select rows ``pos``: beams, MCRT, Eq. 7 at
+    each pulse's AGC gain, CFD.
 
     ``ss`` seeds the group: its first spawned child gives the MCRT seed (63 bits), ``ss`` itself
     the ``xy_error`` offsets, then the sampling phase and noise. Returns (sim rows or None, the
     number of pulses without geometry or without a simulated echo).
     """
+    d = rows.take(pos)
     sensor, direction, r = beam_geometry(d)
     ok = np.all(np.isfinite(sensor), axis=1) & np.isfinite(r) & (r > 0)
     lost = int((~ok).sum())
     if not ok.any():
         return None, lost
-    sensor, direction, r, d = sensor[ok], direction[ok], r[ok], d[ok]
+    sensor, direction, r, pos = sensor[ok], direction[ok], r[ok], pos[ok]
+    d = {k: v[ok] for k, v in d.items()}
     trace_seed = child_seed63(ss)
     rng = sequence_generator(ss)
     offset = np.zeros_like(sensor)
     if xy_error > 0:
-        offset[:, :2] = xy_error * georeferencing_drift(rng.standard_normal((len(d), 2)), d["gps_time"].to_numpy(float))
-    origin = sensor - d[["sample_x", "sample_y", "ground_z"]].to_numpy(float) + offset
+        offset[:, :2] = xy_error * georeferencing_drift(rng.standard_normal((len(pos), 2)),
+                                                        d["gps_time"].astype(float))
+    origin = sensor - np.column_stack([d["sample_x"], d["sample_y"], d["ground_z"]]).astype(float) + offset
     beams = Beams.from_divergence(origin, direction, div, r)
-    gain = gain_or_one(d[GAIN_COLUMN].to_numpy(float)) if GAIN_COLUMN in d else np.ones(len(d))
+    gain = gain_or_one(d[GAIN_COLUMN].astype(float)) if GAIN_COLUMN in d else np.ones(len(pos))
     sim, _ = trace_and_render(scene, beams, r, mcrt, setup, trace_seed, rng, threads, gain=gain, tracer=tracer)
     keep = sim.n_echoes > 0
     lost += int((~keep).sum())
     if not keep.any():
         return None, lost
-    return _table(d[keep], sensor[keep], direction[keep], sim, keep, inst, carry), lost
+    d = {k: v[keep] for k, v in d.items()}
+    return _table(d, rows.carry.take(pos[keep]), sensor[keep], direction[keep], sim, keep, inst), lost
 
 
-def _table(d: pd.DataFrame, sensor, direction, sim, keep, inst: int, carry: pa.Schema) -> pa.Table:
-    """The sim pulse rows of one batch (only rows ``keep``)."""
+def _table(d: Mapping, carried: pa.Table, sensor, direction, sim, keep, inst: int) -> pa.Table:
+    """The sim pulse rows of one batch (only rows ``keep`` of ``sim``; ``d``, ``carried``,
+    ``sensor`` and ``direction`` hold those rows only)."""
     n = int(keep.sum())
     first = sim.first_sample_ns[keep]
     times = sim.echo_times_ns[keep]
@@ -379,15 +410,15 @@ def _table(d: pd.DataFrame, sensor, direction, sim, keep, inst: int, carry: pa.S
     samples = sim.samples[keep]
     lengths = sim.lengths[keep]
     cols = {
-        "dataset": pa.array(d["dataset"].astype(str).to_list(), pa.string()),
-        "pulse_id": pa.array(d["pulse_id"].to_numpy(np.int64)),
+        "dataset": pa.array(d["dataset"].astype(str), pa.string()),
+        "pulse_id": pa.array(d["pulse_id"].astype(np.int64)),
         "source": pa.array(["sim"] * n, pa.string()),
-        "gps_time": pa.array(d["gps_time"].to_numpy(float)),
+        "gps_time": pa.array(d["gps_time"].astype(float)),
         "sensor_x": sensor[:, 0], "sensor_y": sensor[:, 1], "sensor_z": sensor[:, 2],
         "dir_x": direction[:, 0], "dir_y": direction[:, 1], "dir_z": direction[:, 2],
         "anchor_x": anchor[:, 0], "anchor_y": anchor[:, 1], "anchor_z": anchor[:, 2],
         "range_m": ranges[:, 0],
-        "scan_angle_deg": d["scan_angle_deg"].to_numpy(float),
+        "scan_angle_deg": d["scan_angle_deg"].astype(float),
         "agc": np.full(n, np.nan), "sampling_ns": np.full(n, sim.sampling_ns),
         "digitizer_gain": np.full(n, np.nan), "digitizer_offset": np.full(n, np.nan),
         "samples": padded_to_list(samples, lengths, pa.float32()),
@@ -400,22 +431,16 @@ def _table(d: pd.DataFrame, sensor, direction, sim, keep, inst: int, carry: pa.S
     }
     arrays = [cols[f.name] if isinstance(cols[f.name], (pa.Array, pa.ChunkedArray)) else pa.array(cols[f.name], f.type)
               for f in PULSE_SCHEMA]
-    table = pa.Table.from_arrays(arrays, schema=PULSE_SCHEMA)
-    for f in carry:
-        table = table.append_column(f, pa.array(d[f.name].to_list(), type=f.type))
-    table = table.append_column("sim_instance", pa.array(np.full(n, inst, dtype=np.int64)))
-    table = table.append_column("sigma_total", pa.array(sim.sigma_total[keep].astype(float)))
     rays = np.zeros(len(keep), np.int64) if sim.rays is None else sim.rays
-    table = table.append_column("mcrt_rays", pa.array(rays[keep].astype(np.int64)))
-    return table
+    arrays += [carried.column(c).combine_chunks() for c in carried.column_names]
+    arrays += [pa.array(np.full(n, inst, dtype=np.int64)), pa.array(sim.sigma_total[keep].astype(float)),
+               pa.array(rays[keep].astype(np.int64))]
+    return pa.Table.from_arrays(arrays, schema=pa.schema(list(PULSE_SCHEMA) + list(carried.schema) + _SIM_FIELDS))
 
 
 def _empty(carry: pa.Schema) -> pa.Table:
     """An empty sim table with the full set of columns."""
-    fields = list(PULSE_SCHEMA) + list(carry)
-    fields += [pa.field("sim_instance", pa.int64()), pa.field("sigma_total", pa.float64()),
-               pa.field("mcrt_rays", pa.int64())]
-    return pa.Table.from_pylist([], schema=pa.schema(fields))
+    return pa.Table.from_pylist([], schema=pa.schema(list(PULSE_SCHEMA) + list(carry) + _SIM_FIELDS))
 
 
 def with_sample_columns(selected: pa.Table, fields: pd.DataFrame, source: str = "fields.csv") -> pa.Table:
