@@ -25,6 +25,20 @@ def invert_dewit_bisection(u: np.ndarray, sign: float, freq: float, iters: int =
     return 0.5 * (lo + hi)
 
 
+def leaf_frames_reference(normal, toward, eps: float = 1e-9) -> tuple[np.ndarray, np.ndarray]:
+    """Midrib m (toward projected on the leaf plane, any in-plane axis where it is parallel
+    to the normal, normalised) and cross direction b = normal x m, array by array."""
+    n, t = np.asarray(normal, dtype=np.float64), np.asarray(toward, dtype=np.float64)
+    m = t - np.sum(t * n, axis=1, keepdims=True) * n
+    norm = np.linalg.norm(m, axis=1)
+    bad = norm < eps * np.maximum(np.linalg.norm(t, axis=1), 1.0)
+    alt = np.where(np.abs(n[bad, 0:1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    m[bad] = alt - np.sum(alt * n[bad], axis=1, keepdims=True) * n[bad]
+    norm[bad] = np.linalg.norm(m[bad], axis=1)
+    m /= norm[:, None]
+    return m, np.cross(n, m)
+
+
 def place_leaves_reference(tri2d: np.ndarray, base, m, b, length, wf) -> np.ndarray:
     """vertex = base + length (x m + wf y b) by broadcasting; (n T, 3, 3) float32."""
     base, m, b = (np.asarray(a, dtype=np.float64) for a in (base, m, b))

@@ -17,7 +17,7 @@ from waveforest.mcrt import (
 )
 from waveforest.mcrt.backends import embree as rtc
 from waveforest.mcrt.kernels import BeamFrame, _emit_kernel, emit_rays
-from waveforest.mcrt.prepare import _triangle_records
+from waveforest.mcrt.prepare import _box, _triangle_records
 from waveforest.scene import Scene
 
 T_RTOL = 1e-5  # float32 Embree vs float64 NumPy hit distance
@@ -169,6 +169,19 @@ def test_prepare_shifts_to_box_centre_and_keeps_properties():
     with pytest.raises(TypeError):
         prepare("scene.ply")
 
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_prepared_boxes_are_the_vertices_extremes(dtype):
+    """The one-pass box is NumPy's min and max over every vertex, and a prepared scene's
+    shift and bounds are those of its vertices and of its internal float32 triangles."""
+    tri = (_random_triangles(np.random.default_rng(3), 500) * 1000.0 + [6.7e6, 5.0e5, 90.0]).astype(dtype)
+    v = tri.reshape(-1, 3)
+    np.testing.assert_array_equal(_box(tri), np.stack([v.min(axis=0), v.max(axis=0)]).astype(np.float64))
+    p = prepare(Scene(tri, np.full(500, 0.3, np.float32), np.zeros(500, np.float32), np.ones(500, np.uint8)))
+    np.testing.assert_array_equal(p.shift, 0.5 * (v.min(axis=0).astype(float) + v.max(axis=0).astype(float)))
+    internal = (tri.astype(np.float64) - p.shift).astype(np.float32).reshape(-1, 3)
+    np.testing.assert_array_equal(p.bounds, np.stack([internal.min(axis=0), internal.max(axis=0)]).astype(np.float64))
 
 
 def test_with_optics_traces_what_a_new_prepare_of_the_scene_traces():

@@ -4,7 +4,7 @@ import math
 
 import numpy as np
 import pytest
-from reference_vegetation import coverage_reference, place_leaves_reference
+from reference_vegetation import coverage_reference, leaf_frames_reference, place_leaves_reference
 
 from waveforest.scene import Scene
 from waveforest.vegetation.gaps import coverage_kernel, nadir_coverage, nadir_gap_fraction
@@ -86,6 +86,23 @@ def test_leaf_frames_are_orthonormal_even_when_toward_is_parallel_to_the_normal(
         np.testing.assert_allclose(np.linalg.norm(v, axis=1), 1.0)
     np.testing.assert_allclose(np.sum(m * normal, 1), 0.0, atol=1e-12)
     np.testing.assert_allclose(np.cross(m, b), normal, atol=1e-12)
+
+
+def test_leaf_frames_kernel_is_the_numpy_expressions_bit_for_bit():
+    """The compiled frames equal the array expressions exactly (the plants, hence every table
+    built on them, do not depend on which computes them), also where toward is parallel to
+    the normal (both fallback axes) and for no leaves."""
+    rng = np.random.default_rng(7)
+    normal = isotropic(5000, rng)
+    toward = isotropic(5000, rng) * rng.uniform(0.01, 10.0, (5000, 1))
+    toward[::9] = normal[::9] * 3.0
+    normal[::18] = [0.0, 0.0, 1.0]
+    toward[::18] = [0.0, 0.0, 2.0]
+    normal[9::18] = [0.95, 0.0, math.sqrt(1 - 0.95**2)]
+    toward[9::18] = normal[9::18]
+    for got, want in zip(leaf_frames(normal, toward), leaf_frames_reference(normal, toward)):
+        np.testing.assert_array_equal(got, want)
+    assert [a.shape for a in leaf_frames(np.empty((0, 3)), np.empty((0, 3)))] == [(0, 3), (0, 3)]
 
 
 def test_place_kernel_agrees_with_numpy_reference():

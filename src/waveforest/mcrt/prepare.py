@@ -83,18 +83,25 @@ class PreparedScene:
         return self.intersector.backend
 
 
-def _box(triangles: np.ndarray) -> np.ndarray:
-    """(2, 3) float64 [min, max] of (n, 3, 3) vertices (reduced axis by axis over a
-    contiguous (3, 3n) copy)."""
-    v = np.ascontiguousarray(triangles.reshape(-1, 3).T)
-    return np.stack([v.min(axis=1), v.max(axis=1)]).astype(np.float64)
+@njit(cache=True, nogil=True)
+def _box(tri):  # pragma: no cover - compiled; tested against NumPy
+    """(2, 3) float64 [min, max] of the (n, 3, 3) vertices ``tri`` (finite), in one pass."""
+    box = np.empty((2, 3))
+    box[0, :], box[1, :] = np.inf, -np.inf
+    for i in range(tri.shape[0]):
+        for v in range(3):
+            for a in range(3):
+                x = np.float64(tri[i, v, a])
+                box[0, a] = min(box[0, a], x)
+                box[1, a] = max(box[1, a], x)
+    return box
 
 
 @njit(cache=True, nogil=True)
 def _triangle_records(tri, shift, rho, tau, kind):
-    """Internal-frame float32 triangles ``tri - shift`` and the (n, 8) records of
+    """Internal-frame float32 triangles ``tri - shift``, the (n, 8) records of
     :attr:`PreparedScene.tri_data` (unit normal of the internal triangle by the right-hand
-    rule, zero if degenerate; rho, tau, kind; 0, 0)."""
+    rule, zero if degenerate; rho, tau, kind; 0, 0) and the internal triangles' (2, 3) box."""
     n = tri.shape[0]
     internal = np.empty((n, 3, 3), np.float32)
     rec = np.zeros((n, 8))
@@ -113,7 +120,7 @@ def _triangle_records(tri, shift, rho, tau, kind):
         if length > 0.0:
             rec[i, 0], rec[i, 1], rec[i, 2] = nx / length, ny / length, nz / length
         rec[i, 3], rec[i, 4], rec[i, 5] = rho[i], tau[i], kind[i]
-    return internal, rec
+    return internal, rec, _box(internal)
 
 
 def prepare(scene: Scene | PreparedScene, backend: str = "embree", quality: str | None = None) -> PreparedScene:
@@ -146,13 +153,13 @@ def prepare(scene: Scene | PreparedScene, backend: str = "embree", quality: str 
         raise ValueError(f"quality: expected one of {', '.join(QUALITIES)}, got {quality!r}")
     bounds = _box(scene.triangles)
     shift = 0.5 * (bounds[0] + bounds[1])
-    internal, tri_data = _triangle_records(scene.triangles, shift, scene.rho, scene.tau, scene.kind)
+    internal, tri_data, box = _triangle_records(scene.triangles, shift, scene.rho, scene.tau, scene.kind)
     return PreparedScene(
         scene=scene,
         intersector=BACKENDS[backend](internal, quality),
         shift=shift,
         tri_data=tri_data,
-        bounds=_box(internal),
+        bounds=box,
     )
 
 

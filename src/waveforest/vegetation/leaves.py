@@ -155,18 +155,32 @@ def leaf_frames(normal: np.ndarray, toward: np.ndarray) -> tuple[np.ndarray, np.
     m, b : (n, 3) float64
         Unit midrib and cross directions; (m, b, normal) is right-handed orthonormal.
     """
-    n = np.asarray(normal, dtype=np.float64)
-    t = np.asarray(toward, dtype=np.float64)
-    m = t - np.sum(t * n, axis=1, keepdims=True) * n
-    norm = np.linalg.norm(m, axis=1)
-    bad = norm < _PARALLEL_EPS * np.maximum(np.linalg.norm(t, axis=1), 1.0)
-    if np.any(bad):  # any vector not parallel to n, projected
-        alt = np.where(np.abs(n[bad, 0:1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
-        mb = alt - np.sum(alt * n[bad], axis=1, keepdims=True) * n[bad]
-        m[bad] = mb
-        norm[bad] = np.linalg.norm(mb, axis=1)
-    m /= norm[:, None]
-    b = np.cross(n, m)
+    n = np.require(np.asarray(normal, dtype=np.float64), requirements=["C", "W"])
+    t = np.require(np.asarray(toward, dtype=np.float64), requirements=["C", "W"])
+    return _frames_kernel(n, t)
+
+
+@njit(cache=True, nogil=True)
+def _frames_kernel(n, t):  # pragma: no cover - compiled; tested against the NumPy expressions
+    """:func:`leaf_frames` leaf by leaf, with NumPy's order of operations (bit for bit:
+    the projection t - (t . n) n, its norm, the fallback axis, m / |m|, b = n x m)."""
+    k = n.shape[0]
+    m = np.empty((k, 3))
+    b = np.empty((k, 3))
+    for i in range(k):
+        n0, n1, n2 = n[i, 0], n[i, 1], n[i, 2]
+        t0, t1, t2 = t[i, 0], t[i, 1], t[i, 2]
+        d = t0 * n0 + t1 * n1 + t2 * n2
+        m0, m1, m2 = t0 - d * n0, t1 - d * n1, t2 - d * n2
+        norm = np.sqrt(m0 * m0 + m1 * m1 + m2 * m2)
+        if norm < _PARALLEL_EPS * max(np.sqrt(t0 * t0 + t1 * t1 + t2 * t2), 1.0):  # any axis not parallel to n
+            a0, a1 = (1.0, 0.0) if abs(n0) < 0.9 else (0.0, 1.0)
+            d = a0 * n0 + a1 * n1 + 0.0 * n2
+            m0, m1, m2 = a0 - d * n0, a1 - d * n1, 0.0 - d * n2
+            norm = np.sqrt(m0 * m0 + m1 * m1 + m2 * m2)
+        m0, m1, m2 = m0 / norm, m1 / norm, m2 / norm
+        m[i, 0], m[i, 1], m[i, 2] = m0, m1, m2
+        b[i, 0], b[i, 1], b[i, 2] = n1 * m2 - n2 * m1, n2 * m0 - n0 * m2, n0 * m1 - n1 * m0
     return m, b
 
 
