@@ -249,10 +249,11 @@ def simulate_pulses(selected: pa.Table, dataset_info: pd.Series, calibration: Ca
     chain = _chain(settings, dataset_info, calibration, fx, scene_builder or build_scene,
                    1 if workers > 1 else threads, stream, tracer or trace)
     rows = _Rows({c: scal[c].to_numpy() for c in scal.columns}, selected.select(carry.names))
-    pieces, n_no_echo = _run_groups(chain, rows, _groups(p), workers,
+    groups = _groups(p)
+    pieces, n_no_echo = _run_groups(chain, rows, groups, workers,
                                     f"simulate {dataset} chunk {chunk}" if progress else None)
     table = pa.concat_tables(pieces) if pieces else _empty(carry)
-    summary = SimulateSummary(dataset, chunk, int(len(p)), table.num_rows, p["group"].nunique(), n_no_echo)
+    summary = SimulateSummary(dataset, chunk, int(len(p)), table.num_rows, len(groups), n_no_echo)
     return table, summary
 
 

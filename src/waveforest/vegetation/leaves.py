@@ -155,9 +155,7 @@ def leaf_frames(normal: np.ndarray, toward: np.ndarray) -> tuple[np.ndarray, np.
     m, b : (n, 3) float64
         Unit midrib and cross directions; (m, b, normal) is right-handed orthonormal.
     """
-    n = np.require(np.asarray(normal, dtype=np.float64), requirements=["C", "W"])
-    t = np.require(np.asarray(toward, dtype=np.float64), requirements=["C", "W"])
-    return _frames_kernel(n, t)
+    return _frames_kernel(np.require(normal, np.float64, ["C", "W"]), np.require(toward, np.float64, ["C", "W"]))
 
 
 @njit(cache=True, nogil=True)
