@@ -66,6 +66,44 @@ def test_embree_and_numpy_intersectors_agree_on_random_triangles(kind):
     assert np.all(np.isinf(te[pe < 0])) and np.all(np.isinf(tn[pn < 0]))
 
 
+def _fan_leaves(rng, n_leaves, k=4):
+    """Leaves of ``k`` fan triangles (centre, p_j, p_j+1) each, as vegetation outlines are cut,
+    beside lone triangles: consecutive triangles share an edge within a leaf."""
+    ang = np.linspace(0, np.pi, k + 1)
+    out = []
+    for _ in range(n_leaves):
+        c = rng.uniform(-2, 2, 3)
+        a, b = rng.normal(size=(2, 3)) * 0.3
+        rim = c + np.cos(ang)[:, None] * a + np.sin(ang)[:, None] * b
+        out += [np.stack([c, rim[j], rim[j + 1]]) for j in range(k)]
+        if rng.random() < 0.3:
+            out.append(_random_triangles(rng, 1)[0])
+    return np.array(out, np.float32)
+
+
+def test_quads_pair_the_triangles_that_share_an_edge_and_map_hits_back():
+    """Embree gets consecutive triangles sharing an edge as one quad (faster builds): every
+    triangle is one quad half with its own vertices, and a hit reports the triangle, as NumPy."""
+    rng = np.random.default_rng(4)
+    tri = _fan_leaves(rng, 150)
+    quads, tri_of = rtc._pair_quads(tri)
+    assert len(quads) < 0.6 * len(tri)  # most triangles paired
+    halves = np.concatenate([tri_of[:, 0], tri_of[tri_of[:, 1] != tri_of[:, 0], 1]])
+    assert np.array_equal(np.sort(halves), np.arange(len(tri)))  # each triangle once
+    for q, (i, j) in zip(quads, tri_of):  # Embree's halves (v0, v1, v3) and (v2, v3, v1)
+        assert {tuple(v) for v in q[[0, 1, 3]]} == {tuple(v) for v in tri[i]}
+        if i != j:
+            assert {tuple(v) for v in q[[2, 3, 1]]} == {tuple(v) for v in tri[j]}
+    o, d = _random_rays(rng, 4000)
+    for kind in ("direct-high", "direct-medium"):
+        te, pe = EMBREE_KINDS[kind](tri).intersect(o, d)
+        tn, pn = NumpyIntersector(tri).intersect(o, d)
+        assert 0.1 < (pn >= 0).mean() < 0.95
+        assert np.mean(pe == pn) >= AGREE_FRACTION
+        same = (pe == pn) & (pn >= 0)
+        np.testing.assert_allclose(te[same], tn[same], rtol=T_RTOL, atol=1e-6)
+
+
 @pytest.mark.parametrize("backend", ["embree", "embreex", "numpy"])
 def test_intersect_against_brute_force_geometry(backend):
     # single triangle at z = 1: rays from below straight up, inside / outside the triangle

@@ -3,7 +3,8 @@
 embreex's ``EmbreeScene.run`` traces a batch of rays one ``rtcIntersect1`` at a time from a
 Cython loop, on a BVH of MEDIUM build quality it gives no way to change. Here the same Embree
 library is driven through its C API: the scene is built with ctypes (build quality chosen by
-the caller), and the per-ray ``rtcIntersect1`` / ``rtcOccluded1`` calls are made from one
+the caller; consecutive triangles that share an edge as one quad, :func:`_pair_quads`), and
+the per-ray ``rtcIntersect1`` / ``rtcOccluded1`` calls are made from one
 ``@njit(parallel=True, nogil=True)`` kernel over blocks of rays (``prange``, no Python
 threads, no GIL). Each call traces sorted copies of its rays, in Z-order of their origins
 (:func:`coherent_order`), and puts the results back in the caller's order (a nearest-hit call
@@ -63,15 +64,15 @@ CELL_BITS = 5
 SLOT_FLOATS = 32
 """Slot size in float32 (128 bytes, room for an RTCRayHit of 96 bytes)."""
 
-_RTC_GEOMETRY_TYPE_TRIANGLE, _RTC_GEOMETRY_TYPE_INSTANCE = 0, 121
+_RTC_GEOMETRY_TYPE_QUAD, _RTC_GEOMETRY_TYPE_INSTANCE = 1, 121
 _RTC_FORMAT_FLOAT3X4_COLUMN_MAJOR = 0x9234
 _RTC_BUFFER_TYPE_INDEX, _RTC_BUFFER_TYPE_VERTEX = 0, 1
-_RTC_FORMAT_UINT3, _RTC_FORMAT_FLOAT3 = 0x5003, 0x9003
+_RTC_FORMAT_UINT4, _RTC_FORMAT_FLOAT3 = 0x5004, 0x9003
 _INVALID_ID = 0xFFFFFFFF
 
 # RTCRayHit field offsets in float32 / uint32 units
 _ORG, _TNEAR, _DIR, _TIME, _TFAR, _MASK, _ID, _FLAGS = 0, 3, 4, 7, 8, 9, 10, 11
-_PRIM, _GEOM, _INST = 17, 18, 19
+_U, _V, _PRIM, _GEOM, _INST = 15, 16, 17, 18, 19
 _NO_PRIM = np.empty(0, np.int32)
 """The ``prim`` argument of an occlusion query (not written)."""
 
@@ -164,15 +165,16 @@ def _set_ray(f, u, org, dirs, i, tfar):
 
 
 @njit(cache=True, parallel=True, nogil=True)
-def _query_kernel(scene, org, dirs, t, prim, occlusion, slot_f, slot_u, offsets):
+def _query_kernel(scene, org, dirs, t, prim, occlusion, slot_f, slot_u, offsets, quad_base, tri_of):
     """Trace ray ``i`` from ``t = 0`` to ``t[i]`` for every ``i``, in blocks of ``BLOCK_RAYS``.
 
     Nearest hit (``occlusion`` False): ``t[i]`` becomes the hit distance (``inf`` on a miss)
-    and ``prim[i]`` the triangle (-1 on a miss): Embree's primID, plus ``offsets[instID]``
-    when the hit lies in an instance (:class:`InstancedEmbreeIntersector`). Occlusion (True):
-    ``t[i]`` becomes ``-inf`` where something lies on the ray (Embree's convention) and
-    ``prim`` is not touched. ``org``, ``dirs`` (m, 3) float32; ``t`` (m,) float32; ``prim``
-    (m,) int32; ``offsets`` (k,) int64.
+    and ``prim[i]`` the triangle (-1 on a miss): of Embree's quad primID, the half the hit lies
+    in (u + v > 1: the second, :func:`_pair_quads`), ``tri_of[quad_base[instID] + primID, half]``,
+    plus ``offsets[instID]`` (instID 0 outside instances, :class:`InstancedEmbreeIntersector`).
+    Occlusion (True): ``t[i]`` becomes ``-inf`` where something lies on the ray (Embree's
+    convention) and ``prim`` is not touched. ``org``, ``dirs`` (m, 3) float32; ``t`` (m,)
+    float32; ``prim`` (m,) int32; ``offsets``, ``quad_base`` (k,) int64; ``tri_of`` (q, 2) int32.
     """
     m = org.shape[0]
     n_blocks = (m + BLOCK_RAYS - 1) // BLOCK_RAYS
@@ -193,8 +195,9 @@ def _query_kernel(scene, org, dirs, t, prim, occlusion, slot_f, slot_u, offsets)
                 prim[i] = -1
             else:
                 t[i] = f[_TFAR]
-                base = 0 if u[_INST] == _INVALID_ID else offsets[u[_INST]]
-                prim[i] = np.int32(base + u[_PRIM])
+                j = 0 if u[_INST] == _INVALID_ID else u[_INST]
+                half = 1 if f[_U] + f[_V] > 1.0 else 0
+                prim[i] = np.int32(offsets[j] + tri_of[quad_base[j] + u[_PRIM], half])
 
 
 @njit(cache=True, nogil=True)
@@ -246,7 +249,59 @@ def coherent_order(org, bits):
 
 
 _NO_OFFSETS = np.zeros(1, np.int64)
-"""The ``offsets`` of a scene without instances (never read)."""
+"""The ``offsets`` and ``quad_base`` of a scene without instances."""
+
+
+@njit(cache=True, nogil=True)
+def _pair_quads(tri):
+    """Embree quads of the (n, 3, 3) triangles: consecutive triangles ``i``, ``i + 1`` that
+    share an edge (two vertices bit for bit) become one quad, any other triangle a quad whose
+    last vertex repeats its third. Returns the (q, 4, 3) float32 quads and ``tri_of`` (q, 2)
+    int32, the triangle of each quad's first and second half.
+
+    Embree intersects quad (v0, v1, v2, v3) as the triangles (v0, v1, v3) and (v2, v3, v1)
+    and reports u + v <= 1 on the first and u + v >= 1 on the second: here (v0, v1, v3) is
+    triangle ``i`` (its vertices rotated so that v0 is the one it does not share) and v2 the
+    vertex of ``i + 1`` it does not share.
+    """
+    n = tri.shape[0]
+    quads = np.empty((n, 4, 3), np.float32)
+    tri_of = np.empty((n, 2), np.int32)
+    q = 0
+    i = 0
+    while i < n:
+        own, other = -1, -1
+        if i + 1 < n:
+            this_mask, next_mask = 0, 0  # bit a: vertex a is also in the other triangle
+            for a in range(3):
+                for b in range(3):
+                    if (tri[i, a, 0] == tri[i + 1, b, 0] and tri[i, a, 1] == tri[i + 1, b, 1]
+                            and tri[i, a, 2] == tri[i + 1, b, 2]):
+                        this_mask |= 1 << a
+                        next_mask |= 1 << b
+            for a in range(3):
+                if this_mask == 7 - (1 << a):
+                    own = a
+                if next_mask == 7 - (1 << a):
+                    other = a
+        if own >= 0 and other >= 0:
+            for c in range(3):
+                quads[q, 0, c] = tri[i, own, c]
+                quads[q, 1, c] = tri[i, (own + 1) % 3, c]
+                quads[q, 2, c] = tri[i + 1, other, c]
+                quads[q, 3, c] = tri[i, (own + 2) % 3, c]
+            tri_of[q, 0], tri_of[q, 1] = i, i + 1
+            i += 2
+        else:
+            for c in range(3):
+                quads[q, 0, c] = tri[i, 0, c]
+                quads[q, 1, c] = tri[i, 1, c]
+                quads[q, 2, c] = tri[i, 2, c]
+                quads[q, 3, c] = tri[i, 2, c]
+            tri_of[q, 0], tri_of[q, 1] = i, i
+            i += 1
+        q += 1
+    return quads[:q].copy(), tri_of[:q].copy()
 
 
 def _slots(m: int) -> tuple[np.ndarray, np.ndarray]:
@@ -283,31 +338,34 @@ def _commit(lib, scene, what: str):
 
 class DirectEmbreeIntersector(RayQueries):
     """Nearest-hit and occlusion queries on an Embree 4 BVH of ``triangles`` (:class:`RayQueries`),
-    called from Numba kernels; ``quality`` ({"low", "medium", "high"}) is the BVH build quality."""
+    called from Numba kernels; ``quality`` ({"low", "medium", "high"}) is the BVH build quality.
+    Embree holds the triangles as quads (:func:`_pair_quads`); hits report triangle indices."""
 
     backend = "embree"
 
     def __init__(self, triangles: np.ndarray, quality: str = DEFAULT_QUALITY) -> None:
         tri = check_triangles(triangles)
         n = len(tri)
+        quads, self._tri_of = _pair_quads(np.ascontiguousarray(tri, np.float32))
+        m = len(quads)
         lib, scene = _new_scene(quality)
         self._lib = lib
-        geom = lib.rtcNewGeometry(_DEVICE, _RTC_GEOMETRY_TYPE_TRIANGLE)
+        geom = lib.rtcNewGeometry(_DEVICE, _RTC_GEOMETRY_TYPE_QUAD)
         lib.rtcSetGeometryBuildQuality(geom, QUALITIES[quality])
-        vptr = lib.rtcSetNewGeometryBuffer(geom, _RTC_BUFFER_TYPE_VERTEX, 0, _RTC_FORMAT_FLOAT3, 12, 3 * n)
-        iptr = lib.rtcSetNewGeometryBuffer(geom, _RTC_BUFFER_TYPE_INDEX, 0, _RTC_FORMAT_UINT3, 12, n)
+        vptr = lib.rtcSetNewGeometryBuffer(geom, _RTC_BUFFER_TYPE_VERTEX, 0, _RTC_FORMAT_FLOAT3, 12, 4 * m)
+        iptr = lib.rtcSetNewGeometryBuffer(geom, _RTC_BUFFER_TYPE_INDEX, 0, _RTC_FORMAT_UINT4, 16, m)
         if not vptr or not iptr:
             lib.rtcReleaseGeometry(geom)
             lib.rtcReleaseScene(scene)
             raise MemoryError(f"Embree could not allocate buffers for {n} triangles")
-        ctypes.memmove(vptr, tri.ctypes.data, tri.nbytes)
-        idx = np.arange(3 * n, dtype=np.uint32)
+        ctypes.memmove(vptr, quads.ctypes.data, quads.nbytes)
+        idx = np.arange(4 * m, dtype=np.uint32)
         ctypes.memmove(iptr, idx.ctypes.data, idx.nbytes)
         lib.rtcCommitGeometry(geom)
         lib.rtcAttachGeometry(scene, geom)
         lib.rtcReleaseGeometry(geom)
         self._scene = _commit(lib, scene, f"{n} triangles")
-        self._offsets = _NO_OFFSETS
+        self._offsets = self._quad_base = _NO_OFFSETS
         self.n_triangles = n
         self.quality = quality
 
@@ -316,15 +374,19 @@ class DirectEmbreeIntersector(RayQueries):
         if scene:
             self._lib.rtcReleaseScene(scene)
 
+    def _hit_map(self):
+        """``offsets``, ``quad_base``, ``tri_of`` of :func:`_query_kernel`."""
+        return self._offsets, self._quad_base, self._tri_of
+
     def _intersect(self, o, d, tfar, prim, threads, coherent):
         with NumbaThreads(1 if len(o) < MIN_PARALLEL_RAYS else threads):
             if coherent:  # a beam's primary rays: the Z-order would not speed Embree up
                 tfar[:] = np.inf
-                _query_kernel(self._scene, o, d, tfar, prim, False, *_slots(len(o)), self._offsets)
+                _query_kernel(self._scene, o, d, tfar, prim, False, *_slots(len(o)), *self._hit_map())
                 return
             order = coherent_order(o, CELL_BITS)
             ts, ps = np.full_like(tfar, np.inf), np.empty_like(prim)
-            _query_kernel(self._scene, *take_rays(o, d, order), ts, ps, False, *_slots(len(o)), self._offsets)
+            _query_kernel(self._scene, *take_rays(o, d, order), ts, ps, False, *_slots(len(o)), *self._hit_map())
         tfar[order], prim[order] = ts, ps
 
     def _occluded(self, o, d, tmax, out, threads):
@@ -332,7 +394,7 @@ class DirectEmbreeIntersector(RayQueries):
         t = tmax[order]
         with NumbaThreads(1 if len(o) < MIN_PARALLEL_RAYS else threads):
             _query_kernel(self._scene, *take_rays(o, d, order), t, _NO_PRIM, True, *_slots(len(o)),
-                          self._offsets)
+                          *self._hit_map())
         out[order] = t == -np.inf  # Embree sets tfar = -inf on an occluded ray
 
 
@@ -381,5 +443,8 @@ class InstancedEmbreeIntersector(DirectEmbreeIntersector):
             lib.rtcReleaseGeometry(geom)
         self._scene = _commit(lib, scene, f"{len(which)} instances")
         self._offsets = np.ascontiguousarray(offsets, np.int64)
+        starts = np.cumsum([0] + [len(p._tri_of) for p in self._prototypes])
+        self._quad_base = np.ascontiguousarray(starts[which], np.int64)
+        self._tri_of = np.concatenate([p._tri_of for p in self._prototypes])
         self.n_triangles = int(sum(self._prototypes[p].n_triangles for p in which))
         self.quality = quality
