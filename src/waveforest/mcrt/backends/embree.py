@@ -301,7 +301,7 @@ def _pair_quads(tri):
             tri_of[q, 0], tri_of[q, 1] = i, i
             i += 1
         q += 1
-    return quads[:q].copy(), tri_of[:q].copy()
+    return quads[:q], tri_of[:q].copy()  # the quads only until Embree has copied them
 
 
 def _slots(m: int) -> tuple[np.ndarray, np.ndarray]:
