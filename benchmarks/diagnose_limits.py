@@ -13,7 +13,8 @@ and with the whole waveform (every statistic of :mod:`waveforest.diagnose.wavefo
 adds a third set, the first-echo features and the statistics F (named ``first_echo_F``). Prints
 per effect
 ``limit_<features>_<effect>: value unit`` (``nan`` when not reached up to the strongest value
-tried), ``power_at_bound_<features>_<effect>: share [low, high]`` (Wilson interval),
+tried), ``limit_ci_<features>_<effect>: [low, high] unit`` (its 95 % interval, ``nan`` beyond
+the strongest value tried), ``power_at_bound_<features>_<effect>: share [low, high]`` (Wilson interval),
 ``limit_ratio_<set>_<effect>: set / first echo`` (of the distances from off in the search
 coordinate u, :mod:`waveforest.diagnose.catalogue`: 0.5 = halved), ``floor_scale_<features>: factor`` and the
 wall and CPU time.
@@ -64,6 +65,7 @@ def main(argv: list[str] | None = None) -> None:
         print(f"floor_scale_{name}: {cal['floor'].scale:.3f} factor")
         for row in lim.itertuples():
             print(f"limit_{name}_{row.effect}: {row.smallest_detectable:.4g} {row.unit}")
+            print(f"limit_ci_{name}_{row.effect}: [{row.limit_ci_low:.4g}, {row.limit_ci_high:.4g}] {row.unit}")
             print(f"power_at_bound_{name}_{row.effect}: {row.power_at_bound:.2f} "
                   f"[{row.power_at_bound_ci_low:.2f}, {row.power_at_bound_ci_high:.2f}] at {row.upper_bound:.4g}")
         limits[name] = lim.set_index("effect")

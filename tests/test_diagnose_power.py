@@ -19,9 +19,11 @@ from waveforest.diagnose.power import (
     MIN_CALIBRATION_REPLICATES,
     PowerSettings,
     _crossing,
+    _crossings,
     detection_limits,
     floor_calibration,
     ladder,
+    limit_interval,
     verdict_with_limits,
 )
 from waveforest.diagnose.search import SearchSettings
@@ -56,6 +58,22 @@ def test_crossing_is_exact_for_a_gap_quadratic_in_strength():
     assert math.isnan(_crossing(0.1, -0.01, 0.2, -0.001))
 
 
+def test_crossings_continue_past_a_missed_value():
+    """Rungs off, 0.25, 0.5, 1; the limit's interval runs from rung 1 to rung 2 (j = 2). A
+    replicate that misses 0.5 crosses between 0.5 and 1 (exactly, for a gap quadratic in
+    strength), one that detects 0.25 at 0.25, one that detects nothing at inf."""
+    strengths = np.array([0.0, 0.25, 0.5, 1.0])
+    a, c = 0.2, 0.1  # replicate 1: LB(s) = a s^2 - c crosses at sqrt(c / a) = 0.707
+    lbs = [np.full(4, -0.1), np.array([-0.02, a / 16 - c, 0.01, -0.02]),
+           np.array([0.03, a / 4 - c, 0.05, -0.01]), np.array([0.1, a - c, 0.2, -0.005])]
+    out = _crossings(strengths, lbs, 2)
+    assert out[0] == pytest.approx(_crossing(0.25, -0.02, 0.5, 0.03)) and 0.25 < out[0] < 0.5
+    assert out[1] == pytest.approx(math.sqrt(c / a)) and out[2] == 0.25 and out[3] == math.inf
+    # rungs below the first interval's lower one need not have been evaluated
+    out = _crossings(strengths, [lbs[0], None, lbs[2], lbs[3]], 3)
+    np.testing.assert_allclose(out, [0.5, math.sqrt(c / a), 0.5, math.inf])
+
+
 def test_large_signature_gives_a_monotone_curve_and_a_finite_limit():
     study = SyntheticStudy(samples_per_species=12, pulses_per_sample=8, seed=1)
     limits, curve = limits_of(study)
@@ -76,6 +94,9 @@ def test_large_signature_gives_a_monotone_curve_and_a_finite_limit():
         assert above["power"].iloc[0] >= POWER.power and (below["power"].iloc[-1] < POWER.power
                                                           or below["strength"].iloc[-1] == 0)
         assert v < CATALOGUE[name].test_value  # the realistic value is well visible in this toy
+        # the limit's interval: 3 replicates cannot bound a 0.8-quantile from above
+        assert 0 <= abs(cat.to_u(name, row["limit_ci_low"]) - cat.off_u(name)) <= s
+        assert math.isnan(row["limit_ci_high"])
         assert row["status"] == "detected" and row["sees_test_value"] and row["replicates"] == POWER.replicates
         # each power with its Wilson interval around it, counted from the replicates
         assert np.all(c["power"] == c["detected"] / POWER.replicates)
@@ -106,6 +127,17 @@ def test_the_ladders_simulate_seed_by_seed_and_give_each_candidates_own_limits()
         one, one_curve = limits_of(study, settings=alone)
         pd.testing.assert_frame_equal(one, limits[limits["effect"] == name].reset_index(drop=True))
         pd.testing.assert_frame_equal(one_curve, curve[curve["effect"] == name].reset_index(drop=True))
+
+
+def test_twenty_replicates_bracket_the_limit_with_its_order_statistics():
+    """20 replicates at power 0.8: the limit is the 16th smallest crossing, its interval the
+    12th and the 20th; the interval brackets the limit and lies within the values tried."""
+    study = SyntheticStudy(samples_per_species=12, pulses_per_sample=8, seed=1)
+    settings = replace(SETTINGS, candidates=("understory",))
+    row = limits_of(study, settings=settings, power=PowerSettings(replicates=20, values=2, power=0.8))[0].iloc[0]
+    strength = [abs(cat.to_u("understory", row[k]) - cat.off_u("understory"))
+                for k in ("limit_ci_low", "smallest_detectable", "limit_ci_high")]
+    assert 0 < strength[0] < strength[1] < strength[2] <= 1, row
 
 
 def test_a_limit_never_lies_outside_the_values_tried():
@@ -154,6 +186,26 @@ def test_bounds_too_small_to_see_give_an_empty_limit():
     assert final_verdict("none", limits) == ("inconclusive", ["hotspot"])
     assert final_verdict("unexplained", limits)[0] == "unexplained"
     assert final_verdict("none", limits[limits["effect"] == "understory"]) == ("none", [])
+
+
+def test_a_blind_candidates_limit_reads_with_its_interval():
+    """A limit beyond its test value is given with its interval, whose strong end may lie
+    beyond the strongest value tried: on the far side for a value that grows with the effect,
+    below the bound for one that falls as it grows (clumping)."""
+    assert limit_interval(1.9, math.nan, 4.0) == "[1.9, > 4]" and limit_interval(0.2, 0.41, 0.05) == "[0.2, 0.41]"
+    assert limit_interval(math.nan, 0.41, 0.05) == "[< 0.05, 0.41]" and limit_interval(math.nan, math.nan, 4.0) == ""
+    limits = pd.DataFrame([
+        {"effect": "understory", "unit": "LAI", "smallest_detectable": 3.18, "limit_ci_low": 1.92,
+         "limit_ci_high": math.nan, "status": "detected", "upper_bound": 4.0, "test_value": 2.5,
+         "sees_test_value": False, "power": 0.8, "replicates": 20, "power_at_bound": 0.9,
+         "power_at_bound_ci_low": 0.7, "power_at_bound_ci_high": 0.97},
+        {"effect": "clumping", "unit": "m", "smallest_detectable": 0.28, "limit_ci_low": 0.2,
+         "limit_ci_high": 0.41, "status": "detected", "upper_bound": 0.05, "test_value": 0.15,
+         "sees_test_value": True, "power": 0.8, "replicates": 20, "power_at_bound": 1.0,
+         "power_at_bound_ci_low": 0.84, "power_at_bound_ci_high": 1.0}], columns=list(LIMIT_COLUMNS))
+    assert verdict_with_limits("inconclusive", limits) == (
+        "inconclusive: these data cannot see understory at 2.5 LAI (limit 3.18 [1.92, > 4] LAI); "
+        "seen in >= 80% of the model's twins from clumping 0.28 m")
 
 
 def test_power_settings_are_checked_and_read_from_the_config():

@@ -134,6 +134,12 @@ def power_figure(curve: pd.DataFrame, limits: pd.DataFrame, path: str | Path, *,
                 ax.axvline(at(r["test_value"]), color=OTHER_COLOUR, linewidth=2)
             if np.isfinite(float(r["smallest_detectable"])):
                 ax.axvline(at(r["smallest_detectable"]), color=AFTER_COLOUR, linestyle=":", linewidth=1.5)
+                # the limit's interval, in strength: an infinite value is off (an inverse scale's),
+                # an end beyond the strongest value tried (NaN) runs to the edge
+                ends = [0.0 if np.isinf(x) else v[-1] * 1.05 if np.isnan(x) else at(x)
+                        for x in (float(r.get("limit_ci_low", np.nan)), float(r.get("limit_ci_high", np.nan)))]
+                if not all(e == v[-1] * 1.05 for e in ends):
+                    ax.axvspan(min(ends), max(ends), color=AFTER_COLOUR, alpha=0.15, linewidth=0)
             unit = str(r["unit"])
         else:
             unit = ""
@@ -145,7 +151,7 @@ def power_figure(curve: pd.DataFrame, limits: pd.DataFrame, path: str | Path, *,
         ax.set_ylabel("power", fontsize=8)
     reps = int(curve["replicates"].iloc[0]) if len(curve) else 0
     fig.suptitle((title + "\n" if title else "") + f"power per value, off at the left ({reps} pseudo-real replicates, 95 % Wilson "
-                 "intervals); dashed: power required, dotted: limit, grey: test value", fontsize=9)
+                 "intervals); dashed: power required, dotted: limit (shaded: its 95 % interval), grey: test value", fontsize=9)
     path = Path(path)
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png", dpi=110, bbox_inches="tight")

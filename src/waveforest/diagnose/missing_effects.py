@@ -27,7 +27,7 @@ import pandas as pd
 
 from waveforest.diagnose import catalogue as cat
 from waveforest.diagnose.before_after import before_after
-from waveforest.diagnose.power import FloorCalibration, detection_limits, verdict_with_limits
+from waveforest.diagnose.power import FloorCalibration, detection_limits, interval_of, verdict_with_limits
 from waveforest.diagnose.replicate_cache import effects_key, simulate_all
 from waveforest.diagnose.search import SearchResult, SearchSettings, at_bound, search
 from waveforest.diagnose.settings import DiagnoseSettings
@@ -176,7 +176,8 @@ def verdict_record(result: SearchResult, gap: pd.DataFrame, limits: pd.DataFrame
     verdict with its limits, as in ``diagnose.md``), ``reason``, ``gap`` (the base model's total
     gap, its interval, noise floor, excess and its interval, ``above_floor``: the interval's lower
     bound above the floor), ``named`` (name, value, interval), ``blind_to`` (per candidate not seen
-    at its test value: effect, test_value, smallest_detectable or null, status, upper_bound, unit),
+    at its test value: effect, test_value, smallest_detectable or null, limit_ci (its interval, null
+    ends as in ``detection_limits.csv``), status, upper_bound, unit),
     ``floor_calibration`` (``floor``, :class:`.power.FloorCalibration`: scale, the off
     replicates' mean gap and bootstrap floor, replicates)."""
     verdict, blind = final_verdict(result.verdict, limits)
@@ -197,8 +198,10 @@ def verdict_record(result: SearchResult, gap: pd.DataFrame, limits: pd.DataFrame
         "named": [{"name": e.name, "value": float(e.value), "ci": [float(e.ci_low), float(e.ci_high)]}
                   for e in result.named],
         "blind_to": [{"effect": r.effect, "test_value": num(r.test_value), "smallest_detectable":
-                      num(r.smallest_detectable), "status": r.status, "upper_bound": num(r.upper_bound),
-                      "unit": r.unit} for r in rows.itertuples()],
+                      num(r.smallest_detectable), "limit_ci": [num(getattr(r, "limit_ci_low", None)),
+                                                               num(getattr(r, "limit_ci_high", None))],
+                      "status": r.status, "upper_bound": num(r.upper_bound), "unit": r.unit}
+                     for r in rows.itertuples()],
         "floor_calibration": {"scale": num(floor.scale), "off_gap": num(floor.gap), "off_floor": num(floor.floor),
                               "replicates": int(floor.replicates)},
     }
@@ -374,11 +377,11 @@ def _limits_markdown(limits: pd.DataFrame, curve: pd.DataFrame, real_floor: floa
              "plants than between simulated ones, and limits that are too small. The pseudo-real data are the "
              "model's own twins: where real data differ from the model in other ways too, an effect at or somewhat "
              "above its limit can still go unnamed (docs/validation.md, Diagnose at the paper's scale).", "",
-             "| effect | smallest detectable | test value | seen at the test value | power at the strongest "
+             "| effect | smallest detectable [95 %] | test value | seen at the test value | power at the strongest "
              "value tried [95 %] |", "|---|---|---|---|---|"]
     for r in limits.itertuples():
         found = (f"not reached up to {_fmt(r.upper_bound)} {r.unit}" if pd.isna(r.smallest_detectable)
-                 else f"{_fmt(r.smallest_detectable)} {r.unit}")
+                 else f"{_fmt(r.smallest_detectable)} {interval_of(r)} {r.unit}".replace("  ", " "))
         lines.append(f"| {r.effect} | {found} | {_fmt(r.test_value)} {r.unit} | "
                      f"{'yes' if r.sees_test_value else 'no'} | {_fmt(r.power_at_bound, 2)} "
                      f"[{_fmt(r.power_at_bound_ci_low, 2)}, {_fmt(r.power_at_bound_ci_high, 2)}] at "

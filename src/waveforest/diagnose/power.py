@@ -29,6 +29,14 @@ design of the data and the test that decides the verdict ``none``:
   weakest), linearly in the squared distance from off (the gap grows as its square); the
   limit is the ceil(power x replicates)-th smallest crossing. Empty (NaN) when the bound
   itself is detected with less power.
+* **The limit's interval.** The limit estimates the power-quantile of the crossings' distribution;
+  its 95 % interval is the distribution-free one of that quantile, [X_(r), X_(s)] of the
+  sorted crossings with ranks from Binomial(replicates, power)
+  (:func:`waveforest.stats.proportion.quantile_ranks`; 20 replicates at 0.8: the 12th and the
+  20th). A replicate that misses the value above the limit crosses between the stronger
+  values evaluated, so the upper end can lie beyond it; NaN when some replicate misses the
+  bound itself. A lower end on the weaker ladder value is at most that value (weaker ones
+  are not evaluated). Like the Wilson intervals, it assumes independent replicates.
 
 **The floor calibrated on twins.** The off replicates are data without effect on this very
 design: the gap they give is the noise floor by definition. Their mean gap over their mean
@@ -63,7 +71,7 @@ from waveforest.effects import CATALOGUE
 from waveforest.errors import WaveforestError
 from waveforest.rng import named_generator, named_seeds
 from waveforest.stats.bootstrap import bootstrap_weights
-from waveforest.stats.proportion import wilson_interval
+from waveforest.stats.proportion import quantile_ranks, wilson_interval
 
 MIN_CALIBRATION_REPLICATES = 5
 """Fewest off replicates from which the noise floor is calibrated (:func:`floor_calibration`)."""
@@ -108,10 +116,13 @@ def _calibrated(res: np.ndarray, scale: float) -> np.ndarray:
     return res
 
 
-LIMIT_COLUMNS = ("effect", "unit", "smallest_detectable", "status", "upper_bound", "test_value", "sees_test_value",
-                 "power", "replicates", "power_at_bound", "power_at_bound_ci_low", "power_at_bound_ci_high")
+LIMIT_COLUMNS = ("effect", "unit", "smallest_detectable", "limit_ci_low", "limit_ci_high", "status", "upper_bound",
+                 "test_value", "sees_test_value", "power", "replicates", "power_at_bound", "power_at_bound_ci_low",
+                 "power_at_bound_ci_high")
 """Columns of ``detection_limits.csv`` (:func:`detection_limits`), a contract with the report:
 effect and unit; ``smallest_detectable`` the limit (NaN unless ``status`` is "detected");
+``limit_ci_low`` <= ``limit_ci_high`` its 95 % interval (module docstring), NaN on the side of
+the strongest value tried (``upper_bound``) when it lies beyond it (both NaN without a limit);
 ``status`` "detected" or "not reached" (the strongest value tried, ``upper_bound``, is detected
 in fewer than ``power`` x ``replicates`` replicates: "not reached up to upper_bound");
 ``test_value`` the effect's realistic size (:data:`waveforest.effects.CATALOGUE`) and
@@ -181,6 +192,36 @@ def _crossing(s_lo: float, lb_lo: float, s_hi: float, lb_hi: float) -> float:
     if lb_hi <= 0:
         return math.nan
     return math.sqrt(s_lo**2 + (s_hi**2 - s_lo**2) * (-lb_lo) / (lb_hi - lb_lo))
+
+
+def _crossings(strengths: np.ndarray, lbs: list, j: int) -> np.ndarray:
+    """Each replicate's crossing (:func:`_crossing`) between rungs ``j - 1`` and ``j``; a
+    replicate that does not detect rung ``j`` crosses between the first stronger rung it detects
+    and the rung below that one, inf when it detects none.
+
+    Parameters
+    ----------
+    strengths : (n_rungs,) float64
+        Distance from off of each rung, increasing (rung 0 is off).
+    lbs : list of (R,) float64 or None
+        The replicates' excess lower bounds per rung; None for a rung not evaluated (only
+        rungs below ``j - 1`` may be).
+    j : int
+        The rung of the first interval, 1 <= j < n_rungs.
+
+    Returns
+    -------
+    (R,) float64
+        Strengths; the first interval's as in the limit (a replicate that detects rung j - 1
+        crosses at it), inf beyond the strongest rung.
+    """
+    out = np.full(len(lbs[j]), np.inf)
+    todo = np.ones(len(out), dtype=bool)
+    for i in range(j, len(strengths)):
+        for r in np.flatnonzero(todo & (lbs[i] > 0)):
+            out[r] = _crossing(strengths[i - 1], lbs[i - 1][r], strengths[i], lbs[i][r])
+        todo &= ~(lbs[i] > 0)
+    return out
 
 
 class _Pool:
@@ -347,19 +388,30 @@ def detection_limits(keys: pd.DataFrame, simulate: Simulator, settings: SearchSe
         w = walks[name]
         us, k, lbs, rows = w.us, w.k, w.lbs, w.rows
         u0 = cat.off_u(name)
-        limit = math.nan
+        limit = ci_low = ci_high = math.nan
         if k < len(us) - 1:  # the far bound is detected: interpolate below the weakest detected value
-            u_lo, lb_lo = (u0, off[:, 2]) if k < 0 else (us[k], lbs[k])
-            cross = [_crossing(abs(u_lo - u0), a, abs(us[k + 1] - u0), b) for a, b in zip(lb_lo, lbs[k + 1])]
-            s = np.sort(np.where(np.isnan(cross), np.inf, cross))[power.needed - 1]
+            # rung 0 is off, rung i + 1 the ladder's value i; the weakest detected with power is rung k + 2
+            strengths = np.abs(np.concatenate([[u0], us]) - u0)
+            cross = np.sort(_crossings(strengths, [off[:, 2]] + [lbs.get(i) for i in range(len(us))], k + 2))
             # within the range tried: at most the weakest value detected with power
-            s = min(s, abs(us[k + 1] - u0))
+            s = min(cross[power.needed - 1], strengths[k + 2])
             limit = cat.from_u(name, u0 + math.copysign(s, us[-1] - u0))
+            r_lo, r_hi = (quantile_ranks(power.replicates, power.power) if power.power < 1
+                          else (power.replicates, power.replicates + 1))
+            # rank 0 is off (strength 0: inf on an inverse scale), rank R + 1 or an inf crossing NaN
+            ends = np.concatenate([[0.0], cross, [np.inf]])[[r_lo, r_hi]]
+            weak, strong = (cat.value_interval(name, u, u)[0] if np.isfinite(e) else math.nan
+                            for e, u in zip(ends, u0 + np.copysign(ends, us[-1] - u0)))
+            # in the values' order (clumping and nonlinearity fall as the effect grows), the
+            # unbounded strong end NaN
+            rising = cat.value_interval(name, u0, u0)[0] < cat.from_u(name, us[-1])
+            ci_low, ci_high = (weak, strong) if rising else (strong, weak)
         n_bound = int((lbs[len(us) - 1] > 0).sum())
         b_lo, b_hi = wilson_interval(n_bound / power.replicates, power.replicates)
         test = float(CATALOGUE[name].test_value)
         sees = bool(np.isfinite(limit) and abs(cat.to_u(name, limit) - u0) <= abs(cat.to_u(name, test) - u0) + 1e-9)
         limits.append({"effect": name, "unit": cat.UNITS[name], "smallest_detectable": limit,
+                       "limit_ci_low": ci_low, "limit_ci_high": ci_high,
                        "status": "detected" if np.isfinite(limit) else "not reached",
                        "upper_bound": cat.from_u(name, us[-1]), "test_value": test, "sees_test_value": sees,
                        "power": power.power, "replicates": power.replicates, "power_at_bound": n_bound / power.replicates,
@@ -376,6 +428,23 @@ def detection_limits(keys: pd.DataFrame, simulate: Simulator, settings: SearchSe
     if tables is not None:  # one seed for all models: common-random-number pairs
         tables.update({eff: t for (eff, k, twins), t in pool.cache.items() if k == 0 and twins == 1})
     return pd.DataFrame(limits, columns=list(LIMIT_COLUMNS)), pd.DataFrame(curve, columns=list(CURVE_COLUMNS))
+
+
+def limit_interval(low: float, high: float, upper_bound: float) -> str:
+    """A limit's 95 % interval as text (``limit_ci_low``, ``limit_ci_high`` and ``upper_bound``
+    of :data:`LIMIT_COLUMNS`): ``[1.9, 3.2]``, or ``[1.9, > 4]`` when its end on the side of
+    the strongest value tried lies beyond it (NaN); "" when both ends are NaN (no limit)."""
+    if math.isnan(low) and math.isnan(high):
+        return ""
+    lo = f"< {upper_bound:.3g}" if math.isnan(low) else f"{low:.3g}"
+    hi = f"> {upper_bound:.3g}" if math.isnan(high) else f"{high:.3g}"
+    return f"[{lo}, {hi}]"
+
+
+def interval_of(r) -> str:
+    """:func:`limit_interval` of a row of :data:`LIMIT_COLUMNS` ("" for tables without it)."""
+    return limit_interval(float(getattr(r, "limit_ci_low", math.nan)), float(getattr(r, "limit_ci_high", math.nan)),
+                          float(r.upper_bound))
 
 
 def verdict_with_limits(verdict: str, limits: pd.DataFrame, lead: str = "") -> str:
@@ -401,7 +470,7 @@ def verdict_with_limits(verdict: str, limits: pd.DataFrame, lead: str = "") -> s
     def limit_of(r) -> str:
         if pd.isna(r.smallest_detectable):
             return f"not reached up to {r.upper_bound:.3g} {r.unit}"
-        return f"limit {r.smallest_detectable:.3g} {r.unit}"
+        return f"limit {r.smallest_detectable:.3g} {interval_of(r)} {r.unit}".replace("  ", " ")
 
     parts = [lead] if lead else []
     two_sided = [e for e in limits["effect"] if cat.effect(e).bounds[0] < cat.effect(e).off < cat.effect(e).bounds[1]]

@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from waveforest.diagnose.power import limit_interval
 from waveforest.errors import WaveforestError
 from waveforest.io import paper
 from waveforest.io.results import read_classify_result, read_model
@@ -517,7 +518,8 @@ def detection_limits(d: Path) -> pd.DataFrame | None:
     """``detection_limits.csv`` as text, an empty ``smallest_detectable`` explained; None if absent.
 
     Columns in: effect, unit, smallest_detectable (empty = nothing up to upper_bound is
-    detectable), upper_bound, power, replicates.
+    detectable), limit_ci_low and limit_ci_high (its interval; absent in older tables),
+    upper_bound, power, replicates.
     """
     t = read_csv(d / "detection_limits.csv")
     if t is None:
@@ -533,11 +535,13 @@ def detection_limits(d: Path) -> pd.DataFrame | None:
             "weakest effect detected": (f"{sd:.3g} {unit}".strip() if np.isfinite(sd) else
                                     missing(f"nothing up to {ub:.3g} {unit} is detectable".replace("  ", " ")
                                             if np.isfinite(ub) else "nothing within the bounds is detectable")),
+            "95 % interval": ((limit_interval(_num(r.get("limit_ci_low")), _num(r.get("limit_ci_high")), ub)
+                               or missing("no interval")) if np.isfinite(sd) else missing("no limit")),
             "strongest value tried (range: off to this)": f"{ub:.3g} {unit}".strip() if np.isfinite(ub) else missing("no bound given"),
             "power": f"{power:.2f}" if np.isfinite(power) else missing("no power given"),
             "replicates": f"{int(reps)}" if np.isfinite(reps) else missing("no count given"),
         })
-    return pd.DataFrame(rows, columns=["effect", "weakest effect detected",
+    return pd.DataFrame(rows, columns=["effect", "weakest effect detected", "95 % interval",
                                        "strongest value tried (range: off to this)", "power", "replicates"])
 
 

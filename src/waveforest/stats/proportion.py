@@ -14,3 +14,25 @@ def wilson_interval(p: float, n: int, z: float = 1.959964) -> tuple[float, float
     centre = (p + z * z / (2 * n)) / d
     half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / d
     return max(0.0, centre - half), min(1.0, centre + half)
+
+
+def quantile_ranks(n: int, p: float, level: float = 0.95) -> tuple[int, int]:
+    """Ranks (r, s), 1-based, of the distribution-free interval [X_(r), X_(s)] of the ``p``-quantile
+    from ``n`` independent draws (order statistics X_(1) <= ... <= X_(n)), equal-tailed: each
+    tail misses with probability at most (1 - level) / 2, as the number of draws below the
+    quantile is Binomial(n, p). r = 0 (s = n + 1): no draw bounds the quantile from below (above)."""
+    if n < 1 or not 0.0 < p < 1.0:
+        raise ValueError(f"quantile_ranks: need n >= 1 and 0 < p < 1, got n={n}, p={p}")
+    tail = (1.0 - level) / 2.0
+    pmf = [math.comb(n, i) * p**i * (1.0 - p) ** (n - i) for i in range(n + 1)]
+    below = 0.0  # P(B <= r - 1)
+    r = 0
+    while r < n and below + pmf[r] <= tail:
+        below += pmf[r]
+        r += 1
+    above = 0.0  # P(B >= s)
+    s = n + 1
+    while s > 1 and above + pmf[s - 1] <= tail:
+        above += pmf[s - 1]
+        s -= 1
+    return r, s
