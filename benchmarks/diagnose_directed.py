@@ -19,7 +19,7 @@ candidate exceeds ``--threshold`` (default 2.576: one-sided 0.05 over 10 candida
 
 ``limits`` runs the diagnosis's power analysis design (its pool, seeds and replicates:
 :mod:`waveforest.diagnose.power`) with every ladder value evaluated (``--values``, default 3:
-1/4, 1/2 and all of the way to the bound) and prints per candidate the power at off and at each
+half the test value's distance from off, the test value and the bound: :func:`.power.ladder`) and prints per candidate the power at off and at each
 value of three tests: ``omnibus_fe`` (the diagnosis's: the first echo's gap above its calibrated
 floor), ``directed_fe`` and ``directed_ww`` (the directed test on the first echo's and on the
 whole waveform's terms); then each test's limit and that of ``combined`` (omnibus_fe or

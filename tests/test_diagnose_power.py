@@ -38,16 +38,18 @@ def limits_of(study, simulate=None, settings=SETTINGS, power=POWER, seed=3):
     return detection_limits(study.keys, simulate or study.simulate, settings, power, seed)
 
 
-def test_ladder_runs_from_off_to_the_bound_on_the_test_values_side():
-    assert [cat.from_u("hotspot", u) for u in ladder("hotspot", 4)] == pytest.approx([1.125, 1.25, 1.5, 2.0])
-    assert [cat.from_u("clumping", u) for u in ladder("clumping", 3)] == pytest.approx([0.2, 0.1, 0.05])
-    assert [cat.from_u("leaf_albedo", u) for u in ladder("leaf_albedo", 2)] == pytest.approx([0.8, 0.6])
+def test_ladder_runs_from_off_through_the_test_value_to_the_bound():
+    """The bound, the test value, then halvings of the test value's distance from off (in u)."""
+    assert [cat.from_u("hotspot", u) for u in ladder("hotspot", 4)] == pytest.approx([1.075, 1.15, 1.3, 2.0])
+    assert [cat.from_u("clumping", u) for u in ladder("clumping", 3)] == pytest.approx([0.3, 0.15, 0.05])
+    assert [cat.from_u("leaf_albedo", u) for u in ladder("leaf_albedo", 2)] == pytest.approx([0.85, 0.6])
     assert [cat.from_u("lad_shift", u) for u in ladder("lad_shift", 2)] == pytest.approx([15.0, 30.0])
-    for name in CATALOGUE:  # every effect has a unit, and its test value is inside its ladder's range
+    assert [cat.from_u("understory", u) for u in ladder("understory", 1)] == pytest.approx([4.0])
+    for name in CATALOGUE:  # every effect has a unit, and its test value is a rung strictly inside the range
         assert cat.UNITS[name]
         u0, u = cat.off_u(name), ladder(name, 3)
-        assert np.all(np.diff(np.abs(u - u0)) > 0)
-        assert abs(cat.to_u(name, CATALOGUE[name].test_value) - u0) <= abs(u[-1] - u0) + 1e-12
+        assert np.all(np.diff(np.abs(u - u0)) > 0) and abs(u[0] - u0) > 0
+        assert cat.from_u(name, u[1]) == pytest.approx(CATALOGUE[name].test_value)
 
 
 def test_crossing_is_exact_for_a_gap_quadratic_in_strength():
@@ -98,6 +100,8 @@ def test_large_signature_gives_a_monotone_curve_and_a_finite_limit():
         assert 0 <= abs(cat.to_u(name, row["limit_ci_low"]) - cat.off_u(name)) <= s
         assert math.isnan(row["limit_ci_high"])
         assert row["status"] == "detected" and row["sees_test_value"] and row["replicates"] == POWER.replicates
+        at_test = c.loc[np.isclose(c["value"], CATALOGUE[name].test_value), "power"]
+        assert len(at_test) == 1 and row["power_at_test"] == at_test.iloc[0] >= POWER.power
         # each power with its Wilson interval around it, counted from the replicates
         assert np.all(c["power"] == c["detected"] / POWER.replicates)
         assert np.all((c["power_ci_low"] <= c["power"]) & (c["power"] <= c["power_ci_high"]))
@@ -189,8 +193,8 @@ def test_bounds_too_small_to_see_give_an_empty_limit():
 
 
 def test_a_blind_candidates_limit_reads_with_its_interval():
-    """A limit beyond its test value is given with its interval, whose strong end may lie
-    beyond the strongest value tried: on the far side for a value that grows with the effect,
+    """A limit beyond its test value is given with the power measured at the test value and the
+    limit's interval, whose strong end may lie beyond the strongest value tried: on the far side for a value that grows with the effect,
     below the bound for one that falls as it grows (clumping)."""
     assert limit_interval(1.9, math.nan, 4.0) == "[1.9, > 4]" and limit_interval(0.2, 0.41, 0.05) == "[0.2, 0.41]"
     assert limit_interval(math.nan, 0.41, 0.05) == "[< 0.05, 0.41]" and limit_interval(math.nan, math.nan, 4.0) == ""
@@ -198,13 +202,15 @@ def test_a_blind_candidates_limit_reads_with_its_interval():
         {"effect": "understory", "unit": "LAI", "smallest_detectable": 3.18, "limit_ci_low": 1.92,
          "limit_ci_high": math.nan, "status": "detected", "upper_bound": 4.0, "test_value": 2.5,
          "sees_test_value": False, "power": 0.8, "replicates": 20, "power_at_bound": 0.9,
-         "power_at_bound_ci_low": 0.7, "power_at_bound_ci_high": 0.97},
+         "power_at_bound_ci_low": 0.7, "power_at_bound_ci_high": 0.97, "power_at_test": 0.75,
+         "power_at_test_ci_low": 0.53, "power_at_test_ci_high": 0.89},
         {"effect": "clumping", "unit": "m", "smallest_detectable": 0.28, "limit_ci_low": 0.2,
          "limit_ci_high": 0.41, "status": "detected", "upper_bound": 0.05, "test_value": 0.15,
          "sees_test_value": True, "power": 0.8, "replicates": 20, "power_at_bound": 1.0,
          "power_at_bound_ci_low": 0.84, "power_at_bound_ci_high": 1.0}], columns=list(LIMIT_COLUMNS))
     assert verdict_with_limits("inconclusive", limits) == (
-        "inconclusive: these data cannot see understory at 2.5 LAI (limit 3.18 [1.92, > 4] LAI); "
+        "inconclusive: these data cannot see understory at 2.5 LAI (power 0.75 [0.53, 0.89] there, "
+        "limit 3.18 [1.92, > 4] LAI); "
         "seen in >= 80% of the model's twins from clumping 0.28 m")
 
 

@@ -27,7 +27,13 @@ import pandas as pd
 
 from waveforest.diagnose import catalogue as cat
 from waveforest.diagnose.before_after import before_after
-from waveforest.diagnose.power import FloorCalibration, detection_limits, interval_of, verdict_with_limits
+from waveforest.diagnose.power import (
+    FloorCalibration,
+    detection_limits,
+    interval_of,
+    power_at_test,
+    verdict_with_limits,
+)
 from waveforest.diagnose.replicate_cache import effects_key, simulate_all
 from waveforest.diagnose.search import SearchResult, SearchSettings, at_bound, search
 from waveforest.diagnose.settings import DiagnoseSettings
@@ -377,13 +383,13 @@ def _limits_markdown(limits: pd.DataFrame, curve: pd.DataFrame, real_floor: floa
              "plants than between simulated ones, and limits that are too small. The pseudo-real data are the "
              "model's own twins: where real data differ from the model in other ways too, an effect at or somewhat "
              "above its limit can still go unnamed (docs/validation.md, Diagnose at the paper's scale).", "",
-             "| effect | smallest detectable [95 %] | test value | seen at the test value | power at the strongest "
+             "| effect | smallest detectable [95 %] | test value | seen at the test value (power [95 %]) | power at the strongest "
              "value tried [95 %] |", "|---|---|---|---|---|"]
     for r in limits.itertuples():
         found = (f"not reached up to {_fmt(r.upper_bound)} {r.unit}" if pd.isna(r.smallest_detectable)
                  else f"{_fmt(r.smallest_detectable)} {interval_of(r)} {r.unit}".replace("  ", " "))
         lines.append(f"| {r.effect} | {found} | {_fmt(r.test_value)} {r.unit} | "
-                     f"{'yes' if r.sees_test_value else 'no'} | {_fmt(r.power_at_bound, 2)} "
+                     f"{'yes' if r.sees_test_value else 'no'}{f' ({p})' if (p := power_at_test(r)) else ''} | {_fmt(r.power_at_bound, 2)} "
                      f"[{_fmt(r.power_at_bound_ci_low, 2)}, {_fmt(r.power_at_bound_ci_high, 2)}] at "
                      f"{_fmt(r.upper_bound)} {r.unit} |")
     lines += ["", "Power per value tried: detection_curve.csv and power.png.", ""]

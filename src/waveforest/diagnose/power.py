@@ -21,9 +21,11 @@ design of the data and the test that decides the verdict ``none``:
   simulations would be (the Wilson intervals of the power assume independence). Power(v) =
   share of replicates that detect v, with its 95 % Wilson interval.
 * **Ladder.** Per candidate, ``values`` strengths from its off value towards the bound on
-  the side of its test value (search coordinate u, :mod:`.catalogue`), geometric: the
-  distance from off is 1/2^(n-1), ..., 1/4, 1/2, 1 of the way to the bound. The ladder is
-  walked from the bound down and stops at the first value whose power is below ``power``
+  the side of its test value (search coordinate u, :mod:`.catalogue`): the bound, the test
+  value itself, then halvings of the test value's distance from off (1/2, 1/4, ... of it).
+  With the test value a rung, whether the data see it is a power measured there, not an
+  interpolation (a saturating signature, as the understory's, bends the gap away from the
+  square law the interpolation assumes). The ladder is walked from the bound down and stops at the first value whose power is below ``power``
   (smaller ones are not evaluated). Each replicate's crossing (where LB turns positive) is
   interpolated between that value and the next stronger one (the off value below the
   weakest), linearly in the squared distance from off (the gap grows as its square); the
@@ -118,7 +120,7 @@ def _calibrated(res: np.ndarray, scale: float) -> np.ndarray:
 
 LIMIT_COLUMNS = ("effect", "unit", "smallest_detectable", "limit_ci_low", "limit_ci_high", "status", "upper_bound",
                  "test_value", "sees_test_value", "power", "replicates", "power_at_bound", "power_at_bound_ci_low",
-                 "power_at_bound_ci_high")
+                 "power_at_bound_ci_high", "power_at_test", "power_at_test_ci_low", "power_at_test_ci_high")
 """Columns of ``detection_limits.csv`` (:func:`detection_limits`), a contract with the report:
 effect and unit; ``smallest_detectable`` the limit (NaN unless ``status`` is "detected");
 ``limit_ci_low`` <= ``limit_ci_high`` its 95 % interval (module docstring), NaN on the side of
@@ -128,7 +130,9 @@ in fewer than ``power`` x ``replicates`` replicates: "not reached up to upper_bo
 ``test_value`` the effect's realistic size (:data:`waveforest.effects.CATALOGUE`) and
 ``sees_test_value`` whether the limit lies at or below it (the data can see an effect of that size);
 ``power`` the power required and ``replicates`` the pseudo-real replicates per value;
-``power_at_bound`` the share of replicates that detect ``upper_bound``, with its Wilson interval."""
+``power_at_bound`` the share of replicates that detect ``upper_bound``, with its Wilson interval;
+``power_at_test`` the same at the test value (a rung of the ladder: :func:`ladder`), NaN where
+it was not evaluated (the walk stopped at the bound, or a ladder of one value)."""
 
 CURVE_COLUMNS = ("effect", "value", "strength", "replicates", "detected", "power", "power_ci_low", "power_ci_high",
                  "gap", "noise_floor", "excess_ci_low")
@@ -175,13 +179,13 @@ def ladder(name: str, n_values: int) -> np.ndarray:
     Returns
     -------
     (n_values,) float64
-        u of the values at 1/2^(n-1), ..., 1/2, 1 of the way from off to the far bound on
-        the test value's side.
+        u of the values at 1/2^(n-2), ..., 1/2, 1 of the test value's distance from off, then
+        the far bound on the test value's side (``n_values`` 1: the bound alone).
     """
-    u0 = cat.off_u(name)
-    end = 1.0 if cat.to_u(name, CATALOGUE[name].test_value) >= u0 else 0.0
-    frac = 2.0 ** -np.arange(n_values - 1, -1, -1, dtype=np.float64)
-    return u0 + (end - u0) * frac
+    u0, u_test = cat.off_u(name), cat.to_u(name, CATALOGUE[name].test_value)
+    end = 1.0 if u_test >= u0 else 0.0
+    frac = 2.0 ** -np.arange(n_values - 2, -1, -1, dtype=np.float64)
+    return np.append(u0 + (u_test - u0) * frac, end)
 
 
 def _crossing(s_lo: float, lb_lo: float, s_hi: float, lb_hi: float) -> float:
@@ -408,6 +412,9 @@ def detection_limits(keys: pd.DataFrame, simulate: Simulator, settings: SearchSe
             ci_low, ci_high = (weak, strong) if rising else (strong, weak)
         n_bound = int((lbs[len(us) - 1] > 0).sum())
         b_lo, b_hi = wilson_interval(n_bound / power.replicates, power.replicates)
+        # the test value is the rung below the bound (values >= 2), evaluated unless the walk stopped at the bound
+        p_test = float((lbs[len(us) - 2] > 0).mean()) if len(us) >= 2 and len(us) - 2 in lbs else math.nan
+        t_lo, t_hi = wilson_interval(p_test, power.replicates)
         test = float(CATALOGUE[name].test_value)
         sees = bool(np.isfinite(limit) and abs(cat.to_u(name, limit) - u0) <= abs(cat.to_u(name, test) - u0) + 1e-9)
         limits.append({"effect": name, "unit": cat.UNITS[name], "smallest_detectable": limit,
@@ -415,7 +422,8 @@ def detection_limits(keys: pd.DataFrame, simulate: Simulator, settings: SearchSe
                        "status": "detected" if np.isfinite(limit) else "not reached",
                        "upper_bound": cat.from_u(name, us[-1]), "test_value": test, "sees_test_value": sees,
                        "power": power.power, "replicates": power.replicates, "power_at_bound": n_bound / power.replicates,
-                       "power_at_bound_ci_low": b_lo, "power_at_bound_ci_high": b_hi})
+                       "power_at_bound_ci_low": b_lo, "power_at_bound_ci_high": b_hi,
+                       "power_at_test": p_test, "power_at_test_ci_low": t_lo, "power_at_test_ci_high": t_hi})
         for kk, res in sorted({-1: off, **rows}.items()):
             u = u0 if kk < 0 else us[kk]
             hits = int((res[:, 2] > 0).sum())
@@ -447,6 +455,13 @@ def interval_of(r) -> str:
                           float(r.upper_bound))
 
 
+def power_at_test(r) -> str:
+    """``0.75 [0.53, 0.89]``: the power measured at the test value with its Wilson interval, of a
+    row of :data:`LIMIT_COLUMNS`; "" where it was not evaluated (or a table without it)."""
+    p = float(getattr(r, "power_at_test", math.nan))
+    return f"{p:.2f} [{r.power_at_test_ci_low:.2f}, {r.power_at_test_ci_high:.2f}]" if math.isfinite(p) else ""
+
+
 def verdict_with_limits(verdict: str, limits: pd.DataFrame, lead: str = "") -> str:
     """The verdict with the detection limits, e.g. ``none: seen in >= 80 % of the model's twins
     from understory 0.8 LAI, xy_error 0.15 m`` or ``inconclusive: these data cannot see
@@ -468,9 +483,10 @@ def verdict_with_limits(verdict: str, limits: pd.DataFrame, lead: str = "") -> s
     blind = limits[~sees]
 
     def limit_of(r) -> str:
+        there = f"power {p} there, " if (p := power_at_test(r)) else ""
         if pd.isna(r.smallest_detectable):
-            return f"not reached up to {r.upper_bound:.3g} {r.unit}"
-        return f"limit {r.smallest_detectable:.3g} {interval_of(r)} {r.unit}".replace("  ", " ")
+            return f"{there}not reached up to {r.upper_bound:.3g} {r.unit}"
+        return f"{there}limit {r.smallest_detectable:.3g} {interval_of(r)} {r.unit}".replace("  ", " ")
 
     parts = [lead] if lead else []
     two_sided = [e for e in limits["effect"] if cat.effect(e).bounds[0] < cat.effect(e).off < cat.effect(e).bounds[1]]
