@@ -143,6 +143,11 @@ def check(results: Path, cfg: dict, paper_scale: bool = False) -> list[str]:
         bad = t[t["smallest_detectable"].notna() & ~t["status"].eq("detected")] if "status" in t else t.iloc[:0]
         if len(bad):
             fails.append(f"{limits}: a limit outside the values tried for {bad['effect'].tolist()}")
+        if {"limit_ci_low", "limit_ci_high"} <= set(t.columns):  # each limit inside its interval
+            lo, hi, v = (pd.to_numeric(t[c], errors="coerce") for c in ("limit_ci_low", "limit_ci_high", "smallest_detectable"))
+            out = t[(lo - v > 1e-9 * v.abs()) | (v - hi > 1e-9 * v.abs())]
+            if len(out):
+                fails.append(f"{limits}: a limit outside its interval for {out['effect'].tolist()}")
 
     html = results / "report/report.html"
     if need(html) and "Table 3" not in html.read_text():

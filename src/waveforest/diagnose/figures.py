@@ -131,7 +131,7 @@ def power_figure(curve: pd.DataFrame, limits: pd.DataFrame, path: str | Path, *,
             r = lim.iloc[0]
             ax.axhline(float(r["power"]), color="k", linestyle="--", linewidth=0.8)
             if "test_value" in lim:
-                ax.axvline(at(r["test_value"]), color=OTHER_COLOUR, linewidth=2)
+                ax.axvline(at(r["test_value"]), color=OTHER_COLOUR, linewidth=2, zorder=0)  # behind its rung
             if np.isfinite(float(r["smallest_detectable"])):
                 ax.axvline(at(r["smallest_detectable"]), color=AFTER_COLOUR, linestyle=":", linewidth=1.5)
                 # the limit's interval, in strength: an infinite value is off (an inverse scale's),
