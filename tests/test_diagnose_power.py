@@ -23,12 +23,12 @@ from waveforest.diagnose.power import (
     detection_limits,
     floor_calibration,
     ladder,
-    limit_interval,
     verdict_with_limits,
 )
 from waveforest.diagnose.search import SearchSettings
 from waveforest.effects import CATALOGUE
 from waveforest.errors import WaveforestError
+from waveforest.stats.proportion import limit_interval
 
 SETTINGS = SearchSettings(features=FEATURES, n_boot=100, candidates=("hotspot", "understory"))
 POWER = PowerSettings(replicates=3, values=4, power=0.8)

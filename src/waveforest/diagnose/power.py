@@ -73,7 +73,7 @@ from waveforest.effects import CATALOGUE
 from waveforest.errors import WaveforestError
 from waveforest.rng import named_generator, named_seeds
 from waveforest.stats.bootstrap import bootstrap_weights
-from waveforest.stats.proportion import quantile_ranks, wilson_interval
+from waveforest.stats.proportion import limit_interval, quantile_ranks, wilson_interval
 
 MIN_CALIBRATION_REPLICATES = 5
 """Fewest off replicates from which the noise floor is calibrated (:func:`floor_calibration`)."""
@@ -436,17 +436,6 @@ def detection_limits(keys: pd.DataFrame, simulate: Simulator, settings: SearchSe
     if tables is not None:  # one seed for all models: common-random-number pairs
         tables.update({eff: t for (eff, k, twins), t in pool.cache.items() if k == 0 and twins == 1})
     return pd.DataFrame(limits, columns=list(LIMIT_COLUMNS)), pd.DataFrame(curve, columns=list(CURVE_COLUMNS))
-
-
-def limit_interval(low: float, high: float, upper_bound: float) -> str:
-    """A limit's 95 % interval as text (``limit_ci_low``, ``limit_ci_high`` and ``upper_bound``
-    of :data:`LIMIT_COLUMNS`): ``[1.9, 3.2]``, or ``[1.9, > 4]`` when its end on the side of
-    the strongest value tried lies beyond it (NaN); "" when both ends are NaN (no limit)."""
-    if math.isnan(low) and math.isnan(high):
-        return ""
-    lo = f"< {upper_bound:.3g}" if math.isnan(low) else f"{low:.3g}"
-    hi = f"> {upper_bound:.3g}" if math.isnan(high) else f"{high:.3g}"
-    return f"[{lo}, {hi}]"
 
 
 def interval_of(r) -> str:

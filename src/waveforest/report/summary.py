@@ -25,11 +25,11 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from waveforest.diagnose.power import limit_interval
 from waveforest.errors import WaveforestError
 from waveforest.io import paper
 from waveforest.io.results import read_classify_result, read_model
 from waveforest.report.markdown import NO_VALUE
+from waveforest.stats.proportion import limit_interval
 
 T3_FEATURES = ("H", "Npeaks", "Apeak", "FWHM", "E")
 """Table 3's features, in the paper's order."""

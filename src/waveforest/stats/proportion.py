@@ -1,4 +1,4 @@
-"""Intervals of a proportion."""
+"""Intervals of a proportion and of a quantile."""
 
 from __future__ import annotations
 
@@ -36,3 +36,14 @@ def quantile_ranks(n: int, p: float, level: float = 0.95) -> tuple[int, int]:
         above += pmf[s - 1]
         s -= 1
     return r, s
+
+
+def limit_interval(low: float, high: float, upper_bound: float) -> str:
+    """A detection limit's interval as text (``limit_ci_low``, ``limit_ci_high``, ``upper_bound`` of
+    :data:`waveforest.diagnose.power.LIMIT_COLUMNS`): ``[1.9, 3.2]``, or ``[1.9, > 4]`` when its
+    end on the side of the strongest value tried lies beyond it (NaN); "" when both are NaN."""
+    if math.isnan(low) and math.isnan(high):
+        return ""
+    lo = f"< {upper_bound:.3g}" if math.isnan(low) else f"{low:.3g}"
+    hi = f"> {upper_bound:.3g}" if math.isnan(high) else f"{high:.3g}"
+    return f"[{lo}, {hi}]"
