@@ -18,16 +18,16 @@ off replicates (divided by their RMS) and a data set is *detected* when the cali
 candidate exceeds ``--threshold`` (default 2.576: one-sided 0.05 over 10 candidates, Bonferroni).
 
 ``limits`` runs the diagnosis's power analysis design (its pool, seeds and replicates:
-:mod:`waveforest.diagnose.power`) with every ladder value evaluated (``--values``, default 3:
-half the test value's distance from off, the test value and the bound: :func:`.power.ladder`) and prints per candidate the power at off and at each
-value of three tests: ``omnibus_fe`` (the diagnosis's: the first echo's gap above its calibrated
-floor), ``directed_fe`` and ``directed_ww`` (the directed test on the first echo's and on the
-whole waveform's terms); then each test's limit and that of ``combined`` (omnibus_fe or
-directed_ww): per replicate the strength above which it detects every value tried (the margin
-interpolated between values, in strength squared for the gap, linearly for z), the limit the
-ceil(power x replicates)-th smallest; ``limit_ratio_<test>_<effect>`` against ``omnibus_fe``
-(distances from off: 0.5 = halved). Writes DIR/signatures.parquet and DIR/replicates.csv
-(signatures are reused when present).
+:mod:`waveforest.diagnose.power`) with every ladder value evaluated (``--values``, default 3: half
+the test value's distance from off, the test value and the bound: :func:`.power.ladder`) and prints
+per candidate the power at off and at each value of three tests: ``omnibus_fe`` (the diagnosis's:
+the first echo's gap above its calibrated floor), ``directed_fe`` and ``directed_ww`` (the directed
+test on the first echo's and on the whole waveform's terms); then each test's limit and that of
+``combined`` (omnibus_fe or directed_ww): per replicate the strength above which it detects every
+value tried (the margin interpolated between values, in strength squared for the gap, linearly for
+z), the limit the ceil(power x replicates)-th smallest; ``limit_ratio_<test>_<effect>`` against
+``omnibus_fe`` (distances from off: 0.5 = halved). Writes DIR/signatures.parquet and
+DIR/replicates.csv (signatures are reused when present).
 
 Each directed test is also printed as ``quasi_<set>``: z further divided by sqrt(phi / mean phi of
 the off replicates) where that exceeds 1, phi the mean square of the standardised terms once the

@@ -136,9 +136,10 @@ def power_figure(curve: pd.DataFrame, limits: pd.DataFrame, path: str | Path, *,
                 ax.axvline(at(r["smallest_detectable"]), color=AFTER_COLOUR, linestyle=":", linewidth=1.5)
                 # the limit's interval, in strength: an infinite value is off (an inverse scale's),
                 # an end beyond the strongest value tried (NaN) runs to the edge
-                ends = [0.0 if np.isinf(x) else v[-1] * 1.05 if np.isnan(x) else at(x)
+                edge = v[-1] * 1.05
+                ends = [0.0 if np.isinf(x) else edge if np.isnan(x) else at(x)
                         for x in (float(r.get("limit_ci_low", np.nan)), float(r.get("limit_ci_high", np.nan)))]
-                if not all(e == v[-1] * 1.05 for e in ends):
+                if not all(e == edge for e in ends):
                     ax.axvspan(min(ends), max(ends), color=AFTER_COLOUR, alpha=0.15, linewidth=0)
             unit = str(r["unit"])
         else:

@@ -25,8 +25,8 @@ design of the data and the test that decides the verdict ``none``:
   value itself, then halvings of the test value's distance from off (1/2, 1/4, ... of it).
   With the test value a rung, whether the data see it is a power measured there, not an
   interpolation (a saturating signature, as the understory's, bends the gap away from the
-  square law the interpolation assumes). The ladder is walked from the bound down and stops at the first value whose power is below ``power``
-  (smaller ones are not evaluated). Each replicate's crossing (where LB turns positive) is
+  square law the interpolation assumes). The ladder is walked from the bound down and stops
+  at the first value whose power is below ``power`` (smaller ones are not evaluated). Each replicate's crossing (where LB turns positive) is
   interpolated between that value and the next stronger one (the off value below the
   weakest), linearly in the squared distance from off (the gap grows as its square); the
   limit is the ceil(power x replicates)-th smallest crossing. Empty (NaN) when the bound
