@@ -23,6 +23,7 @@ from waveforest.diagnose.power import (
     detection_limits,
     floor_calibration,
     ladder,
+    seen_at_test,
     verdict_with_limits,
 )
 from waveforest.diagnose.search import SearchSettings
@@ -208,10 +209,30 @@ def test_a_blind_candidates_limit_reads_with_its_interval():
          "limit_ci_high": 0.41, "status": "detected", "upper_bound": 0.05, "test_value": 0.15,
          "sees_test_value": True, "power": 0.8, "replicates": 20, "power_at_bound": 1.0,
          "power_at_bound_ci_low": 0.84, "power_at_bound_ci_high": 1.0}], columns=list(LIMIT_COLUMNS))
-    assert verdict_with_limits("inconclusive", limits) == (
-        "inconclusive: these data cannot see understory at 2.5 LAI (power 0.75 [0.53, 0.89] there, "
+    assert verdict_with_limits("none", limits) == (
+        "none: at the edge of what these data see: understory at 2.5 LAI (power 0.75 [0.53, 0.89] there, "
         "limit 3.18 [1.92, > 4] LAI); "
         "seen in >= 80% of the model's twins from clumping 0.28 m")
+    weak = limits.assign(power_at_test=[0.45, math.nan], power_at_test_ci_low=[0.26, math.nan],
+                         power_at_test_ci_high=[0.66, math.nan])
+    assert verdict_with_limits("inconclusive", weak) == (
+        "inconclusive: these data cannot see understory at 2.5 LAI (power 0.45 [0.26, 0.66] there, "
+        "limit 3.18 [1.92, > 4] LAI); "
+        "seen in >= 80% of the model's twins from clumping 0.28 m")
+
+
+def test_seen_at_test_claims_blindness_only_on_a_power_interval_below_the_requirement():
+    """"no" needs the power measured at the test value to miss the requirement with its whole
+    interval (or no power measured there); a limit at or below the test value is "yes"."""
+    rows = pd.DataFrame({"sees_test_value": [True, False, False, False, False], "power": 0.8,
+                         "smallest_detectable": [1.0, 3.0, 3.0, math.nan, 3.0],
+                         "power_at_test": [0.9, 0.75, 0.45, math.nan, 0.7],
+                         "power_at_test_ci_low": [0.7, 0.53, 0.26, math.nan, 0.48],
+                         "power_at_test_ci_high": [0.97, 0.89, 0.66, math.nan, 0.8]})
+    assert seen_at_test(rows).tolist() == ["yes", "edge", "no", "no", "edge"]
+    assert seen_at_test(rows.drop(columns=["power_at_test_ci_high"])).tolist() == ["yes", "no", "no", "no", "no"]
+    old = rows[["smallest_detectable"]]  # a table from before the test value was a column
+    assert seen_at_test(old).tolist() == ["yes", "yes", "yes", "no", "yes"]
 
 
 def test_power_settings_are_checked_and_read_from_the_config():

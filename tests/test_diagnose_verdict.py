@@ -70,6 +70,26 @@ def test_none_becomes_inconclusive_when_an_effect_of_realistic_size_is_not_seen(
     assert final_verdict("named", blind)[0] == "named"
 
 
+def test_an_effect_at_the_edge_of_the_datas_power_leaves_none_and_is_named():
+    """A power at the test value that misses the requirement but whose interval reaches it is
+    the replicates' draw, not a claim the data cannot see: the verdict stays none, the record
+    lists the candidate under at_edge and the words say so; an interval wholly below it is
+    blindness."""
+    edge = _limits({"hotspot": True, "understory": False}).assign(
+        power_at_test=[1.0, 0.75], power_at_test_ci_low=[0.84, 0.53], power_at_test_ci_high=[1.0, 0.89])
+    assert final_verdict("none", edge) == ("none", [])
+    assert final_verdict("none", edge.assign(power_at_test_ci_high=[1.0, 0.79])) == ("inconclusive", ["understory"])
+    study = SyntheticStudy(samples_per_species=12, pulses_per_sample=8, seed=1)
+    result, gap, _, _ = find_missing_effects(study.keys, study.real({}), study.simulate, SETTINGS, seed=5)
+    assert result.verdict == "none"
+    rec = verdict_record(result, gap, edge)
+    json.dumps(rec)
+    assert rec["verdict"] == "none" and rec["blind_to"] == []
+    assert [e["effect"] for e in rec["at_edge"]] == ["understory"]
+    assert rec["at_edge"][0]["power_at_test"] == 0.75 and rec["at_edge"][0]["power_at_test_ci"] == [0.53, 0.89]
+    assert "at the edge of what these data see: understory at 1.5 u (power 0.75 [0.53, 0.89] there" in rec["text"]
+
+
 def test_the_calibrated_floor_decides_the_verdict():
     """Every floor the diagnosis reports carries floor_scale; a floor raised above the gap's
     lower bound turns a gap above its floor into none/inconclusive, and the record says why."""

@@ -32,6 +32,7 @@ from waveforest.diagnose.power import (
     detection_limits,
     interval_of,
     power_at_test,
+    seen_at_test,
     verdict_with_limits,
 )
 from waveforest.diagnose.replicate_cache import effects_key, simulate_all
@@ -147,10 +148,12 @@ def base_gap_significant(gap: pd.DataFrame) -> bool:
 def final_verdict(search_verdict: str, limits: pd.DataFrame) -> tuple[str, list[str]]:
     """(verdict of :data:`waveforest.io.results.VERDICTS`, the candidates these data cannot see at their test value).
 
-    ``none`` of the search becomes ``inconclusive`` when a candidate's detection limit
-    (:func:`.power.detection_limits`) is not reached within its range or lies beyond its
-    realistic test value (``sees_test_value`` false)."""
-    blind = [] if limits.empty else limits.loc[~limits["sees_test_value"].astype(bool), "effect"].tolist()
+    ``none`` of the search becomes ``inconclusive`` when the data cannot see a candidate at its
+    realistic test value (:func:`.power.seen_at_test` "no": its detection limit is not reached
+    or lies beyond the test value, and the power measured there is below the required power
+    with its whole interval). A candidate at the "edge" (that interval reaches the required
+    power) leaves ``none`` as it is, and the verdict's words name it."""
+    blind = [] if limits.empty else limits.loc[seen_at_test(limits) == "no", "effect"].tolist()
     if search_verdict == "none" and blind:
         return "inconclusive", blind
     return search_verdict, blind
@@ -181,16 +184,28 @@ def verdict_record(result: SearchResult, gap: pd.DataFrame, limits: pd.DataFrame
     Keys: ``verdict`` (:data:`waveforest.io.results.VERDICTS`), ``search_verdict`` (``model.yaml``'s), ``text`` (the
     verdict with its limits, as in ``diagnose.md``), ``reason``, ``gap`` (the base model's total
     gap, its interval, noise floor, excess and its interval, ``above_floor``: the interval's lower
-    bound above the floor), ``named`` (name, value, interval), ``blind_to`` (per candidate not seen
-    at its test value: effect, test_value, smallest_detectable or null, limit_ci (its interval, null
-    ends as in ``detection_limits.csv``), status, upper_bound, unit),
+    bound above the floor), ``named`` (name, value, interval), ``blind_to`` (per candidate these
+    data cannot see at its test value, :func:`.power.seen_at_test` "no": effect, test_value,
+    smallest_detectable or null, limit_ci (its interval, null ends as in
+    ``detection_limits.csv``), status, upper_bound, unit, power_at_test and its interval, null
+    where not measured), ``at_edge`` (the same for the candidates at the "edge"),
     ``floor_calibration`` (``floor``, :class:`.power.FloorCalibration`: scale, the off
     replicates' mean gap and bootstrap floor, replicates)."""
     verdict, blind = final_verdict(result.verdict, limits)
     floor = FloorCalibration() if floor is None else floor
     tot = gap[gap["level"] == "total"].iloc[0]
     num = lambda x: None if x is None or not math.isfinite(float(x)) else float(x)  # noqa: E731
-    rows = limits[limits["effect"].isin(blind)] if len(limits) else limits
+    seen = seen_at_test(limits) if len(limits) else pd.Series(dtype=object)
+
+    def unseen(label: str) -> list[dict]:
+        return [{"effect": r.effect, "test_value": num(r.test_value), "smallest_detectable":
+                 num(r.smallest_detectable), "limit_ci": [num(getattr(r, "limit_ci_low", None)),
+                                                          num(getattr(r, "limit_ci_high", None))],
+                 "status": r.status, "upper_bound": num(r.upper_bound), "unit": r.unit,
+                 "power_at_test": num(getattr(r, "power_at_test", None)),
+                 "power_at_test_ci": [num(getattr(r, "power_at_test_ci_low", None)),
+                                      num(getattr(r, "power_at_test_ci_high", None))]}
+                for r in limits[seen == label].itertuples()] if len(limits) else []
     return {
         "verdict": verdict,
         "search_verdict": result.verdict,
@@ -203,11 +218,8 @@ def verdict_record(result: SearchResult, gap: pd.DataFrame, limits: pd.DataFrame
                 "above_floor": bool(tot["before_ci_low"] > tot["noise_floor"])},
         "named": [{"name": e.name, "value": float(e.value), "ci": [float(e.ci_low), float(e.ci_high)]}
                   for e in result.named],
-        "blind_to": [{"effect": r.effect, "test_value": num(r.test_value), "smallest_detectable":
-                      num(r.smallest_detectable), "limit_ci": [num(getattr(r, "limit_ci_low", None)),
-                                                               num(getattr(r, "limit_ci_high", None))],
-                      "status": r.status, "upper_bound": num(r.upper_bound), "unit": r.unit}
-                     for r in rows.itertuples()],
+        "blind_to": unseen("no"),
+        "at_edge": unseen("edge"),
         "floor_calibration": {"scale": num(floor.scale), "off_gap": num(floor.gap), "off_floor": num(floor.floor),
                               "replicates": int(floor.replicates)},
     }
@@ -385,11 +397,11 @@ def _limits_markdown(limits: pd.DataFrame, curve: pd.DataFrame, real_floor: floa
              "above its limit can still go unnamed (docs/validation.md, Diagnose at the paper's scale).", "",
              "| effect | smallest detectable [95 %] | test value | seen at the test value (power [95 %]) | power at the strongest "
              "value tried [95 %] |", "|---|---|---|---|---|"]
-    for r in limits.itertuples():
+    for r, seen in zip(limits.itertuples(), seen_at_test(limits)):
         found = (f"not reached up to {_fmt(r.upper_bound)} {r.unit}" if pd.isna(r.smallest_detectable)
                  else f"{_fmt(r.smallest_detectable)} {interval_of(r)} {r.unit}".replace("  ", " "))
         lines.append(f"| {r.effect} | {found} | {_fmt(r.test_value)} {r.unit} | "
-                     f"{'yes' if r.sees_test_value else 'no'}{f' ({p})' if (p := power_at_test(r)) else ''} | {_fmt(r.power_at_bound, 2)} "
+                     f"{seen}{f' ({p})' if (p := power_at_test(r)) else ''} | {_fmt(r.power_at_bound, 2)} "
                      f"[{_fmt(r.power_at_bound_ci_low, 2)}, {_fmt(r.power_at_bound_ci_high, 2)}] at "
                      f"{_fmt(r.upper_bound)} {r.unit} |")
     lines += ["", "Power per value tried: detection_curve.csv and power.png.", ""]

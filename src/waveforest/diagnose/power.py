@@ -451,6 +451,21 @@ def power_at_test(r) -> str:
     return f"{p:.2f} [{r.power_at_test_ci_low:.2f}, {r.power_at_test_ci_high:.2f}]" if math.isfinite(p) else ""
 
 
+def seen_at_test(limits: pd.DataFrame) -> pd.Series:
+    """Per row of :data:`LIMIT_COLUMNS`, whether the data see the candidate at its test value:
+    "yes" (``sees_test_value``: the limit lies at or below it), "edge" (it does not, but the
+    Wilson interval of the power measured there reaches ``power``: the replicates' draw may
+    have missed it) or "no" (that interval lies wholly below ``power``, or no power was
+    measured there). Tables without ``sees_test_value`` read "yes" where a limit was found."""
+    sees = (limits["sees_test_value"].astype(bool) if "sees_test_value" in limits
+            else limits["smallest_detectable"].notna())
+    if {"power_at_test_ci_high", "power"} <= set(limits.columns):
+        reach = limits["power_at_test_ci_high"].astype(float) >= limits["power"].astype(float) - 1e-9
+    else:
+        reach = pd.Series(False, index=limits.index)
+    return pd.Series(np.where(sees, "yes", np.where(reach, "edge", "no")), index=limits.index)
+
+
 def verdict_with_limits(verdict: str, limits: pd.DataFrame, lead: str = "") -> str:
     """The verdict with the detection limits, e.g. ``none: seen in >= 80 % of the model's twins
     from understory 0.8 LAI, xy_error 0.15 m`` or ``inconclusive: these data cannot see
@@ -460,16 +475,16 @@ def verdict_with_limits(verdict: str, limits: pd.DataFrame, lead: str = "") -> s
     A limit is a power (``limits.power``) on pseudo-real data, the model's own twins: no promise
     that a larger effect is absent from data that differ from the model in other ways, so the
     text never says "no effect larger than". A limit not reached reads "not reached up to" the
-    strongest value tried. ``lead`` (what was named, or why none was) comes first; the limits of
-    an effect with values on both sides of off (lad_shift, leaf_albedo) are said to lie on its
-    test value's side only (the ladder runs from off towards it).
+    strongest value tried. Candidates :func:`seen_at_test` puts at the "edge" read "at the edge
+    of what these data see", with the power measured at the test value. ``lead`` (what was
+    named, or why none was) comes first; the limits of an effect with values on both sides of
+    off (lad_shift, leaf_albedo) are said to lie on its test value's side only (the ladder runs
+    from off towards it).
     """
     if limits.empty:
         return f"{verdict}: {lead}" if lead else verdict
-    sees = limits["sees_test_value"].astype(bool) if "sees_test_value" in limits else limits[
-        "smallest_detectable"].notna()
-    found = limits[limits["smallest_detectable"].notna() & sees]
-    blind = limits[~sees]
+    seen = seen_at_test(limits)
+    found = limits[limits["smallest_detectable"].notna() & (seen == "yes")]
 
     def limit_of(r) -> str:
         there = f"power {p} there, " if (p := power_at_test(r)) else ""
@@ -479,10 +494,11 @@ def verdict_with_limits(verdict: str, limits: pd.DataFrame, lead: str = "") -> s
 
     parts = [lead] if lead else []
     two_sided = [e for e in limits["effect"] if cat.effect(e).bounds[0] < cat.effect(e).off < cat.effect(e).bounds[1]]
-    if len(blind):
-        parts.append("these data cannot see " + ", ".join(
-            f"{r.effect} at {r.test_value:.3g} {r.unit} ({limit_of(r)})" if "test_value" in limits
-            else f"{r.effect} ({limit_of(r)})" for r in blind.itertuples()))
+    for label, words in (("no", "these data cannot see "), ("edge", "at the edge of what these data see: ")):
+        if len(rows := limits[seen == label]):
+            parts.append(words + ", ".join(
+                f"{r.effect} at {r.test_value:.3g} {r.unit} ({limit_of(r)})" if "test_value" in limits
+                else f"{r.effect} ({limit_of(r)})" for r in rows.itertuples()))
     if len(found):
         values = ", ".join(f"{r.effect} {r.smallest_detectable:.3g} {r.unit}" for r in found.itertuples())
         power = float(limits["power"].iloc[0]) if "power" in limits else 0.8
