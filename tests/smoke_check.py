@@ -133,6 +133,14 @@ def check(results: Path, cfg: dict, paper_scale: bool = False) -> list[str]:
             fails.append(f"{verdict}: verdict {v.get('verdict')!r} with the gap's interval above its floor")
         if v.get("verdict") == "inconclusive" and not v.get("blind_to"):
             fails.append(f"{verdict}: inconclusive without the effects these data cannot see")
+        # "cannot see" needs the power at the test value below the required power with its whole
+        # interval (or unmeasured); "at the edge" an interval that reaches it
+        need_power = float(cfg["diagnose"]["power"]["power"])
+        for key, blind in (("blind_to", True), ("at_edge", False)):
+            for e in v.get(key) or []:
+                high = (e.get("power_at_test_ci") or [None, None])[1]
+                if (high is not None and high >= need_power) if blind else (high is None or high < need_power):
+                    fails.append(f"{verdict}: {e.get('effect')} under {key} with power interval up to {high}")
         scale = (v.get("floor_calibration") or {}).get("scale")
         if not (isinstance(scale, (int, float)) and scale > 0):
             fails.append(f"{verdict}: floor_calibration.scale {scale!r} (expected a positive factor)")
