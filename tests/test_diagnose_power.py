@@ -195,8 +195,9 @@ def test_bounds_too_small_to_see_give_an_empty_limit():
 
 def test_a_blind_candidates_limit_reads_with_its_interval():
     """A limit beyond its test value is given with the power measured at the test value and the
-    limit's interval, whose strong end may lie beyond the strongest value tried: on the far side for a value that grows with the effect,
-    below the bound for one that falls as it grows (clumping)."""
+    limit's interval, whose strong end may lie beyond the strongest value tried: on the far side
+    for a value that grows with the effect, below the bound for one that falls as it grows
+    (clumping)."""
     assert limit_interval(1.9, math.nan, 4.0) == "[1.9, > 4]" and limit_interval(0.2, 0.41, 0.05) == "[0.2, 0.41]"
     assert limit_interval(math.nan, 0.41, 0.05) == "[< 0.05, 0.41]" and limit_interval(math.nan, math.nan, 4.0) == ""
     limits = pd.DataFrame([

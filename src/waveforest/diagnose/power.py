@@ -26,11 +26,11 @@ design of the data and the test that decides the verdict ``none``:
   With the test value a rung, whether the data see it is a power measured there, not an
   interpolation (a saturating signature, as the understory's, bends the gap away from the
   square law the interpolation assumes). The ladder is walked from the bound down and stops
-  at the first value whose power is below ``power`` (smaller ones are not evaluated). Each replicate's crossing (where LB turns positive) is
-  interpolated between that value and the next stronger one (the off value below the
-  weakest), linearly in the squared distance from off (the gap grows as its square); the
-  limit is the ceil(power x replicates)-th smallest crossing. Empty (NaN) when the bound
-  itself is detected with less power.
+  at the first value whose power is below ``power`` (smaller ones are not evaluated). Each
+  replicate's crossing (where LB turns positive) is interpolated between that value and the
+  next stronger one (the off value below the weakest), linearly in the squared distance from
+  off (the gap grows as its square); the limit is the ceil(power x replicates)-th smallest
+  crossing. Empty (NaN) when the bound itself is detected with less power.
 * **The limit's interval.** The limit estimates the power-quantile of the crossings' distribution;
   its 95 % interval is the distribution-free one of that quantile, [X_(r), X_(s)] of the
   sorted crossings with ranks from Binomial(replicates, power)
@@ -459,10 +459,8 @@ def seen_at_test(limits: pd.DataFrame) -> pd.Series:
     measured there). Tables without ``sees_test_value`` read "yes" where a limit was found."""
     sees = (limits["sees_test_value"].astype(bool) if "sees_test_value" in limits
             else limits["smallest_detectable"].notna())
-    if {"power_at_test_ci_high", "power"} <= set(limits.columns):
-        reach = limits["power_at_test_ci_high"].astype(float) >= limits["power"].astype(float) - 1e-9
-    else:
-        reach = pd.Series(False, index=limits.index)
+    high, need = (np.asarray(limits.get(c, np.nan), np.float64) for c in ("power_at_test_ci_high", "power"))
+    reach = high >= need - 1e-9  # a missing column is NaN: never reaches
     return pd.Series(np.where(sees, "yes", np.where(reach, "edge", "no")), index=limits.index)
 
 

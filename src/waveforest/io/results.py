@@ -307,8 +307,8 @@ def read_classify_result(path: str | Path) -> dict:
 
 VERDICTS = ("none", "named", "unexplained", "inconclusive")
 """Outcomes of a diagnosis: no gap above its noise floor and the data not shown blind to any
-candidate at its test value (``none``); effects named; a gap above the floor that no candidate explains
-(``unexplained``); a gap not above the floor while the data cannot see some candidates at
+candidate at its test value (``none``); effects named; a gap above the floor that no candidate
+explains (``unexplained``); a gap not above the floor while the data cannot see some candidates at
 their test values, or a gap above it with too few field samples to try a candidate
 (``inconclusive``). ``model.yaml`` holds the search's; ``verdict.json`` the final one
 (:func:`waveforest.diagnose.missing_effects.final_verdict`)."""
