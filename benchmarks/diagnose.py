@@ -43,9 +43,10 @@ def real_chain(results: Path, config_path: Path) -> None:
     from waveforest.diagnose.strata import pulse_keys
     from waveforest.diagnose.twins import StudySimulator
     from waveforest.io.pulses import read_pulses
-    from waveforest.io.tables import read_datasets
+    from waveforest.io.tables import read_datasets, read_fields
     from waveforest.sensor.calibration import load_calibration
     from waveforest.settings import diagnose_settings
+    from waveforest.stages.diagnose import with_added_strata
 
     settings = diagnose_settings(config.load(config_path))
     ds = [d for d in settings.datasets if (results / "select" / f"{d}.parquet").exists()]
@@ -53,6 +54,10 @@ def real_chain(results: Path, config_path: Path) -> None:
     cals = {d: load_calibration(results / "calibration" / f"{d}.json", results / "calibration" / f"{d}.parquet")
             for d in ds}
     cal = {d: (c, c.meta) for d, c in cals.items()}
+    if settings.strata.below_crown or settings.strata.ring_m is not None:
+        sel = with_added_strata(sel, [results / "agc" / f"{d}.parquet" for d in ds],
+                                read_fields(results / "campaign" / "fields.csv"),
+                                results / "campaign" / "datasets.csv", cal, settings.strata)
     sim = StudySimulator(sel, read_datasets(results / "campaign" / "datasets.csv"), cal, settings)
     keys = pulse_keys(sel, settings.strata)
     cap = settings.fit_pulses

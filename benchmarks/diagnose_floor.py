@@ -32,17 +32,18 @@ import pandas as pd
 from waveforest import config
 from waveforest.diagnose.before_after import before_after
 from waveforest.diagnose.gap import ALL_FEATURES, FEATURES
+from waveforest.diagnose.missing_effects import real_rows
 from waveforest.diagnose.power import calibrate_floor
 from waveforest.diagnose.replicate_cache import effects_key, simulate_all
-from waveforest.diagnose.strata import pulse_keys, real_features
+from waveforest.diagnose.strata import pulse_keys
 from waveforest.diagnose.twins import StudySimulator
-from waveforest.diagnose.waveform import with_waveform_statistics
 from waveforest.io.results import read_calibration_json, read_feature_tables, read_select_table
 from waveforest.io.tables import read_datasets, read_fields
 from waveforest.model.simulate import with_sample_columns
 from waveforest.rng import named_seeds
 from waveforest.sensor.calibration import load_calibration
 from waveforest.settings import diagnose_settings
+from waveforest.stages.diagnose import with_added_strata
 
 
 def study_inputs(results: Path, cfg_path: Path | None = None, overrides: dict | None = None, geometry=None):
@@ -57,11 +58,14 @@ def study_inputs(results: Path, cfg_path: Path | None = None, overrides: dict | 
     datasets = [ds for ds in settings.datasets if (results / "select" / f"{ds}.parquet").exists()]
     recorded = {ds: with_sample_columns(read_select_table(results / "select" / f"{ds}.parquet"), fields, "fields.csv")
                 for ds in datasets}
-    selected = recorded if geometry is None else {ds: geometry(t) for ds, t in recorded.items()}
     cals = {}
-    for ds in selected:
+    for ds in recorded:
         cal = load_calibration(results / "calibration" / f"{ds}.json", results / "calibration" / f"{ds}.parquet")
         cals[ds] = (cal, cal.meta)
+    if settings.strata.below_crown or settings.strata.ring_m is not None:  # the stage's added strata
+        recorded = with_added_strata(recorded, [results / "agc" / f"{ds}.parquet" for ds in datasets], fields,
+                                     results / "campaign" / "datasets.csv", cals, settings.strata)
+    selected = recorded if geometry is None else {ds: geometry(t) for ds, t in recorded.items()}
     metas = {ds: read_calibration_json(results / "calibration" / f"{ds}.json") for ds in selected}
     memo: dict = {}
     study = StudySimulator(selected, read_datasets(results / "campaign" / "datasets.csv"), cals, settings)
@@ -74,7 +78,7 @@ def study_inputs(results: Path, cfg_path: Path | None = None, overrides: dict | 
 
     keys = pulse_keys(recorded, settings.strata)
     feats = read_feature_tables([results / "features" / f"{ds}_real.parquet" for ds in selected])
-    real = with_waveform_statistics(real_features(feats, keys, settings.strata), recorded, metas)
+    real = real_rows(feats, keys, recorded, metas, settings.strata)
     return settings, keys, real, simulate
 
 

@@ -176,7 +176,13 @@ def validate(config: dict, source: str = "<config>", overrides: dict | None = No
 
 def _check_diagnosed(config: dict, source: str, overrides: dict | None) -> None:
     """``diagnose.datasets`` names comparison datasets that are processed (``simulate.datasets``
-    within ``datasets``), at least one: checked here, not after the upstream stages have run."""
+    within ``datasets``), at least one, and ``diagnose.ring_m`` lies beyond ``select.tree_radius_m``:
+    checked here, not after the upstream stages have run."""
+    ring, radius = config["diagnose"]["ring_m"], config["select"]["tree_radius_m"]
+    if ring is not None and ring <= radius:
+        where = COMMAND_LINE if _given(["diagnose", "ring_m"], overrides) else source
+        raise ConfigError(f"{where}: diagnose/ring_m: {ring} is not beyond select/tree_radius_m ({radius} m); "
+                          "expected a larger radius, or null for no rings")
     chosen = config["diagnose"]["datasets"]
     if chosen is None:
         return

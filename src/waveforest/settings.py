@@ -294,6 +294,7 @@ def diagnose_settings(cfg: dict) -> DiagnoseSettings:
         chosen = [ds for ds in sim["datasets"] if ds in cfg["datasets"]]
     chain = simulate_settings(cfg)
     k, near, cap, fit = d["instances_per_sample"], d["near_stem_m"], d["pulses_per_species"], d["fit_pulses"]
+    ring = d["ring_m"]
     n_rays = min(d["n_rays"] or cfg["mcrt"]["n_rays"], cfg["mcrt"]["n_rays"])
     return DiagnoseSettings(
         datasets=tuple(str(ds) for ds in chosen),
@@ -312,7 +313,7 @@ def diagnose_settings(cfg: dict) -> DiagnoseSettings:
             rules=select_rules(cfg), compare_min_h_m={str(s): float(h) for s, h in sim["compare_min_h_m"].items()},
             near_stem_m=None if near is None else float(near), below_crown=bool(d["below_crown"]),
             pulses_per_species=None if cap is None else int(cap), seed=int(cfg["seed"]),
-            sensor=sensor_settings(cfg)),
+            sensor=sensor_settings(cfg), ring_m=None if ring is None else float(ring)),
         simulate=replace(chain, max_pulses=None, instances_per_sample=None if k is None else int(k),
                          mcrt=replace(chain.mcrt, n_rays=int(n_rays),
                                       tolerance=None if d["n_rays"] else chain.mcrt.tolerance)),

@@ -39,9 +39,9 @@ from waveforest.diagnose.replicate_cache import effects_key, simulate_all
 from waveforest.diagnose.search import SearchResult, SearchSettings, at_bound, search
 from waveforest.diagnose.settings import DiagnoseSettings
 from waveforest.diagnose.strata import (
-    BELOW_CROWN,
+    ADDED_STRATA,
     NEAR_STEM_MIN_SAMPLES,
-    below_crown_features,
+    added_features,
     pulse_keys,
     real_features,
 )
@@ -243,14 +243,29 @@ class Diagnosis:
     floor: FloorCalibration = field(default_factory=FloorCalibration)
 
 
+def real_rows(features: pd.DataFrame, keys: pd.DataFrame, selected: dict, metas: dict, strata,
+              waveform: bool = True) -> pd.DataFrame:
+    """The real feature rows of ``keys`` (:func:`.strata.pulse_keys`) with the rules applied:
+    the comparison pulses' from ``features`` (the real feature tables), those of the strata
+    :data:`.strata.ADDED_STRATA` from their rows of ``selected`` (dataset -> table) and
+    ``metas`` (dataset -> calibration JSON dict); with ``waveform``, the whole waveform's
+    statistics added (:func:`.waveform.with_waveform_statistics`)."""
+
+    added = keys["stratum"].isin(ADDED_STRATA)
+    real = real_features(features, keys[~added], strata)
+    if added.any():
+        real = pd.concat([real, added_features(keys, selected, metas, strata)], ignore_index=True)
+    return with_waveform_statistics(real, selected, metas) if waveform else real
+
+
 def run_diagnosis(selected: dict, features: pd.DataFrame, metas: dict, simulate, settings: DiagnoseSettings, *,
                   progress=None) -> Diagnosis:
     """The diagnosis of the ``select`` tables ``selected`` (dataset -> pa.Table).
 
     The pulses compared (:func:`.strata.pulse_keys`; fits on at most ``settings.fit_pulses``
     per dataset x species x stratum), their real rows of ``features`` (the real feature
-    tables; the stratum under the crowns from its own CFD echoes and ``metas``, dataset ->
-    calibration JSON dict), the detection limits (:func:`.power.detection_limits`), then
+    tables; the strata under the crowns and in the rings from their rows of ``selected`` and
+    ``metas``, dataset -> calibration JSON dict), the detection limits (:func:`.power.detection_limits`), then
     :func:`find_missing_effects` with ``simulate`` (:data:`.replicate_cache.Simulator`),
     whose signatures reuse the power analysis' simulations, with every noise floor
     calibrated on the power analysis' replicates without effect (:func:`.power.floor_calibration`).
@@ -262,11 +277,8 @@ def run_diagnosis(selected: dict, features: pd.DataFrame, metas: dict, simulate,
     fit_keys = None if settings.fit_pulses is None else pulse_keys(selected, strata, int(settings.fit_pulses))
     if keys.empty:
         raise WaveforestError("diagnose: no comparison pulse of the modelled species in the select tables")
-    real = real_features(features, keys[keys["stratum"] != BELOW_CROWN], strata)
-    if strata.below_crown:
-        real = pd.concat([real, below_crown_features(keys, selected, metas, strata)], ignore_index=True)
-    if set(settings.search.features) & set(WAVEFORM_FEATURES):
-        real = with_waveform_statistics(real, selected, metas)
+    real = real_rows(features, keys, selected, metas, strata,
+                     waveform=bool(set(settings.search.features) & set(WAVEFORM_FEATURES)))
     power_tables, calibration = {}, {}  # the power analysis' simulations (the signatures reuse them), its floor
     limits, curve = detection_limits(keys, simulate, settings.search, settings.power, settings.seed,
                                      progress=progress, tables=power_tables, calibration=calibration)
@@ -318,7 +330,10 @@ def summary_markdown(result: SearchResult, gap: pd.DataFrame, cand: pd.DataFrame
         f"datasets where both parts come from at least {NEAR_STEM_MIN_SAMPLES} field samples. With "
         "diagnose.below_crown, a tree species' pulses whose first echo lies lower than "
         "select.tree_min_echo_h_m, the ground seen through gaps in its crowns, form the cells "
-        "'<species> below crown'.",
+        "'<species> below crown'. With diagnose.ring_m (default 0.8 m), the pulses that no sample takes whose "
+        "beam meets the ground between select.tree_radius_m and that radius of a compared tree's base, and "
+        "whose first echo lies lower than select.tree_min_echo_h_m, form the cells '<species> ground beside': "
+        "the ground and what grows on it beside the tree.",
         "",
         f"- base model: gap {_fmt(tot['gap_before'])} [{_fmt(tot['before_ci_low'])}, "
         f"{_fmt(tot['before_ci_high'])}], noise floor {_fmt(tot['noise_floor'])}"

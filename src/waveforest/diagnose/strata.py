@@ -7,18 +7,26 @@ stratum :data:`NEAR_STEM`, where that species has enough field samples on both s
 (:data:`NEAR_STEM_MIN_SAMPLES`); with ``diagnose.below_crown``, a pulse of the stratum under the
 crowns (``stratum`` :data:`BELOW_CROWN`): one whose own first CFD echo lies within
 ``select.tree_radius_m`` of a compared stem and lower than ``select.tree_min_echo_h_m`` (the
-ground seen through gaps in the crown). The stratum near the stem splits cells only: it is
-assigned after the caps, so it changes neither the pulses simulated nor the field samples
-resampled (the stratum under the crowns adds pulses, capped on their own).
+ground seen through gaps in the crown); with ``diagnose.ring_m``, a pulse of the stratum
+:data:`RING`: one that no sample takes whose beam meets the ground in the ring between
+``select.tree_radius_m`` and ``diagnose.ring_m`` of a compared stem, and whose first echo lies
+lower than ``select.tree_min_echo_h_m`` (the ground beside the tree). The stratum near the stem
+splits cells only: it is assigned after the caps, so it changes neither the pulses simulated nor
+the field samples resampled (the strata under the crowns and beside the trees add pulses, capped
+on their own).
 Real and simulated pulses of a stratum are drawn by one rule and one detector:
 
 * real side: :func:`own_cfd_echoes` gives every pulse the CFD echoes a twin would get, and
   :func:`with_pulses_under_crowns` re-draws ``below_crown_set`` with ``select``'s rules on
-  them; :func:`below_crown_features` computes their features;
+  them; :func:`with_ring_pulses` adds the ring's pulses, chosen by their beams;
+  :func:`added_features` computes the features of both;
 * twin side (:class:`.twins.StudySimulator`): up to :data:`BELOW_CROWN_ATTEMPTS` traces
   of the beam, turned about the stem (:func:`turned_about_stems`, :func:`stem_distance`),
   the first whose echo meets the same rule;
-* both sides: :func:`apply_rules` (``select``'s and ``compare``'s rules, docs/method.md §(i1)).
+  a twin of the ring whose own first echo lies within ``select.tree_radius_m`` of the stem is
+  dropped (a sample would have taken its real pulse);
+* both sides: :func:`apply_rules` (``select``'s and ``compare``'s rules, docs/method.md §(i1),
+  and the strata's height rule).
 
 :func:`pulse_keys` lists the pulses (with a seeded, order-independent cap for the fit
 subset); :func:`real_features` joins their real features. Lengths in m, times in ns.
@@ -41,7 +49,7 @@ from waveforest.diagnose.gap import MIN_CELL_SAMPLES
 from waveforest.errors import WaveforestError
 from waveforest.io.pulses import list_to_padded, padded_to_list
 from waveforest.model.forward import SensorSettings, twin_echoes
-from waveforest.model.selection import SelectRules, select_pulses
+from waveforest.model.selection import SelectRules, beam_ground_points, ring_pulses, select_pulses
 from waveforest.rng import hash_ids, stable_hash
 from waveforest.sensor import feature_table
 from waveforest.sensor.agc import GAIN_COLUMN
@@ -49,6 +57,15 @@ from waveforest.sensor.checks import gain_or_one
 
 BELOW_CROWN = "below crown"
 """``stratum`` of the pulses of ``select``'s ``below_crown_set`` (the others have "")."""
+
+RING = "ground beside"
+"""``stratum`` of the pulses of :func:`with_ring_pulses` (``diagnose.ring_m``): those whose first
+echo lies lower than ``select.tree_min_echo_h_m`` (:func:`apply_rules`), the ground and what grows
+on it beside the tree."""
+
+ADDED_STRATA = (BELOW_CROWN, RING)
+"""Strata of pulses that ``select``'s comparison set does not hold; their real features come
+from their rows in the diagnosis's tables (:func:`added_features`)."""
 
 NEAR_STEM = "near stem"
 """``stratum`` of the comparison pulses of trees within ``diagnose.near_stem_m`` of the stem."""
@@ -65,7 +82,7 @@ WAVEFORM_FEATURES = ("Npeaks", "Apeak", "FWHM", "E")
 """Features restricted by ``simulate.compare_min_h_m`` (all but H)."""
 
 KEY_COLUMNS = ("dataset", "pulse_id", "sample_id", "species", "is_tree", "comparison_set", "below_crown_set",
-               "sample_distance_m")
+               "ring_set", "sample_distance_m")
 """``select`` columns that identify a pulse to simulate."""
 
 
@@ -84,6 +101,8 @@ class StrataSettings:
         ``diagnose.near_stem_m``.
     below_crown : bool
         ``diagnose.below_crown``.
+    ring_m : float or None, m
+        ``diagnose.ring_m``: outer radius of the ring around a compared tree's base (None: no ring).
     pulses_per_species : int or None
         ``diagnose.pulses_per_species``: the budget shared by the diagnosed datasets.
     seed : int
@@ -99,6 +118,7 @@ class StrataSettings:
     pulses_per_species: int | None
     seed: int
     sensor: SensorSettings
+    ring_m: float | None = None
 
 
 def apply_rules(features: pd.DataFrame, strata: StrataSettings) -> pd.DataFrame:
@@ -106,10 +126,11 @@ def apply_rules(features: pd.DataFrame, strata: StrataSettings) -> pd.DataFrame:
 
     Rows of trees (``is_tree``) whose first echo lies below ``select.tree_min_echo_h_m`` are
     dropped (``select``'s rule, which the real pulses satisfy by construction), and so are
-    rows of the stratum "below crown" whose first echo lies at or above it (the mirror
-    rule); for species in ``simulate.compare_min_h_m`` the waveform features of the other
-    rows with H at or below the threshold become NaN (``compare``'s rule, docs/method.md §(i1)).
-    Rows without a first echo (H NaN) are dropped.
+    rows of the strata "below crown" and :data:`RING` whose first echo lies at or above it (the
+    rule of those strata, on both sides); for species in ``simulate.compare_min_h_m`` the
+    waveform features of the rows outside those strata with H at or below the threshold become
+    NaN (``compare``'s rule, docs/method.md §(i1)). Rows without a first echo (H NaN) are
+    dropped.
 
     Parameters
     ----------
@@ -119,16 +140,16 @@ def apply_rules(features: pd.DataFrame, strata: StrataSettings) -> pd.DataFrame:
     strata : StrataSettings
     """
     df = features[np.isfinite(features["H"].to_numpy(dtype=float))].copy()
-    below = (df["stratum"].astype(str) == BELOW_CROWN).to_numpy() if "stratum" in df else np.zeros(len(df), bool)
+    added = np.isin(df["stratum"].astype(str), ADDED_STRATA) if "stratum" in df else np.zeros(len(df), bool)
     if "is_tree" in df.columns:
         tree = df["is_tree"].fillna(False).astype(bool).to_numpy()
         high = df["H"].to_numpy(float) >= float(strata.rules.tree_min_echo_h_m)
-        keep = np.where(below, ~high, ~tree | high)
-        df, below = df[keep].copy(), below[keep]
+        keep = np.where(added, ~high, ~tree | high)
+        df, added = df[keep].copy(), added[keep]
     species = df["species"].astype(str).to_numpy()
     h = df["H"].to_numpy(float)
     for sp, lo in strata.compare_min_h_m.items():
-        low = (species == sp) & ~(h > float(lo)) & ~below
+        low = (species == sp) & ~(h > float(lo)) & ~added
         for f in WAVEFORM_FEATURES:
             if f in df.columns:
                 df.loc[low, f] = np.nan
@@ -155,11 +176,9 @@ def turned_about_stems(pulses: pa.Table, azimuth) -> pa.Table:
 def stem_distance(pulses: pa.Table, z) -> np.ndarray:
     """Horizontal distance (m) from (sample_x, sample_y) of the point at height ``z`` (m) on
     each pulse's recorded beam line (sensor + s dir)."""
-    col = {c: pulses.column(c).to_numpy(zero_copy_only=False).astype(float)
-           for c in ("sensor_x", "sensor_y", "sensor_z", "dir_x", "dir_y", "dir_z", "sample_x", "sample_y")}
-    s = (np.asarray(z, float) - col["sensor_z"]) / col["dir_z"]
-    return np.hypot(col["sensor_x"] + col["dir_x"] * s - col["sample_x"], col["sensor_y"] + col["dir_y"] * s
-                    - col["sample_y"])
+    at = beam_ground_points(pulses, z)
+    return np.hypot(*(at[:, j] - pulses.column(c).to_numpy(zero_copy_only=False).astype(float)
+                      for j, c in enumerate(("sample_x", "sample_y"))))
 
 
 def own_cfd_echoes(pulses: pa.Table, calibration, sensor: SensorSettings) -> pa.Table:
@@ -252,12 +271,12 @@ def pulse_keys(selected: dict, strata: StrataSettings, cap: int | None = None) -
     -------
     DataFrame
         dataset, pulse_id, sample_id, species, is_tree, stratum (:data:`BELOW_CROWN`,
-        :data:`NEAR_STEM` or ""); sorted by dataset and pulse_id.
+        :data:`RING`, :data:`NEAR_STEM` or ""); sorted by dataset and pulse_id.
     """
 
     species = [str(s) for s in strata.rules.comparison_species]
     near_m = strata.near_stem_m
-    optional = ("is_tree", "below_crown_set", "sample_distance_m")  # select tables of other tools may lack them
+    optional = ("is_tree", "below_crown_set", "ring_set", "sample_distance_m")  # absent from other tools' tables
     parts = []
     share = dataset_share(strata.pulses_per_species, len(selected))
     for ds, table in sorted(selected.items()):
@@ -269,9 +288,11 @@ def pulse_keys(selected: dict, strata: StrataSettings, cap: int | None = None) -
         if "sample_distance_m" not in table.column_names:
             df["sample_distance_m"] = np.nan
         below = df["below_crown_set"].fillna(False).astype(bool) & bool(strata.below_crown)
-        df = df[(df["comparison_set"].fillna(False).astype(bool) | below) & df["species"].astype(str).isin(species)]
-        df = df.assign(stratum=np.where(below[df.index], BELOW_CROWN, "")).drop(
-            columns=["comparison_set", "below_crown_set"])
+        ring = df["ring_set"].fillna(False).astype(bool) & (strata.ring_m is not None)
+        df = df[(df["comparison_set"].fillna(False).astype(bool) | below | ring)
+                & df["species"].astype(str).isin(species)]
+        df = df.assign(stratum=np.select([below[df.index], ring[df.index]], [BELOW_CROWN, RING], "")).drop(
+            columns=["comparison_set", "below_crown_set", "ring_set"])
         if share is not None:
             df = _whole_samples(df, share, int(strata.seed))
         # which species to split at the stem: decided before the fit cap, so fits and tests share cells
@@ -362,22 +383,39 @@ def with_pulses_under_crowns(selected: pa.Table, agc: pa.Table, fields: pd.DataF
     return pa.concat_tables([ordinary, under], promote_options="permissive")
 
 
-def below_crown_features(keys: pd.DataFrame, selected: dict, metas: dict, strata: StrataSettings) -> pd.DataFrame:
-    """Real feature rows of the stratum "below crown" of ``keys``, from their own CFD echoes
-    (:func:`with_pulses_under_crowns`), with ``compare``'s rules.
+def with_ring_pulses(selected: pa.Table, agc: pa.Table, fields: pd.DataFrame, year: int,
+                     strata: StrataSettings) -> pa.Table:
+    """``selected`` with the pulses of the ring appended: every pulse of the dataset (its
+    AGC-normalised table) that no sample takes and whose beam meets the ground between
+    ``select.tree_radius_m`` and ``diagnose.ring_m`` of a compared tree's base
+    (:func:`waveforest.model.selection.ring_pulses`), with its DR echoes (the real features'
+    detector); ``ring_set`` marks them. Pulses already in ``selected`` are not added twice.
+    :func:`apply_rules` keeps those whose first echo is low (the stratum :data:`RING`).
+    """
+
+    ring = ring_pulses(agc, fields, year, strata.rules, float(strata.ring_m))
+    ring = ring.filter(pc.invert(pc.is_in(ring.column("pulse_id"), value_set=selected.column("pulse_id"))))
+    ring = ring.select([c for c in dict.fromkeys((*selected.column_names, "ring_set")) if c in ring.column_names])
+    return pa.concat_tables([selected, ring], promote_options="permissive")
+
+
+def added_features(keys: pd.DataFrame, selected: dict, metas: dict, strata: StrataSettings) -> pd.DataFrame:
+    """Real feature rows of the strata :data:`ADDED_STRATA` of ``keys``, from their rows in
+    ``selected`` (under the crowns their own CFD echoes, :func:`with_pulses_under_crowns`; in
+    the ring their DR echoes, :func:`with_ring_pulses`), with ``compare``'s rules.
 
     Parameters
     ----------
     keys : DataFrame
         :func:`pulse_keys`.
     selected : dict
-        Dataset -> table of :func:`with_pulses_under_crowns`.
+        Dataset -> table of those functions.
     metas : dict
         Dataset -> calibration JSON dict.
     strata : StrataSettings
     """
 
-    below = keys[keys["stratum"] == BELOW_CROWN]
+    below = keys[keys["stratum"].isin(ADDED_STRATA)]
     parts = []
     for ds, rows in below.groupby("dataset", sort=True):
         table = selected[ds]

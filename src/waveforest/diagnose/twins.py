@@ -31,7 +31,9 @@ pulses) with :func:`.waveform.waveform_statistics` (the whole waveform). It adds
   (:func:`.strata.apply_rules`); a twin of the stratum under the crowns is the first of up
   to :data:`.strata.BELOW_CROWN_ATTEMPTS` traces of its beam, turned about the stem from the
   second attempt on (:func:`.strata.turned_about_stems`), whose first echo meets that
-  stratum's rule. The adapter simulates every pulse it is given, so it marks them all
+  stratum's rule; a twin of the ring (:data:`.strata.RING`) is dropped when its own first echo
+  lies within ``select.tree_radius_m`` of the stem, where a sample would have taken its real
+  pulse. The adapter simulates every pulse it is given, so it marks them all
   ``comparison_set`` for ``simulate_pulses``.
 
 Contract: ``StudySimulator(...)(pulses, effects, seed)`` takes rows with dataset and
@@ -59,6 +61,7 @@ from waveforest.diagnose.settings import DiagnoseSettings
 from waveforest.diagnose.strata import (
     BELOW_CROWN,
     BELOW_CROWN_ATTEMPTS,
+    RING,
     apply_rules,
     stem_distance,
     turned_about_stems,
@@ -241,6 +244,15 @@ def sigma_effects(effects: dict) -> tuple:
     on = {**veg, **mcrt, "xy_error": xy}
     return tuple(sorted((k, v) for k, v in on.items() if v != CATALOGUE[k].off))
 
+def _echo_stem_distance(pulses: pa.Table, feats: pd.DataFrame) -> np.ndarray:
+    """Horizontal distance (m) from the stem of each feature row's first echo, on the beam of its
+    row of ``pulses`` (matched by pulse_id; :func:`.strata.stem_distance`)."""
+    ids = pulses.column("pulse_id").to_numpy()
+    order = np.argsort(ids)
+    rows = pulses.take(pa.array(order[np.searchsorted(ids, feats["pulse_id"].to_numpy(np.int64), sorter=order)]))
+    return stem_distance(rows, feats["echo_z"].to_numpy(float))
+
+
 class StudySimulator:
     """``simulate(pulses, effects, seed) -> feature table`` over the study's real chain.
 
@@ -341,14 +353,19 @@ class StudySimulator:
             feats = self._features(turned, ds, model, simulate, stream=k)
             if feats is None:
                 continue
-            order = np.argsort(ids)
-            rows = turned.take(pa.array(order[np.searchsorted(ids, feats["pulse_id"].to_numpy(np.int64),
-                                                              sorter=order)]))
-            under = (feats["H"].to_numpy(float) < low) & (stem_distance(rows, feats["echo_z"].to_numpy(float))
-                                                          <= radius)
+            under = (feats["H"].to_numpy(float) < low) & (_echo_stem_distance(turned, feats) <= radius)
             found.append(feats[under])
             sub = sub.filter(pa.array(~np.isin(ids, feats["pulse_id"].to_numpy(np.int64)[under])))
         return found
+
+    def _ring(self, sub: pa.Table, ds: str, model: dict, simulate: SimulateSettings) -> list[pd.DataFrame]:
+        """Twins of the ring's pulses whose own first echo lies beyond ``select.tree_radius_m``
+        of the stem (the rule that kept their real pulses out of the samples)."""
+
+        feats = self._features(sub, ds, model, simulate)
+        if feats is None:
+            return []
+        return [feats[_echo_stem_distance(sub, feats) > float(self.strata.rules.tree_radius_m)]]
 
     def __call__(self, pulses: pd.DataFrame, effects: dict, seed: int) -> pd.DataFrame:
         """Simulate the rows of ``pulses`` (dataset, pulse_id) under ``effects``.
@@ -367,14 +384,18 @@ class StudySimulator:
             if ds not in self.selected:
                 raise WaveforestError(f"diagnose: no select table for dataset {ds}")
             table = self.selected[ds]
-            below = rows.loc[rows["stratum"] == BELOW_CROWN, "pulse_id"] if "stratum" in rows else []
+            stratum = rows["stratum"] if "stratum" in rows else pd.Series("", index=rows.index)
             ids = rows["pulse_id"].to_numpy(np.int64)
             sub = table.filter(pc.is_in(table.column("pulse_id"), value_set=pa.array(ids)))
             sub = sub.set_column(sub.schema.get_field_index("comparison_set"), "comparison_set",
                                  pa.array(np.ones(sub.num_rows, bool)))
-            under = np.isin(sub.column("pulse_id").to_numpy(), np.asarray(below, np.int64))
-            feats = [self._features(sub.filter(pa.array(~under)), ds, model, simulate)] if (~under).any() else []
+            have = sub.column("pulse_id").to_numpy()
+            under, ring = (np.isin(have, rows.loc[stratum == name, "pulse_id"].to_numpy(np.int64))
+                           for name in (BELOW_CROWN, RING))
+            plain = ~under & ~ring
+            feats = [self._features(sub.filter(pa.array(plain)), ds, model, simulate)] if plain.any() else []
             feats += self._below_crown(sub.filter(pa.array(under)), ds, model, simulate) if under.any() else []
+            feats += self._ring(sub.filter(pa.array(ring)), ds, model, simulate) if ring.any() else []
             feats = [f for f in feats if f is not None]
             if not feats:
                 continue

@@ -26,6 +26,10 @@ Flags mark the subsets the later stages use:
   ground or ground vegetation under the crown, seen through a gap in it. They are assigned
   to that tree only when no sample takes them by the rules above, and are in neither other
   set, so the paper's analyses do not see them.
+
+:func:`ring_pulses` (beyond the paper, for ``diagnose``, not part of ``select``'s table) finds
+the pulses that no sample takes whose beam meets the ground in a ring around a comparison tree:
+a rule on the beam's geometry, not on what it hit, so that a simulated twin can follow it.
 """
 
 from __future__ import annotations
@@ -35,6 +39,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 import pyarrow as pa
+import pyarrow.compute as pc
 
 from waveforest.errors import WaveforestError
 from waveforest.io.pulses import list_to_padded
@@ -134,6 +139,75 @@ def match_samples(echo_xyz: np.ndarray, fields: pd.DataFrame, rules: SelectRules
     return index, distance
 
 
+def beam_ground_points(pulses: pa.Table, z) -> np.ndarray:
+    """(n, 2) float64: where each pulse's beam line (sensor + s dir) crosses the height ``z``
+    (m; scalar or (n,)), x and y in m."""
+    c = {k: pulses.column(k).to_numpy(zero_copy_only=False).astype(np.float64)
+         for k in ("sensor_x", "sensor_y", "sensor_z", "dir_x", "dir_y", "dir_z")}
+    s = (np.asarray(z, np.float64) - c["sensor_z"]) / c["dir_z"]
+    return np.column_stack([c["sensor_x"] + c["dir_x"] * s, c["sensor_y"] + c["dir_y"] * s])
+
+
+def match_rings(pulses: pa.Table, trees: pd.DataFrame, inner_m: float, outer_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """The tree whose ring each beam meets: the ground point of the beam (its line at the tree's
+    ``ground_z``) lies at least ``inner_m`` and less than ``outer_m`` from the tree base; the
+    nearest such tree wins. A rule on the beam alone, not on what it hit.
+
+    Parameters
+    ----------
+    pulses : pa.Table
+        Pulse rows (sensor_x/_y/_z, dir_x/_y/_z).
+    trees : DataFrame
+        Candidate trees (columns x, y, ground_z).
+    inner_m, outer_m : float
+        The ring's radii, m.
+
+    Returns
+    -------
+    index : (n,) int64
+        Row of ``trees`` (positional), or -1.
+    distance : (n,) float64, m
+        Horizontal distance of the ground point from that base (NaN when -1).
+    """
+    n = pulses.num_rows
+    index, distance = np.full(n, -1, dtype=np.int64), np.full(n, np.nan)
+    if n == 0 or len(trees) == 0:
+        return index, distance
+    from scipy.spatial import cKDTree
+
+    base = trees[["x", "y"]].to_numpy(np.float64)
+    ground = trees["ground_z"].to_numpy(np.float64)
+    z_ref = float(np.median(ground))
+    at_ref = beam_ground_points(pulses, z_ref)
+    sensor, d = (np.column_stack([pulses.column(f"{what}_{axis}").to_numpy(zero_copy_only=False).astype(np.float64)
+                                  for axis in "xyz"]) for what in ("sensor", "dir"))
+    ok = np.all(np.isfinite(at_ref), axis=1) & (np.abs(d[:, 2]) > 0)
+    if not ok.any():
+        return index, distance
+    # a beam's ground point moves by |dz| tan(zenith) between z_ref and a tree's own ground
+    slack = float(np.max(np.abs(ground - z_ref))) * float(np.max(np.hypot(d[ok, 0], d[ok, 1]) / np.abs(d[ok, 2])))
+    tree = cKDTree(base)
+    k = min(_FIRST_K, len(trees))
+    while True:
+        dist, i = tree.query(at_ref[ok], k=k, distance_upper_bound=outer_m + slack)
+        dist, i = dist.reshape(-1, k), i.reshape(-1, k)
+        if k == len(trees) or not np.isfinite(dist[:, -1]).any():
+            break  # every tree that can reach the ring has been seen
+        k = min(2 * k, len(trees))
+    found = np.isfinite(dist)
+    ii = np.where(found, i, 0)
+    s, e = sensor[ok], d[ok]
+    t = (ground[ii] - s[:, 2:3]) / e[:, 2:3]  # (m, k): the beam at each candidate's ground
+    r = np.hypot(s[:, 0:1] + e[:, 0:1] * t - base[ii, 0], s[:, 1:2] + e[:, 1:2] * t - base[ii, 1])
+    r = np.where(found & (r >= inner_m) & (r < outer_m), r, np.inf)
+    best = np.argmin(r, axis=1)
+    rows = np.arange(len(r))
+    hit = np.isfinite(r[rows, best])
+    index[ok] = np.where(hit, ii[rows, best], -1)
+    distance[ok] = np.where(hit, r[rows, best], np.nan)
+    return index, distance
+
+
 def comparison_samples(fields: pd.DataFrame, rules: SelectRules) -> np.ndarray:
     """(J,) bool: which field samples are compared with simulations (modelled species, in
     their height window)."""
@@ -182,30 +256,57 @@ def select_pulses(pulses: pa.Table, fields: pd.DataFrame, year: int, rules: Sele
     counts = pd.Series(species[single]).value_counts()
     frequent = np.isin(species, counts.index[counts >= rules.min_pulses].to_numpy(object))
     classification = single & frequent
-    height = s["height_m"].to_numpy(float)
     comparison = compared[idx[keep]] & ~below
-    ground_z = s["ground_z"].to_numpy(float)
+    flags = {"single_echo_set": single, "classification_set": classification, "comparison_set": comparison,
+             "below_crown_set": below}
+    return with_select_columns(out, s, dist[keep], echo[keep, 2], flags)
+
+
+def with_select_columns(pulses: pa.Table, samples: pd.DataFrame, distance: np.ndarray, first_echo_z: np.ndarray,
+                        flags: dict) -> pa.Table:
+    """``pulses`` with the columns :data:`SELECT_COLUMNS` (replaced where present): the field
+    sample of each row (``samples``, one fields.csv row per pulse), its ``distance`` (m), the
+    first echo's height above the sample's ground (from ``first_echo_z``, m) and the four
+    flags (name -> (n,) bool)."""
+    ground_z = samples["ground_z"].to_numpy(float)
     columns = {
-        "sample_id": pa.array(s["sample_id"].astype(str).to_list(), pa.string()),
-        "species": pa.array(s["species"].astype(str).to_list(), pa.string()),
-        "functional_group": pa.array(s["functional_group"].astype(str).to_list(), pa.string()),
+        "sample_id": pa.array(samples["sample_id"].astype(str).to_list(), pa.string()),
+        "species": pa.array(samples["species"].astype(str).to_list(), pa.string()),
+        "functional_group": pa.array(samples["functional_group"].astype(str).to_list(), pa.string()),
         "ground_z": pa.array(ground_z, pa.float64()),
-        "sample_x": pa.array(s["x"].to_numpy(float), pa.float64()),
-        "sample_y": pa.array(s["y"].to_numpy(float), pa.float64()),
-        "height_m": pa.array(height, pa.float64()),
-        "is_tree": pa.array(s["is_tree"].to_numpy(bool), pa.bool_()),
-        "sample_distance_m": pa.array(dist[keep], pa.float64()),
-        "first_echo_h_m": pa.array(echo[keep, 2] - ground_z, pa.float64()),
-        "single_echo_set": pa.array(single, pa.bool_()),
-        "classification_set": pa.array(classification, pa.bool_()),
-        "comparison_set": pa.array(comparison, pa.bool_()),
-        "below_crown_set": pa.array(below, pa.bool_()),
+        "sample_x": pa.array(samples["x"].to_numpy(float), pa.float64()),
+        "sample_y": pa.array(samples["y"].to_numpy(float), pa.float64()),
+        "height_m": pa.array(samples["height_m"].to_numpy(float), pa.float64()),
+        "is_tree": pa.array(samples["is_tree"].to_numpy(bool), pa.bool_()),
+        "sample_distance_m": pa.array(distance, pa.float64()),
+        "first_echo_h_m": pa.array(np.asarray(first_echo_z, float) - ground_z, pa.float64()),
+        **{name: pa.array(np.asarray(flags[name], bool), pa.bool_()) for name in SELECT_COLUMNS[-4:]},
     }
     for name in SELECT_COLUMNS:
-        if name in out.column_names:
-            out = out.drop_columns([name])
-        out = out.append_column(name, columns[name])
-    return out
+        if name in pulses.column_names:
+            pulses = pulses.drop_columns([name])
+        pulses = pulses.append_column(name, columns[name])
+    return pulses
+
+
+def ring_pulses(pulses: pa.Table, fields: pd.DataFrame, year: int, rules: SelectRules, outer_m: float) -> pa.Table:
+    """The pulses of ``pulses`` whose beam meets the ground in the ring of a comparison tree of
+    ``year`` (:func:`match_rings`, from ``rules.tree_radius_m`` to ``outer_m``) and that no sample
+    takes (:func:`select_pulses`, the stratum under the crowns included), with the columns
+    :data:`SELECT_COLUMNS` (every flag False; ``sample_distance_m`` the ground point's distance
+    from the base) and ``ring_set`` True. Beyond the paper (diagnose's stratum "ring")."""
+    f = fields[fields["year"] == year].reset_index(drop=True)
+    trees = f[comparison_samples(f, rules) & f["is_tree"].to_numpy(bool)].reset_index(drop=True)
+    taken = select_pulses(pulses, fields, year, rules).column("pulse_id")
+    free = pulses.filter(pc.invert(pc.is_in(pulses.column("pulse_id"), value_set=taken)))
+    idx, dist = match_rings(free, trees, float(rules.tree_radius_m), float(outer_m))
+    keep = np.flatnonzero(idx >= 0)
+    out = free.take(pa.array(keep, type=pa.int64()))
+    n = len(keep)
+    no = np.zeros(n, bool)
+    out = with_select_columns(out, trees.iloc[idx[keep]].reset_index(drop=True), dist[keep],
+                              first_echoes(out)[:, 2], dict.fromkeys(SELECT_COLUMNS[-4:], no))
+    return out.append_column("ring_set", pa.array(np.ones(n, bool)))
 
 
 def dataset_of(pulses: pa.Table, source: str = "<pulses>") -> str:

@@ -4,14 +4,16 @@ The science is in :mod:`waveforest.diagnose` (docs/method.md §(j)); this module
 click command, :func:`run` and all file I/O. Inputs (per diagnosed dataset): the ``select``
 table, the real feature table (``features``), the calibration (S(t) Parquet and JSON), the
 AGC-normalised pulse table (``agc``: its calibration-target pulses, to recalibrate S(t)
-under the candidates ``nonlinearity`` and ``trigger_loss``; with ``diagnose.below_crown``
-also the pulses under the crowns, :func:`.diagnose.strata.with_pulses_under_crowns`), and
+under the candidates ``nonlinearity`` and ``trigger_loss``; the pulses of the rings around the
+trees, :func:`.diagnose.strata.with_ring_pulses`, and with ``diagnose.below_crown`` those under
+the crowns, :func:`.diagnose.strata.with_pulses_under_crowns`), and
 the campaign's datasets.csv, targets.csv and fields.csv. Steps 1-3 are
 :func:`.diagnose.missing_effects.run_diagnosis`, with :func:`waveforest.settings.diagnose_settings`:
 
 1. **Pulses** (:func:`.diagnose.strata.pulse_keys`, :func:`.diagnose.strata.real_features`):
-   the comparison pulses of the modelled species of ``diagnose.datasets`` and, with
-   ``diagnose.below_crown``, the stratum under the crowns; candidates are fitted on at most
+   the comparison pulses of the modelled species of ``diagnose.datasets``, the rings around
+   the compared trees (``diagnose.ring_m``) and, with ``diagnose.below_crown``, the stratum
+   under the crowns; candidates are fitted on at most
    ``diagnose.fit_pulses`` of them per dataset x species x stratum and tested on all.
 2. **Detection limits** (:func:`.diagnose.power.detection_limits`, ``diagnose.power``): the
    smallest value of each candidate that these pulses would detect, with the study's
@@ -55,7 +57,7 @@ from waveforest.diagnose.missing_effects import (
 )
 from waveforest.diagnose.power import FloorCalibration
 from waveforest.diagnose.search import SearchResult, SearchSettings
-from waveforest.diagnose.strata import StrataSettings, with_pulses_under_crowns
+from waveforest.diagnose.strata import StrataSettings, with_pulses_under_crowns, with_ring_pulses
 from waveforest.diagnose.twins import StudySimulator
 from waveforest.errors import WaveforestError
 from waveforest.io.pulses import read_pulses
@@ -174,22 +176,33 @@ def _calibration_pulses(agc_paths, targets_path, datasets_path, selected: dict, 
             if ds in paths}
 
 
-def _read_pulses_under_crowns(selected: dict, agc_paths, fields, datasets_path, calibrations: dict,
-                              strata: StrataSettings) -> dict:
-    """Read each diagnosed dataset's AGC table and year, and apply
-    :func:`.diagnose.strata.with_pulses_under_crowns` (``diagnose.below_crown``)."""
+def with_added_strata(selected: dict, agc_paths, fields, datasets_path, calibrations: dict,
+                       strata: StrataSettings) -> dict:
+    """Read each diagnosed dataset's AGC table and year, and add the pulses of the strata beyond
+    ``select``'s table: under the crowns (``diagnose.below_crown``,
+    :func:`.diagnose.strata.with_pulses_under_crowns`), then the rings
+    (``diagnose.ring_m``, :func:`.diagnose.strata.with_ring_pulses`)."""
 
+    which = " and ".join(name for name, on in (("diagnose.below_crown", strata.below_crown),
+                                               ("diagnose.ring_m", strata.ring_m is not None)) if on)
     if not agc_paths or fields is None:
-        raise WaveforestError("diagnose.below_crown: the AGC-normalised pulse tables (--agc) and fields.csv are "
-                              "needed to find the pulses under the crowns")
+        raise WaveforestError(f"{which}: the AGC-normalised pulse tables (--agc) and fields.csv (--fields) are "
+                              "needed to find the pulses under the crowns and in the rings around the trees "
+                              "(set diagnose.ring_m: null to diagnose without the rings)")
     paths = _agc_by_dataset(agc_paths)
     missing = sorted(set(selected) - set(paths))
     if missing:
-        raise WaveforestError(f"diagnose.below_crown: no AGC-normalised pulse table of {', '.join(missing)}")
+        raise WaveforestError(f"{which}: no AGC-normalised pulse table of {', '.join(missing)}")
     datasets = read_datasets(datasets_path)
-    return {ds: with_pulses_under_crowns(table, read_pulses(paths[ds]), fields,
-                                         int(dataset_row(datasets, ds, datasets_path)["year"]), calibrations[ds][0],
-                                         strata) for ds, table in selected.items()}
+    out = {}
+    for ds, table in selected.items():
+        agc, year = read_pulses(paths[ds]), int(dataset_row(datasets, ds, datasets_path)["year"])
+        if strata.below_crown:
+            table = with_pulses_under_crowns(table, agc, fields, year, calibrations[ds][0], strata)
+        if strata.ring_m is not None:
+            table = with_ring_pulses(table, agc, fields, year, strata)
+        out[ds] = table
+    return out
 
 
 def _agc_by_dataset(agc_paths) -> dict:
@@ -297,11 +310,10 @@ def run(selected_paths, real_paths, calibration_paths, out_dir, cfg: dict, *, da
     folder = OutputFolder(out_dir, "diagnose", force=force)
     fields = read_fields(fields_path) if fields_path is not None else None
     selected = _read_selected(selected_paths, fields, fields_path, list(settings.datasets))
-    under_crowns = settings.strata.below_crown
-    calibrations = _read_calibrations(calibration_paths, system_paths, selected, simulator is None or under_crowns)
-    if under_crowns:
-        selected = _read_pulses_under_crowns(selected, agc_paths, fields, datasets_path, calibrations,
-                                             settings.strata)
+    added = settings.strata.below_crown or settings.strata.ring_m is not None
+    calibrations = _read_calibrations(calibration_paths, system_paths, selected, simulator is None or added)
+    if added:
+        selected = with_added_strata(selected, agc_paths, fields, datasets_path, calibrations, settings.strata)
     if simulator is None:
         simulator = StudySimulator(selected, read_datasets(datasets_path), calibrations, settings,
                                    calibration_pulses=_calibration_pulses(agc_paths, targets_path, datasets_path,
@@ -346,14 +358,15 @@ def _progress_bar():
               help="S(t) Parquet files (results/calibration/{dataset}.parquet); default: beside each JSON.")
 @click.option("--agc", "agc", cls=MultiValueOption, type=EXISTING_FILE,
               help="AGC-normalised pulse tables (results/agc/{dataset}.parquet): their calibration-target "
-                   "pulses recalibrate S(t) under each value of the candidates nonlinearity and trigger_loss; "
-                   "without them those candidates act on top of the calibrated S(t).")
+                   "pulses recalibrate S(t) under each value of the candidates nonlinearity and trigger_loss "
+                   "(without them those candidates act on top of the calibrated S(t)); the pulses of the rings "
+                   "around the trees (diagnose.ring_m) and under the crowns (diagnose.below_crown) come from them.")
 @click.option("--datasets", "datasets", type=EXISTING_FILE, required=True, help="The campaign's datasets.csv.")
 @click.option("--targets", "targets", type=EXISTING_FILE,
               help="The campaign's targets.csv (needed with --agc, to find the calibration-target pulses).")
 @click.option("--fields", "fields", type=EXISTING_FILE,
-              help="The campaign's fields.csv (needed by diagnose.below_crown and by select tables without "
-                   "sample positions).")
+              help="The campaign's fields.csv (needed by diagnose.ring_m and diagnose.below_crown, and by select "
+                   "tables without sample positions).")
 @click.option("--out", "out", type=OUT_DIR, required=True,
               help="Output folder: model.yaml, candidates.csv, gap_before_after.csv, gap.png, "
                    "signatures.csv, detection_limits.csv, detection_curve.csv, power.png, verdict.json, "
