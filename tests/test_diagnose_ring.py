@@ -83,7 +83,7 @@ def test_the_ring_is_a_rule_on_the_beam_at_the_tree_s_own_ground():
 def test_ring_pulses_join_the_select_table_once_and_become_a_stratum():
     nadir = pulse_table("2010_12_1", NADIR)
     selected = select_pulses(nadir, FIELDS, 2010, RULES)
-    strata = _strata()
+    strata = _strata(ring_m=0.8)
     table = with_ring_pulses(selected, nadir, FIELDS, 2010, strata)
     assert table.num_rows == selected.num_rows + 2
     twice = with_ring_pulses(table, nadir, FIELDS, 2010, strata)
@@ -96,14 +96,18 @@ def test_ring_pulses_join_the_select_table_once_and_become_a_stratum():
 def test_apply_rules_keeps_the_ground_beside_the_tree_on_both_sides():
     """Rows of the ring whose first echo lies at or above select.tree_min_echo_h_m (the crown's
     edge) are dropped, real and twin alike; the low ones stay, not dropped by the tree's height
-    rule, and keep the waveform features that compare's height rule blanks on a crown pulse."""
-    strata = _strata()
+    rule, keep Apeak and E, which compare's height rule blanks on a crown pulse, and lose H,
+    Npeaks and FWHM."""
+    strata = _strata(ring_m=0.8)
     lo, hi = strata.rules.tree_min_echo_h_m, strata.compare_min_h_m["birch"]
     feats = pd.DataFrame({"species": "birch", "is_tree": True, "stratum": ["", "", RING, RING, RING],
-                          "H": [lo - 0.1, hi - 0.1, lo - 0.1, lo + 0.1, np.nan], "E": 500.0})
+                          "H": [lo - 0.1, hi - 0.1, lo - 0.1, lo + 0.1, np.nan], "E": 500.0, "Apeak": 60.0,
+                          "FWHM": 7.0, "Npeaks": 1.0})
     out = apply_rules(feats, strata)
-    assert out["stratum"].tolist() == ["", RING] and out["H"].tolist() == pytest.approx([hi - 0.1, lo - 0.1])
-    assert out["E"].isna().tolist() == [True, False]
+    assert out["stratum"].tolist() == ["", RING] and out["H"].iloc[0] == pytest.approx(hi - 0.1)
+    assert out["E"].isna().tolist() == [True, False] and out["Apeak"].isna().tolist() == [True, False]
+    # the ground beside compares the return's strength only (RING_BLANKED)
+    assert out.loc[1, ["H", "Npeaks", "FWHM"]].isna().all()
 
 
 def test_a_twin_whose_first_echo_a_sample_would_take_leaves_the_ring():
@@ -115,7 +119,7 @@ def test_a_twin_whose_first_echo_a_sample_would_take_leaves_the_ring():
     rows = ring_pulses(table, FIELDS, 2010, RULES, 0.8)
     assert rows.num_rows == 2  # both real first echoes lie on the ground 0.66 m out
     twins = pd.DataFrame({"pulse_id": [1, 0], "echo_z": [103.0, 100.1], "H": [3.0, 0.1]})  # twin 1 hits the crown
-    fake = SimpleNamespace(_features=lambda *a, **k: twins, strata=_strata())
+    fake = SimpleNamespace(_features=lambda *a, **k: twins, strata=_strata(ring_m=0.8))
     kept = StudySimulator._ring(fake, rows, "2010_12_1", {}, None)
     assert [f["pulse_id"].tolist() for f in kept] == [[0]]
 
@@ -125,4 +129,4 @@ def test_rings_without_the_pulse_tables_are_a_clear_error():
     from waveforest.stages.diagnose import with_added_strata
 
     with pytest.raises(WaveforestError, match=r"diagnose\.ring_m: the AGC-normalised pulse tables \(--agc\)"):
-        with_added_strata({"2010_12_1": None}, None, FIELDS, None, {}, _strata())
+        with_added_strata({"2010_12_1": None}, None, FIELDS, None, {}, _strata(ring_m=0.8))

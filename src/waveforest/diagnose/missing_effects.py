@@ -333,7 +333,7 @@ def summary_markdown(result: SearchResult, gap: pd.DataFrame, cand: pd.DataFrame
         "'<species> below crown'. With diagnose.ring_m (default 0.8 m), the pulses that no sample takes whose "
         "beam meets the ground between select.tree_radius_m and that radius of a compared tree's base, and "
         "whose first echo lies lower than select.tree_min_echo_h_m, form the cells '<species> ground beside': "
-        "the ground and what grows on it beside the tree.",
+        "the ground and what grows on it beside the tree; they compare the first echo's Apeak and E.",
         "",
         f"- base model: gap {_fmt(tot['gap_before'])} [{_fmt(tot['before_ci_low'])}, "
         f"{_fmt(tot['before_ci_high'])}], noise floor {_fmt(tot['noise_floor'])}"

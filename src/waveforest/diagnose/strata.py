@@ -63,6 +63,13 @@ RING = "ground beside"
 echo lies lower than ``select.tree_min_echo_h_m`` (:func:`apply_rules`), the ground and what grows
 on it beside the tree."""
 
+RING_BLANKED = ("H", "Npeaks", "FWHM")
+"""First-echo features the stratum :data:`RING` does not compare (NaN on both sides, after the
+height rule): a ground return's height and width are the ground's and the system pulse's, and
+their spread comes from rare low echoes whose heavy tails carried most of the stratum's noise
+floor; what grows on the ground shows in the return's strength, Apeak and E
+(docs/validation.md, Diagnose: the ground beside the trees)."""
+
 ADDED_STRATA = (BELOW_CROWN, RING)
 """Strata of pulses that ``select``'s comparison set does not hold; their real features come
 from their rows in the diagnosis's tables (:func:`added_features`)."""
@@ -127,7 +134,8 @@ def apply_rules(features: pd.DataFrame, strata: StrataSettings) -> pd.DataFrame:
     Rows of trees (``is_tree``) whose first echo lies below ``select.tree_min_echo_h_m`` are
     dropped (``select``'s rule, which the real pulses satisfy by construction), and so are
     rows of the strata "below crown" and :data:`RING` whose first echo lies at or above it (the
-    rule of those strata, on both sides); for species in ``simulate.compare_min_h_m`` the
+    rule of those strata, on both sides), and the features :data:`RING_BLANKED` of the ring's
+    rows become NaN; for species in ``simulate.compare_min_h_m`` the
     waveform features of the rows outside those strata with H at or below the threshold become
     NaN (``compare``'s rule, docs/method.md §(i1)). Rows without a first echo (H NaN) are
     dropped.
@@ -146,6 +154,8 @@ def apply_rules(features: pd.DataFrame, strata: StrataSettings) -> pd.DataFrame:
         high = df["H"].to_numpy(float) >= float(strata.rules.tree_min_echo_h_m)
         keep = np.where(added, ~high, ~tree | high)
         df, added = df[keep].copy(), added[keep]
+    ring = (df["stratum"].astype(str) == RING).to_numpy() if "stratum" in df else np.zeros(len(df), bool)
+    df.loc[ring, [f for f in RING_BLANKED if f in df.columns]] = np.nan
     species = df["species"].astype(str).to_numpy()
     h = df["H"].to_numpy(float)
     for sp, lo in strata.compare_min_h_m.items():
