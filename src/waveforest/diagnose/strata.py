@@ -148,14 +148,14 @@ def apply_rules(features: pd.DataFrame, strata: StrataSettings) -> pd.DataFrame:
     strata : StrataSettings
     """
     df = features[np.isfinite(features["H"].to_numpy(dtype=float))].copy()
-    added = np.isin(df["stratum"].astype(str), ADDED_STRATA) if "stratum" in df else np.zeros(len(df), bool)
+    stratum = df["stratum"].astype(str).to_numpy() if "stratum" in df else np.full(len(df), "")
+    added = np.isin(stratum, ADDED_STRATA)
     if "is_tree" in df.columns:
         tree = df["is_tree"].fillna(False).astype(bool).to_numpy()
         high = df["H"].to_numpy(float) >= float(strata.rules.tree_min_echo_h_m)
         keep = np.where(added, ~high, ~tree | high)
-        df, added = df[keep].copy(), added[keep]
-    ring = (df["stratum"].astype(str) == RING).to_numpy() if "stratum" in df else np.zeros(len(df), bool)
-    df.loc[ring, [f for f in RING_BLANKED if f in df.columns]] = np.nan
+        df, stratum, added = df[keep].copy(), stratum[keep], added[keep]
+    df.loc[stratum == RING, [f for f in RING_BLANKED if f in df.columns]] = np.nan
     species = df["species"].astype(str).to_numpy()
     h = df["H"].to_numpy(float)
     for sp, lo in strata.compare_min_h_m.items():
@@ -425,10 +425,10 @@ def added_features(keys: pd.DataFrame, selected: dict, metas: dict, strata: Stra
     strata : StrataSettings
     """
 
-    below = keys[keys["stratum"].isin(ADDED_STRATA)]
+    added = keys[keys["stratum"].isin(ADDED_STRATA)]
     parts = []
-    for ds, rows in below.groupby("dataset", sort=True):
+    for ds, rows in added.groupby("dataset", sort=True):
         table = selected[ds]
         sub = table.filter(pc.is_in(table.column("pulse_id"), value_set=pa.array(rows["pulse_id"].to_numpy(np.int64))))
         parts.append(feature_table(sub, {ds: metas[ds]}, replace(strata.sensor.features, decomposition=False)))
-    return real_features(pd.concat(parts, ignore_index=True), below, strata) if parts else pd.DataFrame()
+    return real_features(pd.concat(parts, ignore_index=True), added, strata) if parts else pd.DataFrame()

@@ -244,6 +244,7 @@ def sigma_effects(effects: dict) -> tuple:
     on = {**veg, **mcrt, "xy_error": xy}
     return tuple(sorted((k, v) for k, v in on.items() if v != CATALOGUE[k].off))
 
+
 def _echo_stem_distance(pulses: pa.Table, feats: pd.DataFrame) -> np.ndarray:
     """Horizontal distance (m) from the stem of each feature row's first echo, on the beam of its
     row of ``pulses`` (matched by pulse_id; :func:`.strata.stem_distance`)."""
