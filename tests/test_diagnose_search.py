@@ -13,7 +13,7 @@ from scipy.stats import norm
 from waveforest.diagnose import catalogue as cat
 from waveforest.diagnose.gap import FEATURES
 from waveforest.diagnose.optimise import parabolic_vertex, refinement_step
-from waveforest.diagnose.search import SearchSettings, search, split_samples
+from waveforest.diagnose.search import Estimate, SearchSettings, search, split_samples
 from waveforest.effects import CATALOGUE
 from waveforest.errors import WaveforestError
 
@@ -311,3 +311,42 @@ def test_a_broad_fit_at_the_bound_is_named_when_nothing_inside_is_significant():
     assert _rank([stuck, weak], 30, 0.05)[2] is weak  # only a pinned fit at the edge: nothing nameable
     strong = cand("lad_shift", 0.6, 0.55, 0.65, 0.010, True)
     assert _rank([stuck, broad, strong], 30, 0.05)[2] is strong
+
+
+def test_drift_interval_adds_the_realization_in_quadrature_on_log_value():
+    """Estimate.with_drift_realization: a fit without spread gets the chi-square interval of a
+    process SD from ν values' RMS, a wide fit with ν -> inf keeps its own, both add in
+    quadrature on log(value), a lower end at 0 stays there and the decision (u_low) is the fit's."""
+    from scipy.stats import chi2
+
+    def est(lo, v, hi):
+        return Estimate("xy_error", cat.to_u("xy_error", v), v, lo, hi, cat.to_u("xy_error", lo),
+                        cat.to_u("xy_error", hi))
+
+    nu = 30.0
+    lo, hi = np.sqrt(nu / chi2.ppf([0.975, 0.025], nu))
+    point = est(0.2, 0.2, 0.2).with_drift_realization(nu, 0.05)
+    assert (point.ci_low, point.ci_high) == pytest.approx((0.2 * lo, 0.2 * hi))
+    wide = est(0.1, 0.2, 0.3)
+    assert (wide.with_drift_realization(1e9, 0.05).ci_low, wide.with_drift_realization(1e9, 0.05).ci_high) == \
+        pytest.approx((0.1, 0.3), rel=1e-3)
+    both = wide.with_drift_realization(nu, 0.05)
+    assert math.log(0.2 / both.ci_low) == pytest.approx(math.hypot(math.log(2.0), math.log(1 / lo)))
+    assert math.log(both.ci_high / 0.2) == pytest.approx(math.hypot(math.log(1.5), math.log(hi)))
+    assert (both.u_low, both.u_high) == (wide.u_low, wide.u_high)
+    assert est(0.0, 0.2, 0.3).with_drift_realization(nu, 0.05).ci_low == 0.0
+    assert est(0.1, 0.2, 0.3).with_drift_realization(0.0, 0.05) == est(0.1, 0.2, 0.3)
+
+
+def test_drift_values_combine_the_real_pass_and_the_twins_per_sample():
+    """_drift_values: the real drift runs on through a pass, the twins' restart per field sample,
+    so ν is the harmonic combination of both; no gps_time, no widening (0)."""
+    from waveforest.diagnose.search import _drift_values
+    from waveforest.model.forward import drift_dof
+
+    t = np.linspace(0.0, 40.0, 400)  # one 40-s pass over 40 samples of 10 pulses
+    keys = pd.DataFrame({"dataset": "d", "sample_id": np.repeat(np.arange(40), 10).astype(str), "gps_time": t})
+    real, twins = 2 * drift_dof(t, np.zeros(t.size)), 2 * drift_dof(t, keys["sample_id"].to_numpy())
+    assert 6.0 < real < 14.0 and twins > 4 * real
+    assert _drift_values(keys) == pytest.approx(1.0 / (1.0 / real + 1.0 / twins))
+    assert _drift_values(keys.drop(columns="gps_time")) == 0.0

@@ -48,6 +48,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 import pandas as pd
+from scipy.stats import chi2
 
 from waveforest.diagnose import catalogue as cat
 from waveforest.diagnose.gap import (
@@ -65,6 +66,7 @@ from waveforest.diagnose.optimise import parabolic_vertex, refinement_step
 from waveforest.diagnose.replicate_cache import HALVES, SimulationCache, Simulator
 from waveforest.effects import CATALOGUE
 from waveforest.errors import WaveforestError
+from waveforest.model.forward import drift_dof
 from waveforest.rng import named_generator, named_seeds
 from waveforest.stats.bootstrap import DEFAULT_ALPHA, bootstrap_weights, cluster_df, wald_interval
 
@@ -197,6 +199,32 @@ class Estimate:
         v_lo, v_hi = cat.value_interval(name, lo, hi)
         return cls(name=name, u_hat=u_hat, value=cat.from_u(name, u_hat), ci_low=v_lo, ci_high=v_hi,
                    u_low=float(lo), u_high=float(hi))
+
+    def with_drift_realization(self, dof: float, alpha: float) -> Estimate:
+        """The value's interval as one of the SD of a drift process (:data:`DRIFT_EFFECTS`).
+
+        The fit measures the RMS of the drift the data hold, ``dof`` independent values of it
+        (:func:`.model.forward.drift_dof`, both axes): given that RMS s, the process SD lies in
+        s [sqrt(ν / chi^2_(1-alpha/2, ν)), sqrt(ν / chi^2_(alpha/2, ν))]. The half-widths of
+        that interval and of the fit's add in quadrature on log(value). ``u_low``/``u_high``
+        stay the fit's: whether the effect is there is the fit's question.
+        """
+        if not (dof > 0 and self.value > 0):
+            return self
+        q_lo, q_hi = np.sqrt(dof / chi2.ppf([1 - alpha / 2, alpha / 2], dof))
+        with np.errstate(divide="ignore"):
+            down = math.hypot(math.log(max(self.value / self.ci_low, 1.0)) if self.ci_low > 0 else math.inf,
+                              math.log(q_lo))
+        up = math.hypot(math.log(max(self.ci_high / self.value, 1.0)), math.log(q_hi))
+        top = cat.from_u(self.name, 1.0)
+        return replace(self, ci_low=self.value * math.exp(-down), ci_high=min(self.value * math.exp(up), top))
+
+
+DRIFT_EFFECTS = ("xy_error",)
+"""Effects that are the SD of a random process of which the compared pulses hold few
+independent values: the georeferencing drift (:func:`.model.forward.georeferencing_drift`)
+changes over seconds, so a few passes hold a few dozen. Their intervals also carry the spread
+of the realized drift around the process SD (:meth:`Estimate.with_drift_realization`)."""
 
 
 AT_BOUND_U = 0.02
@@ -377,8 +405,10 @@ class _Context:
     """
 
     def __init__(self, halves: dict[str, _Half], sims: SimulationCache, settings: SearchSettings,
-                 test_halves: dict[str, _Half] | None = None, test_sims: SimulationCache | None = None):
+                 test_halves: dict[str, _Half] | None = None, test_sims: SimulationCache | None = None,
+                 drift_dof: float = 0.0):
         self.halves = halves
+        self.drift_dof = drift_dof
         self.sims = sims
         self.settings = settings
         self.test_halves = halves if test_halves is None else test_halves
@@ -446,7 +476,10 @@ def fit_candidate(name: str, current: dict[str, float], ctx: _Context, half: str
 
 def _fit(name: str, current: dict, ctx: _Context) -> tuple[Estimate, list[Fit]]:
     fits = [fit_candidate(name, current, ctx, f) for f, _ in ctx.settings.folds]
-    return Estimate.combine(fits, ctx.settings.alpha), fits
+    est = Estimate.combine(fits, ctx.settings.alpha)
+    if name in DRIFT_EFFECTS:
+        est = est.with_drift_realization(ctx.drift_dof, ctx.settings.alpha)
+    return est, fits
 
 
 def _test(current: dict, models_by_fold: list[dict], ctx: _Context):
@@ -546,6 +579,21 @@ def _halves_of(pulses: pd.DataFrame, real_rows: pd.DataFrame, ids: dict, sim_see
     return out, SimulationCache(simulate, by_half, sim_seeds, settings.replicates, progress)
 
 
+def _drift_values(keys: pd.DataFrame) -> float:
+    """ν of :meth:`Estimate.with_drift_realization` for the pulses ``keys`` (0 without gps_time).
+
+    The real drift runs on through a dataset's passes; the twins draw theirs afresh per field
+    sample (:func:`.model.forward.georeferencing_drift` over one (sample, instance) group).
+    The fitted value is the ratio of the two realized RMS, so the log-variances 1 / (2 ν) of
+    both add: ν = 1 / (1 / ν_real + 1 / ν_twins), each over both axes.
+    """
+    if "gps_time" not in keys.columns:
+        return 0.0
+    t, ds = keys["gps_time"].to_numpy(np.float64), keys["dataset"].astype(str)
+    real, twins = 2.0 * drift_dof(t, ds.to_numpy()), 2.0 * drift_dof(t, (ds + "/" + keys["sample_id"]).to_numpy())
+    return 1.0 / (1.0 / real + 1.0 / twins) if real > 0 and twins > 0 else 0.0
+
+
 def _setup(keys: pd.DataFrame, real: pd.DataFrame, simulate: Simulator, settings: SearchSettings, seed: int,
            progress, fit_keys: pd.DataFrame | None):
     """Split, seeds, halves and caches of a search: (context, halves' sample ids, report, df).
@@ -574,7 +622,7 @@ def _setup(keys: pd.DataFrame, real: pd.DataFrame, simulate: Simulator, settings
         if len(fit) != len(fk):
             raise WaveforestError("diagnose: fit pulses that are not among the tested pulses")
         halves, sims = _halves_of(fit, fit_real, ids, *seeds, simulate, settings, progress)
-    ctx = _Context(halves, sims, settings, test_halves, test_sims)
+    ctx = _Context(halves, sims, settings, test_halves, test_sims, _drift_values(keys))
     df = cluster_df(pd.concat([test_halves[t].universe for _, t in settings.folds]))
 
     def report(effects: dict) -> GapReport:
@@ -704,8 +752,9 @@ def search(
     ----------
     keys : DataFrame
         The pulses to simulate (one row per real pulse): at least dataset, sample_id,
-        species, plus whatever ``simulate`` needs. The significance of the base model's gap,
-        the test of each candidate and the residual use all of them.
+        species, plus whatever ``simulate`` needs; with gps_time, the intervals of
+        :data:`DRIFT_EFFECTS` count the drift values these pulses hold. The significance of
+        the base model's gap, the test of each candidate and the residual use all of them.
     real : DataFrame
         Real feature table of those pulses (dataset, sample_id, species, features; with
         pulse_id when ``fit_keys`` is given).

@@ -88,8 +88,8 @@ BELOW_CROWN_ATTEMPTS = 16
 WAVEFORM_FEATURES = ("Npeaks", "Apeak", "FWHM", "E")
 """Features restricted by ``simulate.compare_min_h_m`` (all but H)."""
 
-KEY_COLUMNS = ("dataset", "pulse_id", "sample_id", "species", "is_tree", "comparison_set", "below_crown_set",
-               "ring_set", "sample_distance_m")
+KEY_COLUMNS = ("dataset", "pulse_id", "gps_time", "sample_id", "species", "is_tree", "comparison_set",
+               "below_crown_set", "ring_set", "sample_distance_m")
 """``select`` columns that identify a pulse to simulate."""
 
 
@@ -280,13 +280,14 @@ def pulse_keys(selected: dict, strata: StrataSettings, cap: int | None = None) -
     Returns
     -------
     DataFrame
-        dataset, pulse_id, sample_id, species, is_tree, stratum (:data:`BELOW_CROWN`,
-        :data:`RING`, :data:`NEAR_STEM` or ""); sorted by dataset and pulse_id.
+        dataset, pulse_id, gps_time (NaN where the table has none), sample_id, species, is_tree,
+        stratum (:data:`BELOW_CROWN`, :data:`RING`, :data:`NEAR_STEM` or ""); sorted by dataset
+        and pulse_id.
     """
 
     species = [str(s) for s in strata.rules.comparison_species]
     near_m = strata.near_stem_m
-    optional = ("is_tree", "below_crown_set", "ring_set", "sample_distance_m")  # absent from other tools' tables
+    optional = ("gps_time", "is_tree", "below_crown_set", "ring_set", "sample_distance_m")  # absent from other tools' tables
     parts = []
     share = dataset_share(strata.pulses_per_species, len(selected))
     for ds, table in sorted(selected.items()):
@@ -295,8 +296,9 @@ def pulse_keys(selected: dict, strata: StrataSettings, cap: int | None = None) -
             raise WaveforestError(f"select table of {ds} lacks column(s) {', '.join(missing)}")
         df = table.select([c for c in KEY_COLUMNS if c in table.column_names]).to_pandas()
         df = df.reindex(columns=list(KEY_COLUMNS), fill_value=False)
-        if "sample_distance_m" not in table.column_names:
-            df["sample_distance_m"] = np.nan
+        for col in ("gps_time", "sample_distance_m"):
+            if col not in table.column_names:
+                df[col] = np.nan
         below = df["below_crown_set"].fillna(False).astype(bool) & bool(strata.below_crown)
         ring = df["ring_set"].fillna(False).astype(bool) & (strata.ring_m is not None)
         df = df[(df["comparison_set"].fillna(False).astype(bool) | below | ring)
@@ -316,7 +318,7 @@ def pulse_keys(selected: dict, strata: StrataSettings, cap: int | None = None) -
             df["stratum"] = df["stratum"].where(~near, NEAR_STEM)
         parts.append(df.drop(columns="sample_distance_m"))
     keys = pd.concat(parts, ignore_index=True) if parts else pd.DataFrame(
-        columns=["dataset", "pulse_id", "sample_id", "species", "is_tree", "stratum"])
+        columns=["dataset", "pulse_id", "gps_time", "sample_id", "species", "is_tree", "stratum"])
     keys["sample_id"] = keys["sample_id"].astype(str)
     keys["species"] = keys["species"].astype(str)
     keys["dataset"] = keys["dataset"].astype(str)

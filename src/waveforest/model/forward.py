@@ -104,6 +104,40 @@ def georeferencing_drift(z: np.ndarray, gps_time: np.ndarray, tau_s: float = GEO
                          float(tau_s))
 
 
+@njit(cache=True, nogil=True)
+def _squared_correlation_sum(t, tau_s):
+    """sum over i, j of exp(-2 |t_i - t_j| / tau_s) for the (n,) ascending times ``t``, in O(n)."""
+    total = 0.0
+    tail = 0.0  # sum over i < k of exp(-2 (t_k - t_i) / tau_s)
+    for k in range(1, t.size):
+        tail = np.exp(-2.0 * (t[k] - t[k - 1]) / tau_s) * (tail + 1.0)
+        total += tail
+    return t.size + 2.0 * total
+
+
+def drift_dof(gps_time: np.ndarray, group: np.ndarray, tau_s: float = GEOREF_TAU_S) -> float:
+    """Independent values per axis that the pulses hold of the drift of :func:`georeferencing_drift`.
+
+    ν = n^2 / sum_ij corr(x_i, x_j)^2: the mean square of one axis' drift over the n pulses,
+    divided by its variance, has the mean and variance of chi^2_ν / ν. Pulses of different
+    groups (datasets: flights on different days) and pulses with a non-finite time count as
+    independent.
+
+    Parameters
+    ----------
+    gps_time : (n,) float64, s
+    group : (n,) array
+    tau_s : float, s
+    """
+    t = np.asarray(gps_time, dtype=np.float64)
+    g = np.asarray(group)
+    finite = np.isfinite(t)
+    pairs = float((~finite).sum())
+    for key in np.unique(g[finite]):
+        pairs += _squared_correlation_sum(np.sort(t[finite & (g == key)]), float(tau_s))
+    return float(t.size) ** 2 / pairs if pairs > 0 else 0.0
+
+
 @dataclass(frozen=True)
 class SensorSetup:
     """Everything between sigma(t) and features for one dataset (or study setting).
