@@ -212,9 +212,8 @@ class Estimate:
         if not (dof > 0 and self.value > 0):
             return self
         q_lo, q_hi = np.sqrt(dof / chi2.ppf([1 - alpha / 2, alpha / 2], dof))
-        with np.errstate(divide="ignore"):
-            down = math.hypot(math.log(max(self.value / self.ci_low, 1.0)) if self.ci_low > 0 else math.inf,
-                              math.log(q_lo))
+        fit_down = math.log(max(self.value / self.ci_low, 1.0)) if self.ci_low > 0 else math.inf
+        down = math.hypot(fit_down, math.log(q_lo))
         up = math.hypot(math.log(max(self.ci_high / self.value, 1.0)), math.log(q_hi))
         top = cat.from_u(self.name, 1.0)
         return replace(self, ci_low=self.value * math.exp(-down), ci_high=min(self.value * math.exp(up), top))
