@@ -16,7 +16,7 @@ from waveforest.settings import diagnose_settings
 SEARCH_KEYS = {"rounds": "rounds", "n_boot": "bootstrap", "values": "values", "refine": "refine",
                "replicates": "pulses_per_value", "alpha": "alpha", "min_relative_reduction": "min_relative_reduction",
                "candidates": "candidates", "refit": "refit", "crossfit": "crossfit", "features": "features",
-               "min_pulses": "min_cell_pulses", "min_samples": "min_cell_samples"}
+               "min_pulses": "min_cell_pulses", "min_samples": "min_cell_samples", "signature_alpha": "signature_alpha"}
 """SearchSettings field -> key of the config section ``diagnose`` (``floors`` is no config key)."""
 
 

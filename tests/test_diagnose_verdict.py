@@ -11,7 +11,7 @@ import pandas as pd
 import pytest
 from fixtures.study import SyntheticStudy
 
-from waveforest.diagnose.gap import FEATURES
+from waveforest.diagnose.gap import FEATURES, sample_universe
 from waveforest.diagnose.missing_effects import (
     base_gap_significant,
     final_verdict,
@@ -20,6 +20,7 @@ from waveforest.diagnose.missing_effects import (
 )
 from waveforest.diagnose.power import LIMIT_COLUMNS, FloorCalibration
 from waveforest.diagnose.search import SearchSettings, search
+from waveforest.diagnose.signature_test import SignatureTest, terms
 from waveforest.io.results import VERDICTS
 
 SETTINGS = SearchSettings(features=FEATURES, rounds=1, n_boot=100, candidates=("hotspot", "understory"))
@@ -110,3 +111,23 @@ def test_the_calibrated_floor_decides_the_verdict():
                          FloorCalibration(scale=scale, gap=0.1, floor=0.1 / scale, replicates=20))
     assert result.verdict == "none" and rec["verdict"] == "none" and not rec["gap"]["above_floor"]
     assert rec["floor_calibration"]["scale"] == pytest.approx(scale)
+
+
+def test_a_firing_signature_test_gives_the_search_a_gap_to_explain():
+    """The base model's gap is there to explain when the signature test fires, whatever its
+    interval; verdict.json records the test's reading, and a verdict none says how far it was."""
+    study = SyntheticStudy(samples_per_species=12, pulses_per_sample=8, seed=1)
+    real = study.real({})
+    kw = {"min_pulses": SETTINGS.min_pulses, "min_samples": SETTINGS.min_samples}
+    sig, _ = terms(study.real({"hotspot": 1.3}), real, sample_universe(real), **kw)
+    for crit, fires in ((0.0, True), (1e6, False)):
+        test = SignatureTest(signatures={"hotspot": sig}, null_var=pd.Series(1.0, index=sig.index),
+                             scale={"hotspot": 1.0}, crit=crit)
+        result, gap, _, _ = find_missing_effects(study.keys, real, study.simulate, SETTINGS, seed=5, signature=test)
+        rec = verdict_record(result, gap, _limits({"hotspot": True, "understory": True}))
+        json.dumps(rec)
+        assert rec["signature_test"]["fires"] is fires and rec["signature_test"]["effect"] == "hotspot"
+        if fires:
+            assert result.verdict != "none" and not result.candidates.empty
+        elif not base_gap_significant(gap):
+            assert result.verdict == "none" and "largest |z| / c" in rec["reason"]

@@ -306,6 +306,7 @@ def diagnose_settings(cfg: dict) -> DiagnoseSettings:
             min_relative_reduction=float(d["min_relative_reduction"]),
             candidates=tuple(c for c in (d["candidates"] or CATALOGUE) if c not in base),
             refit=bool(d["refit"]), crossfit=bool(d["crossfit"]), features=tuple(d["features"]),
+            signature_alpha=None if d["signature_alpha"] is None else float(d["signature_alpha"]),
             min_pulses=int(d["min_cell_pulses"]), min_samples=int(d["min_cell_samples"])),
         power=PowerSettings(replicates=int(p["replicates"]), values=int(p["values"]), power=float(p["power"]),
                             pool=int(p["pool"])),

@@ -441,6 +441,15 @@ def masked_floor(data: GapData, boot: dict[str, np.ndarray], mask: np.ndarray) -
         return float(np.nanmean(v)) * data.floor_scale
 
 
+def masked_summary(data: GapData, point: dict, boot: dict, mask: np.ndarray,
+                   alpha: float) -> tuple[float, float, float, float, np.ndarray]:
+    """(G, its interval's lower and upper ends, F, G's bootstrap replicates) over the cells of
+    ``mask``, from :func:`cell_statistics` of the data (``point``) and of bootstrap weights (``boot``)."""
+    g, reps = masked_gap(data, point, mask), masked_gap(data, boot, mask)
+    lo, hi = gap_interval(g, reps, alpha)
+    return g, lo, hi, masked_floor(data, boot, mask), reps
+
+
 def _mask(data: GapData, valid: np.ndarray | None, feature: str | None) -> np.ndarray:
     mask = data.valid if valid is None else np.asarray(valid, dtype=bool)
     if feature is not None:
@@ -619,10 +628,7 @@ def _summary_table(data: GapData, point: dict, boot: dict, w1, alpha: float) -> 
                                "excess": np.nan, "excess_ci_low": np.nan, "excess_ci_high": np.nan,
                                "significant": False, "w1": np.nan, "n_cells": 0}
             continue
-        g = masked_gap(data, point, mask)
-        reps = masked_gap(data, boot, mask)
-        fl = masked_floor(data, boot, mask)
-        lo, hi = gap_interval(g, reps, alpha)
+        g, lo, hi, fl, reps = masked_summary(data, point, boot, mask, alpha)
         summary_rows[f] = {
             "gap": g, "ci_low": lo, "ci_high": hi, "noise_floor": fl,
             "excess": g - fl, "excess_ci_low": lo - fl, "excess_ci_high": hi - fl,

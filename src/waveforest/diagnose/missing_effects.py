@@ -27,6 +27,7 @@ import pandas as pd
 
 from waveforest.diagnose import catalogue as cat
 from waveforest.diagnose.before_after import before_after
+from waveforest.diagnose.gap import sample_universe
 from waveforest.diagnose.power import (
     FloorCalibration,
     detection_limits,
@@ -38,6 +39,7 @@ from waveforest.diagnose.power import (
 from waveforest.diagnose.replicate_cache import effects_key, simulate_all
 from waveforest.diagnose.search import SearchResult, SearchSettings, at_bound, search
 from waveforest.diagnose.settings import DiagnoseSettings
+from waveforest.diagnose.signature_test import SignatureTest, terms
 from waveforest.diagnose.strata import (
     ADDED_STRATA,
     NEAR_STEM_MIN_SAMPLES,
@@ -45,10 +47,11 @@ from waveforest.diagnose.strata import (
     pulse_keys,
     real_features,
 )
-from waveforest.diagnose.waveform import WAVEFORM_FEATURES, with_waveform_statistics
+from waveforest.diagnose.waveform import with_waveform_statistics
 from waveforest.effects import CATALOGUE
 from waveforest.errors import WaveforestError
 from waveforest.rng import named_seeds
+from waveforest.stats.bootstrap import bootstrap_weights
 
 
 def signatures(result: SearchResult, settings: SearchSettings, power_tables: dict | None = None) -> pd.DataFrame:
@@ -96,10 +99,16 @@ def signatures(result: SearchResult, settings: SearchSettings, power_tables: dic
 
 
 def find_missing_effects(keys: pd.DataFrame, real: pd.DataFrame, simulate, settings: SearchSettings, seed: int, *,
-             progress=None, fit_keys: pd.DataFrame | None = None, power_tables: dict | None = None
-             ) -> tuple[SearchResult, pd.DataFrame, pd.DataFrame, pd.DataFrame]:
+             progress=None, fit_keys: pd.DataFrame | None = None, power_tables: dict | None = None,
+             signature: SignatureTest | None = None) -> tuple[SearchResult, pd.DataFrame, pd.DataFrame, pd.DataFrame]:
     """Search (fits on ``fit_keys``, default all), re-simulate ``keys`` before/after with a
     fresh seed, signatures (no file output; ``power_tables``: see :func:`signatures`).
+
+    The base model's gap is there to explain when its interval lies above the noise floor
+    (:func:`base_gap_significant`) or, with ``signature`` (the power analysis'
+    :class:`.signature_test.SignatureTest`; ``real`` then carries the whole waveform's
+    statistics), when the signature test fires on the same simulation; its reading is the
+    result's ``signature``.
 
     Returns
     -------
@@ -116,8 +125,15 @@ def find_missing_effects(keys: pd.DataFrame, real: pd.DataFrame, simulate, setti
     # the base model's gap as reported decides whether there is a gap to explain
     shown = before_after(real, before, before, n_boot=settings.n_boot, seed=int(s_boot), alpha=settings.alpha,
                          wasserstein=False, **settings.gap_kw)
+    reading = None
+    if signature is not None:
+        universe = sample_universe(real, before)
+        reading = signature.read(*terms(real, before, universe, bootstrap_weights(universe, settings.n_boot, int(s_boot)),
+                                        floors=settings.floors, min_pulses=settings.min_pulses,
+                                        min_samples=settings.min_samples))
     result = search(keys, real, simulate, settings, seed=int(s_search), progress=progress, fit_keys=fit_keys,
-                    significant=base_gap_significant(shown))
+                    significant=base_gap_significant(shown) or bool(reading and reading["fires"]))
+    result = replace(result, signature=reading)
     after = before if not result.named else simulate_all(simulate, keys, result.effects, int(s_after),
                                                           settings.replicates)
     gap = before_after(real, before, after, n_boot=settings.n_boot, seed=int(s_boot), alpha=settings.alpha,
@@ -169,7 +185,7 @@ def verdict_text(result: SearchResult, limits: pd.DataFrame) -> str:
         lead = ", ".join(f"{e.name} {e.value:.3g} [{e.ci_low:.3g}, {e.ci_high:.3g}]" for e in result.named)
     elif result.verdict == "unexplained" and len(result.candidates):
         best = result.candidates.sort_values(["round", "gap_reduction"], ascending=[True, False]).iloc[0]
-        lead = (f"a gap above its noise floor that no candidate explains (best fit {best['name']} "
+        lead = (f"a gap that no candidate explains (best fit {best['name']} "
                 f"{best['value']:.3g}, reduction {best['gap_reduction']:.3g} [{best['reduction_ci_low']:.3g}, "
                 f"{best['reduction_ci_high']:.3g}], not significant)")
     elif result.verdict == "inconclusive":
@@ -190,7 +206,8 @@ def verdict_record(result: SearchResult, gap: pd.DataFrame, limits: pd.DataFrame
     ``detection_limits.csv``), status, upper_bound, unit, power_at_test and its interval, null
     where not measured), ``at_edge`` (the same for the candidates at the "edge"),
     ``floor_calibration`` (``floor``, :class:`.power.FloorCalibration`: scale, the off
-    replicates' mean gap and bootstrap floor, replicates)."""
+    replicates' mean gap and bootstrap floor, replicates), ``signature_test`` (the base model's
+    reading, :meth:`.signature_test.SignatureTest.read`; null without the test)."""
     verdict, blind = final_verdict(result.verdict, limits)
     floor = FloorCalibration() if floor is None else floor
     tot = gap[gap["level"] == "total"].iloc[0]
@@ -222,6 +239,7 @@ def verdict_record(result: SearchResult, gap: pd.DataFrame, limits: pd.DataFrame
         "at_edge": unseen("edge"),
         "floor_calibration": {"scale": num(floor.scale), "off_gap": num(floor.gap), "off_floor": num(floor.floor),
                               "replicates": int(floor.replicates)},
+        "signature_test": result.signature,
     }
 
 
@@ -277,15 +295,15 @@ def run_diagnosis(selected: dict, features: pd.DataFrame, metas: dict, simulate,
     fit_keys = None if settings.fit_pulses is None else pulse_keys(selected, strata, int(settings.fit_pulses))
     if keys.empty:
         raise WaveforestError("diagnose: no comparison pulse of the modelled species in the select tables")
-    real = real_rows(features, keys, selected, metas, strata,
-                     waveform=bool(set(settings.search.features) & set(WAVEFORM_FEATURES)))
+    real = real_rows(features, keys, selected, metas, strata)  # the whole waveform: the signature test
     power_tables, calibration = {}, {}  # the power analysis' simulations (the signatures reuse them), its floor
     limits, curve = detection_limits(keys, simulate, settings.search, settings.power, settings.seed,
                                      progress=progress, tables=power_tables, calibration=calibration)
     floor = calibration.get("floor", FloorCalibration())
     search_settings = replace(settings.search, floor_scale=floor.scale)
     result, gap, cand, sigs = find_missing_effects(keys, real, simulate, search_settings, settings.seed,
-                                                   fit_keys=fit_keys, progress=progress, power_tables=power_tables)
+                                                   fit_keys=fit_keys, progress=progress, power_tables=power_tables,
+                                                   signature=calibration.get("signature"))
     verdict, blind = final_verdict(result.verdict, limits)
     return Diagnosis(keys=keys, fit_keys=fit_keys, result=result, gap=gap, candidates=cand, signatures=sigs,
                      limits=limits, curve=curve, verdict=verdict, blind=tuple(blind), floor=floor)
@@ -384,10 +402,15 @@ def summary_markdown(result: SearchResult, gap: pd.DataFrame, cand: pd.DataFrame
 def _reason(result: SearchResult, gap: pd.DataFrame) -> str:
     """Why the search stopped, worded from the base model's gap as reported in ``gap``."""
     tot = gap[gap["level"] == "total"].iloc[0]
+    sig = result.signature
+    along = (f"; along the signatures, the largest |z| / c is {_fmt(sig['margin'] + sig['threshold'])} "
+             f"({sig['effect']}), threshold {_fmt(sig['threshold'])}" if sig and sig["margin"] is not None else "")
     if result.verdict == "none":
         return (f"the base model's gap {_fmt(tot['gap_before'])} [{_fmt(tot['before_ci_low'])}, "
                 f"{_fmt(tot['before_ci_high'])}] is not above its noise floor {_fmt(tot['noise_floor'])} "
-                "(the lower bound of its interval is not above the floor)")
+                f"(the lower bound of its interval is not above the floor){along}")
+    if sig and sig["fires"] and not base_gap_significant(gap):
+        return f"the gap's interval reaches its noise floor, but the signature test fires{along}; {result.reason}"
     return result.reason
 
 
@@ -401,8 +424,8 @@ def _limits_markdown(limits: pd.DataFrame, curve: pd.DataFrame, real_floor: floa
     off_floor = float(off["noise_floor"].iloc[0]) if len(off) else math.nan
     lines = ["## What these data could have seen", "",
              f"Each candidate simulated at a ladder of values as pseudo-real data of these pulses, {reps} "
-             "replicate(s), tested as the base model's gap is (above the noise floor at the same alpha, same "
-             "cluster bootstrap); the smallest value detected in at least "
+             "replicate(s), tested as the base model's gap is (above the noise floor at the same alpha, or the "
+             "signature test, same cluster bootstrap); the smallest value detected in at least "
              f"{_fmt(float(limits['power'].iloc[0]) * 100 if len(limits) else math.nan)} % of the replicates "
              f"(src/waveforest/diagnose/power.py). With no effect the test fired in {_fmt(false_alarms * 100)} %{fa_ci} "
              f"of them (95 % Wilson interval). Noise floor of the pseudo-real data without effect {_fmt(off_floor)}, of the real data "

@@ -7,10 +7,13 @@ design of the data and the test that decides the verdict ``none``:
   simulated with the candidate at a value v (one twin per pulse, as the real data have one
   record per pulse) and stand in for the measurement; the base model, simulated with another
   seed and ``pulses_per_value`` twins per pulse, is the simulation side.
-* **The test.** :func:`.gap.gap_report` with the search's settings, the same cluster
-  bootstrap over field samples and ``alpha``: v is *detected* in a replicate when the lower
-  bound of the excess gap's interval is above 0 (the base model's gap is significant above
-  its noise floor), the condition without which the search names nothing.
+* **The test.** The two tests that decide whether the diagnosis has a gap to explain, with the
+  search's settings and the same cluster bootstrap over field samples: v is *detected* in a
+  replicate when the lower bound of the excess gap's interval (:func:`.gap.gap_report`,
+  ``alpha``) is above 0, or when the signature test fires (:mod:`.signature_test`, at
+  ``signature_alpha``; the candidates' signatures are those of their far bounds, the pool's
+  first seed against the base model's, and the test is calibrated on the replicates without
+  effect). Without one of them the search names nothing.
 * **Replicates from a pool.** Every model (off and each value) is simulated over all pulses
   with ``pool`` seeds, the same seeds for every model (common random numbers). Replicate r
   draws, for every field sample, the pool member of its pseudo-real pulses and another member
@@ -29,8 +32,10 @@ design of the data and the test that decides the verdict ``none``:
   at the first value whose power is below ``power`` (smaller ones are not evaluated). Each
   replicate's crossing (where LB turns positive) is interpolated between that value and the
   next stronger one (the off value below the weakest), linearly in the squared distance from
-  off (the gap grows as its square); the limit is the ceil(power x replicates)-th smallest
-  crossing. Empty (NaN) when the bound itself is detected with less power.
+  off for the gap (it grows as its square) and linearly in the distance for the signature
+  test's margin (z grows as the shift), the weaker of the two crossings; the limit is the
+  ceil(power x replicates)-th smallest crossing. Empty (NaN) when the bound itself is detected
+  with less power.
 * **The limit's interval.** The limit estimates the power-quantile of the crossings' distribution;
   its 95 % interval is the distribution-free one of that quantile, [X_(r), X_(s)] of the
   sorted crossings with ranks from Binomial(replicates, power)
@@ -66,13 +71,14 @@ import numpy as np
 import pandas as pd
 
 from waveforest.diagnose import catalogue as cat
-from waveforest.diagnose.gap import gap_report, sample_universe
+from waveforest.diagnose.gap import ALL_FEATURES, GapData, cell_statistics, masked_summary, sample_universe
 from waveforest.diagnose.replicate_cache import Simulator, effects_key, simulate_all
 from waveforest.diagnose.search import SearchSettings
+from waveforest.diagnose.signature_test import SignatureTest, pooled_terms, terms
 from waveforest.effects import CATALOGUE
 from waveforest.errors import WaveforestError
 from waveforest.rng import named_generator, named_seeds
-from waveforest.stats.bootstrap import bootstrap_weights
+from waveforest.stats.bootstrap import bootstrap_weights, cluster_df
 from waveforest.stats.proportion import limit_interval, quantile_ranks, wilson_interval
 
 MIN_CALIBRATION_REPLICATES = 5
@@ -135,10 +141,11 @@ in fewer than ``power`` x ``replicates`` replicates: "not reached up to upper_bo
 it was not evaluated (the walk stopped at the bound, or a ladder of one value)."""
 
 CURVE_COLUMNS = ("effect", "value", "strength", "replicates", "detected", "power", "power_ci_low", "power_ci_high",
-                 "gap", "noise_floor", "excess_ci_low")
+                 "gap", "noise_floor", "excess_ci_low", "signature_margin")
 """Columns of ``detection_curve.csv``: one row per candidate and value evaluated (off included):
 ``detected`` of ``replicates`` pseudo-real replicates detected it, ``power`` their share with its
-95 % Wilson interval; gap, noise floor and the excess gap's lower bound: medians over the replicates."""
+95 % Wilson interval; gap, noise floor, the excess gap's lower bound and the signature test's margin
+(:mod:`.signature_test`, > 0: it fires): medians over the replicates."""
 
 
 @dataclass(frozen=True)
@@ -198,18 +205,29 @@ def _crossing(s_lo: float, lb_lo: float, s_hi: float, lb_hi: float) -> float:
     return math.sqrt(s_lo**2 + (s_hi**2 - s_lo**2) * (-lb_lo) / (lb_hi - lb_lo))
 
 
-def _crossings(strengths: np.ndarray, lbs: list, j: int) -> np.ndarray:
-    """Each replicate's crossing (:func:`_crossing`) between rungs ``j - 1`` and ``j``; a
-    replicate that does not detect rung ``j`` crosses between the first stronger rung it detects
-    and the rung below that one, inf when it detects none.
+def _linear_crossing(s_lo: float, m_lo: float, s_hi: float, m_hi: float) -> float:
+    """Strength at which the signature test's margin turns positive between two strengths,
+    linear in strength (z grows as the effect's shift)."""
+    if m_lo > 0:
+        return s_lo
+    if m_hi <= 0:
+        return math.nan
+    return s_lo + (s_hi - s_lo) * (-m_lo) / (m_hi - m_lo)
+
+
+def _crossings(strengths: np.ndarray, lbs: list, j: int, crossing=_crossing) -> np.ndarray:
+    """Each replicate's crossing (``crossing``, default :func:`_crossing`) between rungs ``j - 1``
+    and ``j``; a replicate that does not detect rung ``j`` crosses between the first stronger rung
+    it detects and the rung below that one, inf when it detects none.
 
     Parameters
     ----------
     strengths : (n_rungs,) float64
         Distance from off of each rung, increasing (rung 0 is off).
     lbs : list of (R,) float64 or None
-        The replicates' excess lower bounds per rung; None for a rung not evaluated (only
-        rungs below ``j - 1`` may be).
+        The replicates' scores per rung, > 0 where detected (excess lower bounds, or signature
+        margins with :func:`_linear_crossing`); None for a rung not evaluated (only rungs below
+        ``j - 1`` may be).
     j : int
         The rung of the first interval, 1 <= j < n_rungs.
 
@@ -223,7 +241,7 @@ def _crossings(strengths: np.ndarray, lbs: list, j: int) -> np.ndarray:
     todo = np.ones(len(out), dtype=bool)
     for i in range(j, len(strengths)):
         for r in np.flatnonzero(todo & (lbs[i] > 0)):
-            out[r] = _crossing(strengths[i - 1], lbs[i - 1][r], strengths[i], lbs[i][r])
+            out[r] = crossing(strengths[i - 1], lbs[i - 1][r], strengths[i], lbs[i][r])
         todo &= ~(lbs[i] > 0)
     return out
 
@@ -269,20 +287,29 @@ class _Replicate:
         self.sim = _assemble([pool.get({}, k, settings.replicates) for k in range(n_pool)], self.sim_pick, universe)
         self.weights = bootstrap_weights(universe, settings.n_boot, s_boot)
 
-    def test(self, effects: dict) -> tuple[float, float, float]:
-        """(gap, noise floor, lower bound of the excess gap's interval) of pseudo-real data under ``effects``."""
+    def test(self, effects: dict) -> tuple[tuple[float, float, float], tuple[pd.Series, np.ndarray]]:
+        """Pseudo-real data under ``effects`` against the simulation side: (gap, noise floor, lower
+        bound of the excess gap's interval) over the search's features (as :func:`.gap.gap_report`
+        gives them), and the signature test's terms (:func:`.signature_test.terms`), from one
+        reduction to per-sample sums."""
+        s = self.settings
         real = _assemble([self.pool.get(effects, k) for k in range(len(self.pool.seeds))], self.real_pick,
                          self.universe)
-        s = self.settings
-        rep = gap_report(real, self.sim, n_boot=s.n_boot, alpha=s.alpha, wasserstein=False, universe=self.universe,
-                         weights=self.weights, **s.gap_kw)
-        tot = rep.summary.loc["total"]
-        return float(tot["gap"]), float(tot["noise_floor"]), float(tot["excess_ci_low"])
+        extra = tuple(f for f in ALL_FEATURES if f not in s.features and f in real.columns and f in self.sim.columns)
+        data = GapData.build(real, self.sim, self.universe, features=tuple(s.features) + extra, floors=s.floors,
+                             min_pulses=s.min_pulses, min_samples=s.min_samples)
+        point, boot = cell_statistics(data), cell_statistics(data, self.weights)
+        mask = data.valid & np.isin(np.asarray(data.features), s.features)[None, :]
+        if not mask.any():
+            raise WaveforestError("gap: no cell has enough real and simulated pulses to compare")
+        gap, low, _, floor, _ = masked_summary(data, point, boot, mask, s.alpha)
+        return (float(gap), float(floor), float(low - floor)), pooled_terms(data, point, boot)
 
 
 def _null_replicates(keys: pd.DataFrame, simulate: Simulator, settings: SearchSettings, power: PowerSettings,
-                     seed: int, progress) -> tuple[_Pool, list[_Replicate], np.ndarray]:
-    """The pool, the replicates and their off results ((R, 3): gap, bootstrap floor, excess lower bound)."""
+                     seed: int, progress) -> tuple[_Pool, list[_Replicate], list]:
+    """The pool, the replicates and their tests without effect (:meth:`_Replicate.test`, under the
+    bootstrap floor)."""
     keys = keys.assign(sample_id=keys["sample_id"].astype(str))
     settings = replace(settings, floor_scale=1.0)  # the bootstrap floor; calibrated by the caller
     universe = sample_universe(keys)
@@ -290,7 +317,7 @@ def _null_replicates(keys: pd.DataFrame, simulate: Simulator, settings: SearchSe
     pool = _Pool(keys, simulate, named_seeds("power", int(seed), n=n_pool), settings.replicates, progress)
     reps = [_Replicate(pool, settings, s, universe)
             for s in named_seeds("power", int(seed), 1, n=power.replicates)]
-    return pool, reps, np.array([r.test({}) for r in reps])
+    return pool, reps, [r.test({}) for r in reps]
 
 
 def calibrate_floor(keys: pd.DataFrame, simulate: Simulator, settings: SearchSettings, power: PowerSettings,
@@ -299,20 +326,46 @@ def calibrate_floor(keys: pd.DataFrame, simulate: Simulator, settings: SearchSet
     seeds, same pool: the factor the diagnosis applies), without the ladders."""
     if keys.empty:
         raise WaveforestError("diagnose: no pulse for the power analysis")
-    return floor_calibration(_null_replicates(keys, simulate, settings, power, seed, progress)[2])
+    return floor_calibration(np.array([gap for gap, _ in _null_replicates(keys, simulate, settings, power, seed,
+                                                                          progress)[2]]))
+
+
+def _detected(res: np.ndarray) -> np.ndarray:
+    """Replicates (rows of gap, floor, excess lower bound, signature margin) that detect their
+    effect: the excess gap's lower bound above 0, or the signature test fires."""
+    return (res[:, 2] > 0) | (res[:, 3] > 0)
+
+
+def _signature_test(pool: _Pool, reps: list[_Replicate], walks: dict, off_terms: list, alpha: float) -> SignatureTest:
+    """The signature test of the candidates at their far bounds (the walks' first values: the
+    pool's first seed against the base model's, common random numbers), calibrated on the
+    replicates' terms without effect ``off_terms``."""
+    s, universe = reps[0].settings, reps[0].universe
+    kw = {"floors": s.floors, "min_pulses": s.min_pulses, "min_samples": s.min_samples}
+    base = pool.get({}, 0)
+    sigs = {name: terms(pool.get(cat.with_effect({}, name, cat.from_u(name, w.us[-1])), 0), base, universe, **kw)[0]
+            for name, w in walks.items()}
+    return SignatureTest.calibrate(sigs, off_terms, alpha, cluster_df(universe))
+
+
+def _results(tests: list, scale: float, signature: SignatureTest | None) -> np.ndarray:
+    """(R, 4) rows of the replicates' ``tests`` (:meth:`_Replicate.test`): gap, floor and excess
+    lower bound under the floor calibrated by ``scale``, and the signature margin (-inf without
+    a signature test)."""
+    margins = [-math.inf if signature is None else signature.margin(*t)[0] for _, t in tests]
+    return np.column_stack([_calibrated([g for g, _ in tests], scale), margins])
 
 
 @dataclass
 class _LadderWalk:
     """One candidate's walk down its ladder ``us`` (search coordinate), from the far bound
     towards off, while a value is detected in at least ``needed`` replicates: ``k`` the value
-    under test (at the end: the first not detected, -1 if all were), ``lbs`` and ``rows`` each
-    tested value's lower bounds and results."""
+    under test (at the end: the first not detected, -1 if all were), ``rows`` each tested value's
+    results (:func:`_detected`)."""
 
     name: str
     us: np.ndarray
     k: int
-    lbs: dict = field(default_factory=dict)
     rows: dict = field(default_factory=dict)
     done: bool = False
 
@@ -323,9 +376,10 @@ class _LadderWalk:
         return cls(name, us, len(us) - 1)
 
     def record(self, res: np.ndarray, needed: int) -> None:
-        """The results (R, 3) of value ``k``; the walk stops at a value not detected or at off."""
-        self.lbs[self.k], self.rows[self.k] = res[:, 2], res
-        if (res[:, 2] > 0).sum() < needed:
+        """The results (R, 4) of value ``k`` (:func:`_detected`); the walk stops at a value not
+        detected or at off."""
+        self.rows[self.k] = res
+        if _detected(res).sum() < needed:
             self.done = True
         else:
             self.k -= 1
@@ -356,8 +410,9 @@ def detection_limits(keys: pd.DataFrame, simulate: Simulator, settings: SearchSe
         :func:`.replicate_cache.effects_key` (off included): one seed for all, so any two are
         common-random-number pairs (:func:`.missing_effects.signatures` reads them).
     calibration : dict, optional
-        Filled with ``{"floor": FloorCalibration}`` of the off replicates; the tests of the
-        ladder use that calibrated floor (``settings.floor_scale`` is ignored).
+        Filled with ``{"floor": FloorCalibration, "signature": SignatureTest or None}`` of the
+        off replicates; the tests of the ladder use that calibrated floor (``settings.floor_scale``
+        is ignored) and that signature test (None with ``settings.signature_alpha`` None).
 
     Returns
     -------
@@ -374,29 +429,36 @@ def detection_limits(keys: pd.DataFrame, simulate: Simulator, settings: SearchSe
         raise WaveforestError("diagnose: no pulse for the power analysis")
     if not settings.candidates:
         return pd.DataFrame(columns=list(LIMIT_COLUMNS)), pd.DataFrame(columns=list(CURVE_COLUMNS))
-    pool, reps, off = _null_replicates(keys, simulate, settings, power, seed, progress)
-    cal = floor_calibration(off)
-    if calibration is not None:
-        calibration["floor"] = cal
-    off = _calibrated(off, cal.scale)
+    pool, reps, off_tests = _null_replicates(keys, simulate, settings, power, seed, progress)
+    cal = floor_calibration(np.array([g for g, _ in off_tests]))
     walks = {name: _LadderWalk.start(name, power.values) for name in settings.candidates}
+    sig_test, off = None, None
     while active := [w for w in walks.values() if not w.done]:
         tried = [cat.with_effect({}, w.name, cat.from_u(w.name, w.us[w.k])) for w in active]
         for k in range(len(pool.seeds)):  # seed by seed: each seed's base plants stay in the scene cache
             for effects in tried:
                 pool.get(effects, k)
+        if off is None:  # the first step simulated every far bound: the signatures
+            if settings.signature_alpha is not None:
+                sig_test = _signature_test(pool, reps, walks, [t for _, t in off_tests], settings.signature_alpha)
+            off = _results(off_tests, cal.scale, sig_test)
         for w, effects in zip(active, tried):
-            w.record(_calibrated([r.test(effects) for r in reps], cal.scale), power.needed)
+            w.record(_results([r.test(effects) for r in reps], cal.scale, sig_test), power.needed)
+    if calibration is not None:
+        calibration.update(floor=cal, signature=sig_test)
     limits, curve = [], []
     for name in settings.candidates:
         w = walks[name]
-        us, k, lbs, rows = w.us, w.k, w.lbs, w.rows
+        us, k, rows = w.us, w.k, w.rows
         u0 = cat.off_u(name)
         limit = ci_low = ci_high = math.nan
         if k < len(us) - 1:  # the far bound is detected: interpolate below the weakest detected value
             # rung 0 is off, rung i + 1 the ladder's value i; the weakest detected with power is rung k + 2
             strengths = np.abs(np.concatenate([[u0], us]) - u0)
-            cross = np.sort(_crossings(strengths, [off[:, 2]] + [lbs.get(i) for i in range(len(us))], k + 2))
+            scores = [off] + [rows.get(i) for i in range(len(us))]
+            cross = np.sort(np.minimum(  # the weaker of the two tests' crossings
+                _crossings(strengths, [None if r is None else r[:, 2] for r in scores], k + 2),
+                _crossings(strengths, [None if r is None else r[:, 3] for r in scores], k + 2, _linear_crossing)))
             # within the range tried: at most the weakest value detected with power
             s = min(cross[power.needed - 1], strengths[k + 2])
             limit = cat.from_u(name, u0 + math.copysign(s, us[-1] - u0))
@@ -410,10 +472,10 @@ def detection_limits(keys: pd.DataFrame, simulate: Simulator, settings: SearchSe
             # unbounded strong end NaN
             rising = cat.value_interval(name, u0, u0)[0] < cat.from_u(name, us[-1])
             ci_low, ci_high = (weak, strong) if rising else (strong, weak)
-        n_bound = int((lbs[len(us) - 1] > 0).sum())
+        n_bound = int(_detected(rows[len(us) - 1]).sum())
         b_lo, b_hi = wilson_interval(n_bound / power.replicates, power.replicates)
         # the test value is the rung below the bound (values >= 2), evaluated unless the walk stopped at the bound
-        p_test = float((lbs[len(us) - 2] > 0).mean()) if len(us) >= 2 and len(us) - 2 in lbs else math.nan
+        p_test = float(_detected(rows[len(us) - 2]).mean()) if len(us) >= 2 and len(us) - 2 in rows else math.nan
         t_lo, t_hi = wilson_interval(p_test, power.replicates)
         test = float(CATALOGUE[name].test_value)
         sees = bool(np.isfinite(limit) and abs(cat.to_u(name, limit) - u0) <= abs(cat.to_u(name, test) - u0) + 1e-9)
@@ -426,13 +488,14 @@ def detection_limits(keys: pd.DataFrame, simulate: Simulator, settings: SearchSe
                        "power_at_test": p_test, "power_at_test_ci_low": t_lo, "power_at_test_ci_high": t_hi})
         for kk, res in sorted({-1: off, **rows}.items()):
             u = u0 if kk < 0 else us[kk]
-            hits = int((res[:, 2] > 0).sum())
+            hits = int(_detected(res).sum())
             p_lo, p_hi = wilson_interval(hits / power.replicates, power.replicates)
             curve.append({"effect": name, "value": cat.from_u(name, u), "strength": abs(u - u0),
                           "replicates": power.replicates, "detected": hits, "power": hits / power.replicates,
                           "power_ci_low": p_lo, "power_ci_high": p_hi,
                           "gap": float(np.median(res[:, 0])), "noise_floor": float(np.median(res[:, 1])),
-                          "excess_ci_low": float(np.median(res[:, 2]))})
+                          "excess_ci_low": float(np.median(res[:, 2])),
+                          "signature_margin": float(np.median(res[:, 3])) if np.isfinite(res[:, 3]).any() else math.nan})
     if tables is not None:  # one seed for all models: common-random-number pairs
         tables.update({eff: t for (eff, k, twins), t in pool.cache.items() if k == 0 and twins == 1})
     return pd.DataFrame(limits, columns=list(LIMIT_COLUMNS)), pd.DataFrame(curve, columns=list(CURVE_COLUMNS))

@@ -64,6 +64,7 @@ from waveforest.diagnose.gap import (
 )
 from waveforest.diagnose.optimise import parabolic_vertex, refinement_step
 from waveforest.diagnose.replicate_cache import HALVES, SimulationCache, Simulator
+from waveforest.diagnose.signature_test import ALPHA as SIGNATURE_ALPHA
 from waveforest.effects import CATALOGUE
 from waveforest.errors import WaveforestError
 from waveforest.model.forward import drift_dof
@@ -108,6 +109,9 @@ class SearchSettings:
     floor_scale : float
         Factor on every noise floor (:meth:`.gap.GapData.build`), calibrated by the diagnosis
         (:func:`.power.floor_calibration`); not a config key.
+    signature_alpha : float or None
+        Family-wise false-alarm rate of the signature test (:mod:`.signature_test`), which the
+        power analysis builds and the diagnosis applies to the base model; None: no signature test.
     """
 
     rounds: int = 3
@@ -125,6 +129,7 @@ class SearchSettings:
     min_pulses: int = MIN_CELL_PULSES
     min_samples: int = MIN_CELL_SAMPLES
     floor_scale: float = 1.0
+    signature_alpha: float | None = SIGNATURE_ALPHA
 
     def __post_init__(self) -> None:
         for name in self.candidates:
@@ -135,6 +140,8 @@ class SearchSettings:
             )
         if not 0 < self.alpha < 1:
             raise WaveforestError(f"diagnose.alpha must be in (0, 1), got {self.alpha}")
+        if self.signature_alpha is not None and not 0 < self.signature_alpha < 1:
+            raise WaveforestError(f"diagnose.signature_alpha must be in (0, 1) or null, got {self.signature_alpha}")
 
     @property
     def gap_kw(self) -> dict:
@@ -327,6 +334,9 @@ class SearchResult:
         The caches of every simulation run on the fit pulses and on the tested pulses (the
         same object when all pulses are fitted); ``.all(effects)`` gives all samples under
         a model, simulating only what is not cached.
+    signature : dict or None
+        The signature test's reading of the base model (:meth:`.signature_test.SignatureTest.read`),
+        set by :func:`.missing_effects.find_missing_effects`; None without one.
     """
 
     verdict: str
@@ -340,6 +350,7 @@ class SearchResult:
     halves: dict
     simulations: SimulationCache = field(default=None, repr=False)
     test_simulations: SimulationCache = field(default=None, repr=False)
+    signature: dict | None = None
 
     @property
     def effects(self) -> dict[str, float]:

@@ -1,0 +1,166 @@
+"""The signature test: the gap read along each candidate effect's signature.
+
+docs/method.md §(j) (the signature test). The moment gap G (:mod:`.gap`) squares every
+label x feature term and averages them, so an effect that moves a few terms is diluted by
+all the others, and by every statistic added. A missing effect moves the terms in a known
+direction, its *signature*; the projection of the observed terms on it collects the effect's
+evidence from every statistic, first echo and whole waveform alike, and no other noise.
+
+Terms: x_k, k = (label, feature, moment), the label-pooled ``d_bar`` and ``l_bar`` of the gap
+(:func:`.gap.pooled`) over the features :data:`.gap.ALL_FEATURES` (with their cell rules).
+Candidate e has the signature s_e, the terms of its simulation against the base model's with
+common random numbers (:func:`terms` of the two tables), at one value. Per data set ::
+
+    T_e = sum_k s_ek x_k / v_k         v_k the term's null variance (mean bootstrap variance
+                                       over the power analysis' replicates without effect)
+    z_e = T_e / SD*(T_e)               SD* the robust SD over the cluster bootstrap's replicates
+
+Without effect z_e is about N(0, c_e^2); c_e, the RMS of z_e over the replicates without
+effect, never below 1 (a bootstrap that overstates the noise is kept: conservative). The test
+*fires* when ``max_e |z_e| / c_e`` exceeds the ``1 - alpha / (2 m)`` quantile of Student's t with
+field samples - strata degrees of freedom (two-sided, Bonferroni over the m candidates, ``alpha``
+= :data:`ALPHA`). Its *margin* ``max_e |z_e| / c_e - crit`` is > 0
+when it fires.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass
+from statistics import NormalDist
+
+import numpy as np
+import pandas as pd
+from scipy.stats import t as student_t
+
+from waveforest.diagnose.gap import ALL_FEATURES, GapData, cell_statistics
+from waveforest.stats.bootstrap import robust_sd
+
+ALPHA = 0.01
+"""Family-wise false-alarm rate of the signature test over all candidates (two-sided)."""
+
+_MOMENTS = ("d", "log_sd_ratio")
+
+
+def terms(real: pd.DataFrame, sim: pd.DataFrame, universe: pd.Series, weights: np.ndarray | None = None, *,
+          floors: dict | None = None, min_pulses: int, min_samples: int) -> tuple[pd.Series, np.ndarray | None]:
+    """The label-pooled terms of ``sim`` against ``real`` (module docstring), over the features of
+    :data:`.gap.ALL_FEATURES` that both tables carry.
+
+    Returns
+    -------
+    point : Series
+        Indexed by (label, feature, moment); terms with no valid cell are left out.
+    boot : (B, K) float64 or None
+        The same terms in each bootstrap replicate of ``weights`` ((B, J) over ``universe``).
+    """
+    features = tuple(f for f in ALL_FEATURES if f in real.columns and f in sim.columns)
+    data = GapData.build(real, sim, universe, features=features, floors=floors, min_pulses=min_pulses,
+                         min_samples=min_samples)
+    return pooled_terms(data, cell_statistics(data), None if weights is None else cell_statistics(data, weights))
+
+
+def pooled_terms(data: GapData, point: dict, boot: dict | None = None) -> tuple[pd.Series, np.ndarray | None]:
+    """:func:`terms` of ``data`` from its :func:`.gap.cell_statistics` (``point``, and ``boot``
+    of bootstrap weights or None)."""
+    labels = pd.factorize(data.cells["species"])[1]
+    member = data.label_members[:, :, None] & data.valid[None]  # (L, C, F)
+    keep = member.any(axis=1)  # (L, F)
+    index = pd.MultiIndex.from_tuples([(lab, f, m) for m in _MOMENTS for li, lab in enumerate(labels)
+                                       for fi, f in enumerate(data.features) if keep[li, fi]],
+                                      names=["label", "feature", "moment"])
+    mf = member.astype(np.float64)
+
+    def pooled(stats: dict) -> np.ndarray:
+        out = []
+        for m in _MOMENTS:
+            x = stats[m]
+            ok = np.isfinite(x)
+            num = np.einsum("lcf,...cf->...lf", mf, np.where(ok, x, 0.0))
+            den = np.einsum("lcf,...cf->...lf", mf, ok.astype(np.float64))
+            with np.errstate(invalid="ignore", divide="ignore"):
+                out.append((num / den)[..., keep])
+        return np.concatenate(out, axis=-1)
+
+    return pd.Series(pooled(point), index=index), None if boot is None else pooled(boot)
+
+
+def critical_value(n_candidates: int, alpha: float = ALPHA, df: int | None = None) -> float:
+    """The two-sided Bonferroni threshold of |z| over m candidates: the ``1 - alpha / (2 m)``
+    quantile of Student's t with ``df`` degrees of freedom (field samples - strata: z is a
+    studentised sum over field samples), of the standard normal without ``df``."""
+    q = 1.0 - alpha / (2.0 * max(int(n_candidates), 1))
+    return float(student_t.ppf(q, int(df))) if df is not None else NormalDist().inv_cdf(q)
+
+
+@dataclass(frozen=True)
+class SignatureTest:
+    """The signature test of the module docstring.
+
+    Attributes
+    ----------
+    signatures : dict name -> Series
+        Each candidate's signature terms s_e.
+    null_var : Series
+        v_k per term.
+    scale : dict name -> float
+        c_e (>= 1).
+    crit : float
+        Threshold on ``|z_e| / c_e``.
+    """
+
+    signatures: dict
+    null_var: pd.Series
+    scale: dict
+    crit: float
+
+    @classmethod
+    def calibrate(cls, signatures: dict, off: list, alpha: float = ALPHA, df: int | None = None) -> SignatureTest:
+        """The test of ``signatures`` (name -> Series of terms), its null variances and scales
+        from ``off``: the (point, boot) :func:`terms` of the replicates without effect;
+        threshold :func:`critical_value` (``alpha``, ``df``)."""
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # a term NaN in every replicate
+            var = pd.concat([pd.Series(robust_sd(b) ** 2, index=p.index) for p, b in off], axis=1).mean(axis=1)
+        test = cls(signatures=signatures, null_var=var, scale=dict.fromkeys(signatures, 1.0),
+                   crit=critical_value(len(signatures), alpha, df))
+        z = pd.DataFrame([test.z(p, b) for p, b in off])
+        scale = {e: max(1.0, math.sqrt(float(np.nanmean(z[e] ** 2)))) if z[e].notna().any() else 1.0
+                 for e in signatures}
+        return cls(signatures=signatures, null_var=var, scale=scale, crit=test.crit)
+
+    def z(self, point: pd.Series, boot: np.ndarray) -> dict:
+        """z_e of every candidate for one data set's :func:`terms` (NaN: no common term)."""
+        names = list(self.signatures)
+        sig = np.column_stack([self.signatures[e].reindex(point.index).to_numpy() for e in names])  # (K, m)
+        v = self.null_var.reindex(point.index).to_numpy()
+        x = point.to_numpy()
+        ok = np.isfinite(x) & (v > 0)
+        w = np.where(np.isfinite(sig[ok]), sig[ok], 0.0) / v[ok, None]
+        t = x[ok] @ w
+        sd = robust_sd(np.where(np.isfinite(boot[:, ok]), boot[:, ok], 0.0) @ w)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            z = np.where((sd > 0) & (np.abs(w).sum(axis=0) > 0), t / sd, np.nan)
+        return {e: float(z[i]) for i, e in enumerate(names)}
+
+    def margin(self, point: pd.Series, boot: np.ndarray) -> tuple[float, str]:
+        """(``max_e |z_e| / c_e - crit``, the candidate e that reaches it); > 0: the test fires."""
+        return self._margin(self.z(point, boot))
+
+    def _margin(self, z: dict) -> tuple[float, str]:
+        r = {e: abs(v) / self.scale[e] for e, v in z.items() if math.isfinite(v)}
+        if not r:
+            return -math.inf, ""
+        best = max(r, key=r.get)
+        return r[best] - self.crit, best
+
+    def read(self, point: pd.Series, boot: np.ndarray) -> dict:
+        """The test on one data set, as ``verdict.json`` records it: ``fires``, ``margin``,
+        ``effect`` (the candidate of the largest ``|z| / c``), ``threshold`` (crit), and per
+        candidate ``z`` and ``scale`` (c)."""
+        z = self.z(point, boot)
+        margin, best = self._margin(z)
+        num = lambda x: float(x) if math.isfinite(x) else None  # noqa: E731
+        return {"fires": bool(margin > 0), "margin": num(margin), "effect": best, "threshold": float(self.crit),
+                "z": {e: num(v) for e, v in z.items()}, "scale": {e: float(c) for e, c in self.scale.items()}}
