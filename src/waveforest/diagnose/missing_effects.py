@@ -342,7 +342,14 @@ def summary_markdown(result: SearchResult, gap: pd.DataFrame, cand: pd.DataFrame
         + (f", times {_fmt(settings.floor_scale)}: the mean gap over the mean bootstrap floor of the power "
            "analysis' pseudo-real data without effect, src/waveforest/diagnose/power.py"
            if settings.floor_scale != 1.0 else "")
-        + "). With diagnose.near_stem_m "
+        + ")."
+        + (f" The signature test projects the datasets' mean d and log SD ratio of every first-echo and "
+           "whole-waveform statistic on each candidate's signature (its simulation against the base model's), z "
+           "calibrated on the same pseudo-real data, threshold the two-sided family-wise rate "
+           f"{_fmt(settings.signature_alpha)} over the candidates (src/waveforest/diagnose/signature_test.py); the "
+           "gap is there to explain when its interval lies above the floor or that test fires."
+           if settings.signature_alpha is not None else "")
+        + " With diagnose.near_stem_m "
         "(default 0.3 m), a tree species' pulses whose first echo lies that close to the stem form the "
         "cells '<species> near stem' (an XY error moves them one way and those further out the other), in the "
         f"datasets where both parts come from at least {NEAR_STEM_MIN_SAMPLES} field samples. With "
