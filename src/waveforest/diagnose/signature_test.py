@@ -34,7 +34,7 @@ import numpy as np
 import pandas as pd
 from scipy.stats import t as student_t
 
-from waveforest.diagnose.gap import ALL_FEATURES, GapData, cell_statistics
+from waveforest.diagnose.gap import ALL_FEATURES, GapData, cell_statistics, pooled
 from waveforest.stats.bootstrap import robust_sd
 
 ALPHA = 0.01
@@ -65,25 +65,15 @@ def pooled_terms(data: GapData, point: dict, boot: dict | None = None) -> tuple[
     """:func:`terms` of ``data`` from its :func:`.gap.cell_statistics` (``point``, and ``boot``
     of bootstrap weights or None)."""
     labels = pd.factorize(data.cells["species"])[1]
-    member = data.label_members[:, :, None] & data.valid[None]  # (L, C, F)
-    keep = member.any(axis=1)  # (L, F)
+    keep = (data.label_members[:, :, None] & data.valid[None]).any(axis=1)  # (L, F), as gap.pooled keeps them
     index = pd.MultiIndex.from_tuples([(lab, f, m) for m in _MOMENTS for li, lab in enumerate(labels)
                                        for fi, f in enumerate(data.features) if keep[li, fi]],
                                       names=["label", "feature", "moment"])
-    mf = member.astype(np.float64)
 
-    def pooled(stats: dict) -> np.ndarray:
-        out = []
-        for m in _MOMENTS:
-            x = stats[m]
-            ok = np.isfinite(x)
-            num = np.einsum("lcf,...cf->...lf", mf, np.where(ok, x, 0.0))
-            den = np.einsum("lcf,...cf->...lf", mf, ok.astype(np.float64))
-            with np.errstate(invalid="ignore", divide="ignore"):
-                out.append((num / den)[..., keep])
-        return np.concatenate(out, axis=-1)
+    def both(stats: dict) -> np.ndarray:
+        return np.concatenate([pooled(data, stats[m], data.valid) for m in _MOMENTS], axis=-1)
 
-    return pd.Series(pooled(point), index=index), None if boot is None else pooled(boot)
+    return pd.Series(both(point), index=index), None if boot is None else both(boot)
 
 
 def critical_value(n_candidates: int, alpha: float = ALPHA, df: int | None = None) -> float:
