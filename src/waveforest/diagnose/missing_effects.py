@@ -261,19 +261,19 @@ class Diagnosis:
     floor: FloorCalibration = field(default_factory=FloorCalibration)
 
 
-def real_rows(features: pd.DataFrame, keys: pd.DataFrame, selected: dict, metas: dict, strata,
-              waveform: bool = True) -> pd.DataFrame:
+def real_rows(features: pd.DataFrame, keys: pd.DataFrame, selected: dict, metas: dict, strata) -> pd.DataFrame:
     """The real feature rows of ``keys`` (:func:`.strata.pulse_keys`) with the rules applied:
     the comparison pulses' from ``features`` (the real feature tables), those of the strata
     :data:`.strata.ADDED_STRATA` from their rows of ``selected`` (dataset -> table) and
-    ``metas`` (dataset -> calibration JSON dict); with ``waveform``, the whole waveform's
-    statistics added (:func:`.waveform.with_waveform_statistics`)."""
+    ``metas`` (dataset -> calibration JSON dict), with the whole waveform's statistics
+    (:func:`.waveform.with_waveform_statistics`: the gap may compare them, the signature test
+    reads them)."""
 
     added = keys["stratum"].isin(ADDED_STRATA)
     real = real_features(features, keys[~added], strata)
     if added.any():
         real = pd.concat([real, added_features(keys, selected, metas, strata)], ignore_index=True)
-    return with_waveform_statistics(real, selected, metas) if waveform else real
+    return with_waveform_statistics(real, selected, metas)
 
 
 def run_diagnosis(selected: dict, features: pd.DataFrame, metas: dict, simulate, settings: DiagnoseSettings, *,
@@ -295,7 +295,7 @@ def run_diagnosis(selected: dict, features: pd.DataFrame, metas: dict, simulate,
     fit_keys = None if settings.fit_pulses is None else pulse_keys(selected, strata, int(settings.fit_pulses))
     if keys.empty:
         raise WaveforestError("diagnose: no comparison pulse of the modelled species in the select tables")
-    real = real_rows(features, keys, selected, metas, strata)  # the whole waveform: the signature test
+    real = real_rows(features, keys, selected, metas, strata)
     power_tables, calibration = {}, {}  # the power analysis' simulations (the signatures reuse them), its floor
     limits, curve = detection_limits(keys, simulate, settings.search, settings.power, settings.seed,
                                      progress=progress, tables=power_tables, calibration=calibration)
