@@ -21,17 +21,21 @@ SPECIES = ("pine", "spruce", "birch")
 KW = {"min_pulses": 10, "min_samples": 2}
 
 
-def _table(rng, shift: dict | None = None, samples: int = 20, pulses: int = 8) -> pd.DataFrame:
+def _table(rng, shift: dict | None = None, samples: int = 20, pulses: int = 8, rho: float = 0.0) -> pd.DataFrame:
     """Two datasets x three species x ``samples`` field samples x ``pulses`` pulses; every
     feature of ALL_FEATURES is sample effect (SD 1) + pulse noise (SD 2), plus ``shift``
-    ((species, feature) -> added mean) in every dataset."""
+    ((species, feature) -> added mean) in every dataset. E_below's noise (both parts) is
+    correlated ``rho`` with E's."""
     shift = shift or {}
+    e, below = ALL_FEATURES.index("E"), ALL_FEATURES.index("E_below")
     rows = []
     for sp in SPECIES:
         for j in range(samples):
             u = rng.normal(0.0, 1.0, len(ALL_FEATURES))
             for ds in ("d1", "d2"):
-                x = 10.0 + u + rng.normal(0.0, 2.0, (pulses, len(ALL_FEATURES)))
+                x = u + rng.normal(0.0, 2.0, (pulses, len(ALL_FEATURES)))
+                x[:, below] = rho * x[:, e] + math.sqrt(1.0 - rho**2) * x[:, below]
+                x += 10.0
                 for k, f in enumerate(ALL_FEATURES):
                     x[:, k] += shift.get((sp, f), 0.0)
                 t = pd.DataFrame(x, columns=list(ALL_FEATURES))
@@ -40,10 +44,10 @@ def _table(rng, shift: dict | None = None, samples: int = 20, pulses: int = 8) -
     return pd.concat(rows, ignore_index=True)
 
 
-def _pair(seed: int, shift: dict | None = None):
+def _pair(seed: int, shift: dict | None = None, rho: float = 0.0):
     """(real, sim, universe, weights): real with ``shift``, sim without, 200 bootstrap replicates."""
     rng = np.random.default_rng(seed)
-    real, sim = _table(rng, shift), _table(rng)
+    real, sim = _table(rng, shift, rho=rho), _table(rng, rho=rho)
     universe = sample_universe(real, sim)
     return real, sim, universe, bootstrap_weights(universe, 200, seed)
 
@@ -88,33 +92,54 @@ def test_without_effect_z_has_unit_spread():
     about 0.13) and its mean near 0."""
     sig = _signature(SHIFT)
     off = [terms(*_pair(100 + i), **KW) for i in range(8)]
-    test = SignatureTest(signatures={"e": sig}, null_var=SignatureTest.calibrate({"e": sig}, off).null_var,
-                         scale={"e": 1.0}, crit=critical_value(1))
+    test = replace(SignatureTest.calibrate({"e": sig}, off), scale={"e": 1.0})
     z = np.array([test.z(*terms(*_pair(200 + i), **KW))["e"] for i in range(30)])
     assert 0.7 < math.sqrt(np.mean(z**2)) < 1.3
     assert abs(np.mean(z)) < 0.5
 
 
 def test_a_few_shifted_terms_fire_the_signature_test_and_not_the_gap():
-    """A shift of two of 39 label x feature cells: the signature test (ten candidates, family
-    rate 0.01) fires in at least 80 % of 15 data sets, the omnibus gap over the same features
-    in at most 40 %; without the shift the signature test never fires."""
+    """A shift of two of 39 label x feature cells (E_below correlated 0.9 with E, as energy
+    statistics are): the signature test (ten candidates, family rate 0.01) fires in at least
+    80 % of 15 data sets, the omnibus gap over the same features in at most 40 %; without the
+    shift the signature test never fires."""
     sig = _signature(SHIFT)
     rng = np.random.default_rng(5)
     decoys = {f"decoy{i}": pd.Series(rng.normal(0, 0.3, len(sig)), index=sig.index) for i in range(9)}
-    off = [terms(*_pair(300 + i), **KW) for i in range(10)]
+    off = [terms(*_pair(300 + i, rho=0.9), **KW) for i in range(10)]
     df = cluster_df(_pair(0)[2])
     test = SignatureTest.calibrate({"e": sig, **decoys}, off, df=df)
     assert all(c >= 1.0 for c in test.scale.values()) and test.crit == pytest.approx(critical_value(10, ALPHA, df))
     fired, gap_fired, null_fired = 0, 0, 0
     for i in range(15):
-        real, sim, universe, w = _pair(400 + i, SHIFT)
+        real, sim, universe, w = _pair(400 + i, SHIFT, rho=0.9)
         margin, best = test.margin(*terms(real, sim, universe, w, **KW))
         fired += margin > 0 and best == "e"
         rep = gap_report(real, sim, features=ALL_FEATURES, universe=universe, weights=w, wasserstein=False, **KW)
         gap_fired += bool(rep.significant)
-        null_fired += test.margin(*terms(*_pair(500 + i), **KW))[0] > 0
+        null_fired += test.margin(*terms(*_pair(500 + i, rho=0.9), **KW))[0] > 0
     assert fired >= 12 and gap_fired <= 6 and null_fired == 0
+
+
+def test_correlated_terms_are_read_against_their_difference():
+    """E_below correlated 0.9 with E, an effect on E_below alone: the projection on V^-1 s sees it
+    against the part of E_below that E does not predict, with SD sqrt(1 - 0.81) = 0.44 of its
+    own, so its z is larger than with the variances alone (lambda = 1) by 1 / 0.44 = 2.3 without
+    shrinkage, by about 1.7 with lambda = 0.2; without the effect both z keep unit spread."""
+    shift = {("birch", "E_below"): 0.6}
+    sig = _signature(shift)
+    off = [terms(*_pair(700 + i, rho=0.9), **KW) for i in range(10)]
+    corr = SignatureTest.calibrate({"e": sig}, off)
+    r = corr.null_corr.loc[("birch", "E", "d"), ("birch", "E_below", "d")]
+    assert r == pytest.approx(0.8 * 0.9, abs=0.1)  # (1 - lambda) x the terms' correlation
+    variances = SignatureTest.calibrate({"e": sig}, off, shrinkage=1.0)
+    assert (variances.null_corr.to_numpy() == np.eye(len(sig))).all()
+    z = np.array([[t.z(*terms(*_pair(800 + i, shift, rho=0.9), **KW))["e"] for t in (corr, variances)]
+                  for i in range(12)])
+    assert 1.4 < np.mean(z[:, 0]) / np.mean(z[:, 1]) < 2.3
+    z0 = np.array([[t.z(*terms(*_pair(900 + i, rho=0.9), **KW))["e"] for t in (corr, variances)]
+                   for i in range(12)])
+    assert (0.6 < np.sqrt(np.mean(z0**2, axis=0))).all() and (np.sqrt(np.mean(z0**2, axis=0)) < 1.4).all()
 
 
 def test_calibration_corrects_a_bootstrap_that_understates_the_noise_and_never_shrinks_it():

@@ -122,6 +122,7 @@ def test_a_firing_signature_test_gives_the_search_a_gap_to_explain():
     sig, _ = terms(study.real({"hotspot": 1.3}), real, sample_universe(real), **kw)
     for crit, fires in ((0.0, True), (1e6, False)):
         test = SignatureTest(signatures={"hotspot": sig}, null_var=pd.Series(1.0, index=sig.index),
+                             null_corr=pd.DataFrame(np.eye(len(sig)), index=sig.index, columns=sig.index),
                              scale={"hotspot": 1.0}, crit=crit)
         result, gap, _, _ = find_missing_effects(study.keys, real, study.simulate, SETTINGS, seed=5, signature=test)
         rec = verdict_record(result, gap, _limits({"hotspot": True, "understory": True}))

@@ -11,9 +11,16 @@ Terms: x_k, k = (label, feature, moment), the label-pooled ``d_bar`` and ``l_bar
 Candidate e has the signature s_e, the terms of its simulation against the base model's with
 common random numbers (:func:`terms` of the two tables), at one value. Per data set ::
 
-    T_e = sum_k s_ek x_k / v_k         v_k the term's null variance (mean bootstrap variance
-                                       over the power analysis' replicates without effect)
+    T_e = s_e' V^-1 x                  V = D R D, the terms' null covariance: D the diagonal of
+                                       their SDs (robust bootstrap SD, RMS over the power
+                                       analysis' replicates without effect), R their bootstrap
+                                       correlation over those replicates, shrunk toward none:
+                                       R = (1 - lambda) R* + lambda I, lambda = SHRINKAGE
     z_e = T_e / SD*(T_e)               SD* the robust SD over the cluster bootstrap's replicates
+
+Weighting by V^-1 rather than by the variances alone is the matched filter of correlated noise:
+an effect that moves one of two correlated terms is seen against their difference, whose noise
+is the smaller (by sqrt(1 - r^2)).
 
 Without effect z_e is about N(0, c_e^2); c_e, the RMS of z_e over the replicates without
 effect, never below 1 (a bootstrap that overstates the noise is kept: conservative). The test
@@ -27,7 +34,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from statistics import NormalDist
 
 import numpy as np
@@ -39,6 +46,11 @@ from waveforest.stats.bootstrap import robust_sd
 
 ALPHA = 0.01
 """Family-wise false-alarm rate of the signature test over all candidates (two-sided)."""
+
+SHRINKAGE = 0.2
+"""lambda: the share of the terms' bootstrap correlation R* replaced by none (1: each term
+weighted by its variance alone). The bootstrap resamples field samples; the twins' Monte Carlo
+and coverage noise is only partly in R*, so it is not trusted whole (docs/validation.md)."""
 
 _MOMENTS = ("d", "log_sd_ratio")
 
@@ -76,6 +88,13 @@ def pooled_terms(data: GapData, point: dict, boot: dict | None = None) -> tuple[
     return pd.Series(both(point), index=index), None if boot is None else both(boot)
 
 
+def _centred(point: pd.Series, boot: np.ndarray, index: pd.Index) -> np.ndarray:
+    """(B, K) bootstrap replicates of ``point``'s terms over ``index``, less their mean; 0 where
+    a term is NaN."""
+    b = pd.DataFrame(boot, columns=point.index).reindex(columns=index).to_numpy()
+    return np.nan_to_num(b - np.nanmean(b, axis=0))
+
+
 def critical_value(n_candidates: int, alpha: float = ALPHA, df: int | None = None) -> float:
     """The two-sided Bonferroni threshold of |z| over m candidates: the ``1 - alpha / (2 m)``
     quantile of Student's t with ``df`` degrees of freedom (field samples - strata: z is a
@@ -93,7 +112,9 @@ class SignatureTest:
     signatures : dict name -> Series
         Each candidate's signature terms s_e.
     null_var : Series
-        v_k per term.
+        v_k per term (the squared diagonal of D).
+    null_corr : DataFrame
+        R, term x term (same index as ``null_var``).
     scale : dict name -> float
         c_e (>= 1).
     crit : float
@@ -102,36 +123,47 @@ class SignatureTest:
 
     signatures: dict
     null_var: pd.Series
+    null_corr: pd.DataFrame
     scale: dict
     crit: float
 
     @classmethod
-    def calibrate(cls, signatures: dict, off: list, alpha: float = ALPHA, df: int | None = None) -> SignatureTest:
-        """The test of ``signatures`` (name -> Series of terms), its null variances and scales
+    def calibrate(cls, signatures: dict, off: list, alpha: float = ALPHA, df: int | None = None,
+                  shrinkage: float = SHRINKAGE) -> SignatureTest:
+        """The test of ``signatures`` (name -> Series of terms), its null covariance and scales
         from ``off``: the (point, boot) :func:`terms` of the replicates without effect;
-        threshold :func:`critical_value` (``alpha``, ``df``)."""
+        threshold :func:`critical_value` (``alpha``, ``df``); lambda = ``shrinkage``."""
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)  # a term NaN in every replicate
             var = pd.concat([pd.Series(robust_sd(b) ** 2, index=p.index) for p, b in off], axis=1).mean(axis=1)
-        test = cls(signatures=signatures, null_var=var, scale=dict.fromkeys(signatures, 1.0),
-                   crit=critical_value(len(signatures), alpha, df))
+            dev = np.concatenate([_centred(p, b, var.index) for p, b in off])
+        cov = dev.T @ dev
+        sd = np.sqrt(np.diag(cov))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            r = np.nan_to_num(cov / np.outer(sd, sd))
+        r = (1.0 - shrinkage) * r + shrinkage * np.eye(len(r))
+        np.fill_diagonal(r, 1.0)
+        test = cls(signatures=signatures, null_var=var, null_corr=pd.DataFrame(r, index=var.index, columns=var.index),
+                   scale=dict.fromkeys(signatures, 1.0), crit=critical_value(len(signatures), alpha, df))
         z = pd.DataFrame([test.z(p, b) for p, b in off])
         scale = {e: max(1.0, math.sqrt(float(np.nanmean(z[e] ** 2)))) if z[e].notna().any() else 1.0
                  for e in signatures}
-        return cls(signatures=signatures, null_var=var, scale=scale, crit=test.crit)
+        return replace(test, scale=scale)
 
     def z(self, point: pd.Series, boot: np.ndarray) -> dict:
         """z_e of every candidate for one data set's :func:`terms` (NaN: no common term)."""
         names = list(self.signatures)
-        sig = np.column_stack([self.signatures[e].reindex(point.index).to_numpy() for e in names])  # (K, m)
         v = self.null_var.reindex(point.index).to_numpy()
         x = point.to_numpy()
         ok = np.isfinite(x) & (v > 0)
-        w = np.where(np.isfinite(sig[ok]), sig[ok], 0.0) / v[ok, None]
+        keep = point.index[ok]
+        sig = np.column_stack([self.signatures[e].reindex(keep).to_numpy() for e in names])  # (K, m)
+        sd = np.sqrt(v[ok])[:, None]
+        w = np.linalg.solve(self.null_corr.loc[keep, keep].to_numpy(), np.nan_to_num(sig) / sd) / sd
         t = x[ok] @ w
-        sd = robust_sd(np.where(np.isfinite(boot[:, ok]), boot[:, ok], 0.0) @ w)
+        s = robust_sd(np.nan_to_num(boot[:, ok]) @ w)
         with np.errstate(invalid="ignore", divide="ignore"):
-            z = np.where((sd > 0) & (np.abs(w).sum(axis=0) > 0), t / sd, np.nan)
+            z = np.where((s > 0) & (np.abs(w).sum(axis=0) > 0), t / s, np.nan)
         return {e: float(z[i]) for i, e in enumerate(names)}
 
     def margin(self, point: pd.Series, boot: np.ndarray) -> tuple[float, str]:
