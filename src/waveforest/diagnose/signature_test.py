@@ -35,6 +35,7 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import dataclass, replace
+from functools import cached_property
 from statistics import NormalDist
 
 import numpy as np
@@ -150,16 +151,21 @@ class SignatureTest:
                  for e in signatures}
         return replace(test, scale=scale)
 
+    @cached_property
+    def _signature_matrix(self) -> np.ndarray:
+        """(K, m) the signatures over ``null_var``'s terms, NaN where a signature lacks one."""
+        return pd.DataFrame(self.signatures).reindex(self.null_var.index).to_numpy()
+
     def z(self, point: pd.Series, boot: np.ndarray) -> dict:
         """z_e of every candidate for one data set's :func:`terms` (NaN: no common term)."""
         names = list(self.signatures)
-        v = self.null_var.reindex(point.index).to_numpy()
+        pos = self.null_var.index.get_indexer(point.index)
+        v = np.where(pos >= 0, self.null_var.to_numpy()[pos], np.nan)
         x = point.to_numpy()
         ok = np.isfinite(x) & (v > 0)
-        keep = point.index[ok]
-        sig = np.column_stack([self.signatures[e].reindex(keep).to_numpy() for e in names])  # (K, m)
         sd = np.sqrt(v[ok])[:, None]
-        w = np.linalg.solve(self.null_corr.loc[keep, keep].to_numpy(), np.nan_to_num(sig) / sd) / sd
+        r = self.null_corr.to_numpy()[np.ix_(pos[ok], pos[ok])]
+        w = np.linalg.solve(r, np.nan_to_num(self._signature_matrix[pos[ok]]) / sd) / sd
         t = x[ok] @ w
         s = robust_sd(np.nan_to_num(boot[:, ok]) @ w)
         with np.errstate(invalid="ignore", divide="ignore"):
