@@ -34,6 +34,17 @@ def test_invalid_value_names_the_field(tmp_path):
         config.load(p)
 
 
+def test_dataset_names_need_no_quotes(tmp_path):
+    """YAML 1.1 reads 2012_10_1 as the number 2012101; the config reads it as the name, and keeps
+    numbers numbers. Where another loader made it a number (Snakemake's), the message says why."""
+    p = tmp_path / "c.yaml"
+    p.write_text("datasets: [2010_12_1, 2012_10_1]\nseed: 7\nmcrt: {n_rays: 1024, roulette: 0.25}\n")
+    cfg = config.load(p)
+    assert cfg["datasets"] == ["2010_12_1", "2012_10_1"] and cfg["seed"] == 7 and cfg["mcrt"]["roulette"] == 0.25
+    with pytest.raises(config.ConfigError, match=r"datasets/0: 2010121 is not of type 'string' \(YAML 1.1 reads"):
+        config.validate({"datasets": [2010121]}, "config.yaml")
+
+
 def test_unknown_key_is_rejected(tmp_path):
     p = tmp_path / "c.yaml"
     p.write_text("mcrtt: {}\n")

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import copy
 import functools
+import re
 from pathlib import Path
 from typing import Any
 
@@ -28,8 +29,22 @@ from waveforest.species import species_slugs
 
 SCHEMA_PATH = Path(__file__).with_name("config.schema.yaml")
 
-YAML_LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
-"""libyaml's safe loader where PyYAML was built with it (the same documents, parsed in C)."""
+
+class YamlLoader(getattr(yaml, "CSafeLoader", yaml.SafeLoader)):
+    """libyaml's safe loader where PyYAML was built with it, with YAML 1.2's numbers: digits
+    joined by underscores, as in the dataset name 2012_10_1, stay a string (YAML 1.1 reads the
+    number 2012101)."""
+
+
+YamlLoader.yaml_implicit_resolvers = {
+    first: [(tag, rx) for tag, rx in resolvers if tag not in ("tag:yaml.org,2002:int", "tag:yaml.org,2002:float")]
+    for first, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()}
+for _tag, _rx, _first in (
+        ("tag:yaml.org,2002:int", r"^(?:[-+]?[0-9]+|0x[0-9a-fA-F]+)$", "-+0123456789"),
+        ("tag:yaml.org,2002:float", r"^(?:[-+]?(?:[0-9]+\.[0-9]*|\.[0-9]+)(?:[eE][-+]?[0-9]+)?"
+                                    r"|[-+]?\.(?:inf|Inf|INF)|\.(?:nan|NaN|NAN))$", "-+0123456789.")):
+    YamlLoader.add_implicit_resolver(_tag, re.compile(_rx), list(_first))
+
 
 SPECIES_LISTS = (("campaign", "species"), ("simulate", "species"), ("classify", "three_species"))
 """Config keys holding lists of species slugs (null allowed where the schema allows it)."""
@@ -50,7 +65,7 @@ COMMAND_LINE = "--config on the command line"
 @functools.cache
 def _schema_cached() -> dict:
     with open(SCHEMA_PATH) as fh:
-        return yaml.load(fh, Loader=YAML_LOADER)
+        return yaml.load(fh, Loader=YamlLoader)
 
 
 def schema() -> dict:
@@ -85,7 +100,10 @@ def _message(exc: jsonschema.ValidationError) -> tuple[list[str], str]:
     if "propertyNames" in exc.relative_schema_path and exc.validator == "enum":
         parts = parts + [str(exc.instance)]
         return parts, f"{'/'.join(parts)}: unknown name; expected one of {', '.join(map(str, exc.validator_value))}"
-    return parts, f"{'/'.join(parts) or '(top level)'}: {exc.message}"
+    hint = ""
+    if exc.validator == "type" and "string" in str(exc.validator_value) and isinstance(exc.instance, int):
+        hint = " (YAML 1.1 reads digits joined by underscores, such as 2012_10_1, as a number: quote the name)"
+    return parts, f"{'/'.join(parts) or '(top level)'}: {exc.message}{hint}"
 
 
 def _given(parts: list[str], overrides: dict | None) -> bool:
@@ -208,7 +226,7 @@ def load(path: str | Path | None = None, overrides: dict | None = None) -> dict[
             raise ConfigError(f"{path}: no such config file")
         with open(path) as fh:
             try:
-                config = yaml.load(fh, Loader=YAML_LOADER) or {}
+                config = yaml.load(fh, Loader=YamlLoader) or {}
             except yaml.YAMLError as exc:
                 raise ConfigError(f"{path}: not valid YAML ({exc})") from None
         if not isinstance(config, dict):

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import yaml
 
-from waveforest.config import YAML_LOADER, validate_document
+from waveforest.config import YamlLoader, validate_document
 from waveforest.errors import WaveforestError
 from waveforest.io.las.write import SPACING_TOL_PS, wkt_problem
 from waveforest.model.forward import SensorSettings
@@ -39,7 +39,7 @@ class SurveyError(WaveforestError):
 @functools.cache
 def _schemas() -> dict:
     with open(SCHEMA_PATH) as fh:
-        return yaml.load(fh, Loader=YAML_LOADER)
+        return yaml.load(fh, Loader=YamlLoader)
 
 
 def schema(which: str) -> dict:
@@ -59,7 +59,7 @@ def read_document(path: str | Path, which: str) -> dict:
     except (OSError, UnicodeDecodeError) as exc:
         raise SurveyError(f"{path}: cannot read the {which} file ({getattr(exc, 'strerror', None) or exc})") from None
     try:
-        doc = yaml.load(text, Loader=YAML_LOADER)
+        doc = yaml.load(text, Loader=YamlLoader)
     except yaml.YAMLError as exc:
         raise SurveyError(f"{path}: not valid YAML ({' '.join(str(exc).split())})") from None
     doc = {} if doc is None else doc
