@@ -124,8 +124,9 @@ def test_a_few_shifted_terms_fire_the_signature_test_and_not_the_gap():
 def test_correlated_terms_are_read_against_their_difference():
     """E_below correlated 0.9 with E, an effect on E_below alone: the projection on V^-1 s sees it
     against the part of E_below that E does not predict, with SD sqrt(1 - 0.81) = 0.44 of its
-    own, so its z is larger than with the variances alone (lambda = 1) by 1 / 0.44 = 2.3 without
-    shrinkage, by about 1.7 with lambda = 0.2; without the effect both z keep unit spread."""
+    own, so its z is larger than with the variances alone (lambda = 1): by 1 / 0.44 = 2.3 at
+    most (two terms, their correlation known), by about 1.5 here, where R* is estimated over
+    78 terms from 10 data sets; without the effect both z keep unit spread."""
     shift = {("birch", "E_below"): 0.6}
     sig = _signature(shift)
     off = [terms(*_pair(700 + i, rho=0.9), **KW) for i in range(10)]
@@ -136,7 +137,7 @@ def test_correlated_terms_are_read_against_their_difference():
     assert (variances.null_corr.to_numpy() == np.eye(len(sig))).all()
     z = np.array([[t.z(*terms(*_pair(800 + i, shift, rho=0.9), **KW))["e"] for t in (corr, variances)]
                   for i in range(12)])
-    assert 1.4 < np.mean(z[:, 0]) / np.mean(z[:, 1]) < 2.3
+    assert 1.3 < np.mean(z[:, 0]) / np.mean(z[:, 1]) < 2.3
     z0 = np.array([[t.z(*terms(*_pair(900 + i, rho=0.9), **KW))["e"] for t in (corr, variances)]
                    for i in range(12)])
     assert (0.6 < np.sqrt(np.mean(z0**2, axis=0))).all() and (np.sqrt(np.mean(z0**2, axis=0)) < 1.4).all()
