@@ -344,7 +344,8 @@ def summary_markdown(result: SearchResult, gap: pd.DataFrame, cand: pd.DataFrame
            if settings.floor_scale != 1.0 else "")
         + ")."
         + (f" The signature test projects the datasets' mean d and log SD ratio of every first-echo and "
-           "whole-waveform statistic on each candidate's signature (its simulation against the base model's), z "
+           "whole-waveform statistic on each candidate's signature (its simulation against the base model's), "
+           "weighted by their covariance without effect, z "
            "calibrated on the same pseudo-real data, threshold the two-sided family-wise rate "
            f"{_fmt(settings.signature_alpha)} over the candidates (src/waveforest/diagnose/signature_test.py); the "
            "gap is there to explain when its interval lies above the floor or that test fires."
