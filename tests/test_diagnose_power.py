@@ -20,9 +20,11 @@ from waveforest.diagnose.power import (
     PowerSettings,
     _crossing,
     _crossings,
+    _limit,
+    _Walk,
+    _z_crossing,
     detection_limits,
     floor_calibration,
-    ladder,
     seen_at_test,
     verdict_with_limits,
 )
@@ -39,18 +41,59 @@ def limits_of(study, simulate=None, settings=SETTINGS, power=POWER, seed=3):
     return detection_limits(study.keys, simulate or study.simulate, settings, power, seed)
 
 
-def test_ladder_runs_from_off_through_the_test_value_to_the_bound():
-    """The bound, the test value, then halvings of the test value's distance from off (in u)."""
-    assert [cat.from_u("hotspot", u) for u in ladder("hotspot", 4)] == pytest.approx([1.075, 1.15, 1.3, 2.0])
-    assert [cat.from_u("clumping", u) for u in ladder("clumping", 3)] == pytest.approx([0.3, 0.15, 0.05])
-    assert [cat.from_u("leaf_albedo", u) for u in ladder("leaf_albedo", 2)] == pytest.approx([0.85, 0.6])
-    assert [cat.from_u("lad_shift", u) for u in ladder("lad_shift", 2)] == pytest.approx([15.0, 30.0])
-    assert [cat.from_u("understory", u) for u in ladder("understory", 1)] == pytest.approx([4.0])
-    for name in CATALOGUE:  # every effect has a unit, and its test value is a rung strictly inside the range
+def test_every_walk_starts_at_the_test_value_inside_the_range():
+    for name in CATALOGUE:  # every effect has a unit, and its test value lies strictly inside the range
         assert cat.UNITS[name]
-        u0, u = cat.off_u(name), ladder(name, 3)
-        assert np.all(np.diff(np.abs(u - u0)) > 0) and abs(u[0] - u0) > 0
-        assert cat.from_u(name, u[1]) == pytest.approx(CATALOGUE[name].test_value)
+        w = _Walk.start(name, 3)
+        assert w.next == w.test and 0 < w.test < w.bound
+        assert w.value(w.test) == pytest.approx(CATALOGUE[name].test_value)
+        assert w.value(w.bound) in CATALOGUE[name].bounds and w.value(0.0) == CATALOGUE[name].off
+    assert _Walk.start("leaf_albedo", 3).value(_Walk.start("leaf_albedo", 3).bound) == 0.6  # the test value's side
+    assert _Walk.start("clumping", 3).value(0.5) == pytest.approx(0.1)  # u = 0.05 / r
+
+
+def _margins(strength: float, offsets: np.ndarray, scale: float = 0.05) -> np.ndarray:
+    """(R, 5) results of a test of one candidate whose margin saturates with strength:
+    |z| / c - crit = 30 (1 - exp(-s / scale)) - 3 + offset per replicate (crit 3, z > 0), and
+    z / (c crit); the gap never detects."""
+    m = 30.0 * (1.0 - math.exp(-strength / scale)) - 3.0 + offsets
+    return np.column_stack([np.zeros_like(m), np.ones_like(m), -np.ones_like(m), m, (m + 3.0) / 3.0])
+
+
+def _walk(values: int, offsets: np.ndarray) -> tuple[_Walk, np.ndarray]:
+    w = _Walk.start("hotspot", values)
+    off = _margins(0.0, offsets)
+    while w.next is not None:
+        w.record(_margins(w.next, offsets), off, 16)
+    return w, off
+
+
+def test_the_walk_steps_to_the_limit_that_one_rung_misses():
+    """A margin that saturates, as z does: interpolated from the test value alone (one value)
+    the limit is several times too large; the walk's steps put a value near it and the limit
+    converges on the exact 16th-smallest crossing of the 20 replicates."""
+    offsets = np.linspace(-1.0, 1.0, 20)
+    exact = np.sort(-0.05 * np.log(1.0 - (3.0 - offsets) / 30.0))[15]
+    limits = {}
+    for values in (1, 2, 3, 4):
+        w, off = _walk(values, offsets)
+        assert len(w.rows) == values and w.test in w.rows and w.bound not in w.rows
+        strengths = sorted(w.rows)
+        assert all(0 < s < w.test for s in strengths[:-1])  # every step below the test value
+        limits[values] = _limit(*w.rungs(off), 16)[0]
+    assert limits[1] > 3 * exact  # the test value (0.3) is six scales above the limit
+    assert abs(limits[3] - exact) < 0.2 * exact and abs(limits[4] - exact) < 0.05 * exact
+    assert limits[1] > limits[2] > limits[3] >= limits[4] >= exact  # a concave margin: from above
+
+
+def test_a_missed_test_value_sends_the_walk_to_the_bound():
+    offsets = np.zeros(20)
+    w = _Walk.start("hotspot", 3)
+    off = _margins(0.0, offsets - 10.0)
+    w.record(_margins(w.test, offsets - 30.0), off, 16)  # missed at the test value
+    assert w.next == w.bound
+    w.record(_margins(w.bound, offsets - 30.0), off, 16)  # and at the bound: not reached
+    assert w.next is None and math.isnan(_limit(*w.rungs(off), 16)[0])
 
 
 def test_crossing_is_exact_for_a_gap_quadratic_in_strength():
@@ -59,6 +102,16 @@ def test_crossing_is_exact_for_a_gap_quadratic_in_strength():
         assert _crossing(lo, a * lo**2 - c, hi, a * hi**2 - c) == pytest.approx(math.sqrt(c / a))
     assert _crossing(0.1, 0.01, 0.2, 0.05) == 0.1  # detected at the weaker value already
     assert math.isnan(_crossing(0.1, -0.01, 0.2, -0.001))
+
+
+def test_the_signature_crossing_follows_z_not_its_absolute_value():
+    """z / (c crit) of a replicate whose noise points against the effect, -0.6 at off and 1.8 at
+    strength 1: it fires at 2/3 (z linear), not at 1/3 (the chord of the margin |w| - 1, -0.4 to
+    0.8). With two candidates the first |w| to reach 1 decides, on either side."""
+    assert _z_crossing(0.0, np.array([-0.6]), 1.0, np.array([1.8])) == pytest.approx(2 / 3)
+    assert _z_crossing(0.2, np.array([0.0, -0.9]), 0.8, np.array([0.5, -1.5])) == pytest.approx(0.2 + 0.6 / 6)
+    assert _z_crossing(0.2, np.array([1.1]), 0.8, np.array([2.0])) == 0.2  # fires at the weaker value
+    assert math.isnan(_z_crossing(0.2, np.array([0.1, np.nan]), 0.8, np.array([0.9, np.nan])))
 
 
 def test_crossings_continue_past_a_missed_value():
@@ -159,8 +212,11 @@ def test_a_limit_never_lies_outside_the_values_tried():
 
 
 def test_more_field_samples_see_smaller_effects():
-    few = limits_of(SyntheticStudy(samples_per_species=5, pulses_per_sample=8, seed=1))[0]
-    many = limits_of(SyntheticStudy(samples_per_species=20, pulses_per_sample=8, seed=1))[0]
+    """With four pool members: from two, the replicates share one difference between them,
+    which sets the signature test's scale c as much as the samples do."""
+    power = replace(POWER, pool=4)
+    few = limits_of(SyntheticStudy(samples_per_species=5, pulses_per_sample=8, seed=1), power=power)[0]
+    many = limits_of(SyntheticStudy(samples_per_species=20, pulses_per_sample=8, seed=1), power=power)[0]
     assert (many["smallest_detectable"] < few["smallest_detectable"]).all(), (few, many)
 
 
@@ -178,11 +234,12 @@ def test_bounds_too_small_to_see_give_an_empty_limit():
     limits, curve = limits_of(study, damped)
     hot = limits.set_index("effect").loc["hotspot"]
     assert math.isnan(hot["smallest_detectable"]) and hot["upper_bound"] == 2.0
-    assert curve.loc[curve["effect"] == "hotspot", "value"].tolist() == [1.0, 2.0]  # off, then the bound only
+    assert curve.loc[curve["effect"] == "hotspot", "value"].tolist() == [1.0, 1.3, 2.0]  # off, test value, bound
     assert np.isfinite(limits.set_index("effect").loc["understory", "smallest_detectable"])
     assert hot["status"] == "not reached" and not hot["sees_test_value"] and hot["power_at_bound"] < POWER.power
     text = verdict_with_limits("inconclusive", limits)
-    assert text.startswith("inconclusive: these data cannot see hotspot at 1.3 factor (not reached up to 2 factor)")
+    assert text.startswith("inconclusive: these data cannot see hotspot at 1.3 factor (power 0.00 [0.00, 0.56] there, "
+                           "not reached up to 2 factor)")
     assert text.endswith("; seen in >= 80% of the model's twins from understory "
                          + f"{limits['smallest_detectable'].iloc[1]:.3g} LAI")
     assert "no effect larger" not in text  # a power on the model's twins, no proof of absence

@@ -397,7 +397,7 @@ def test_signatures_reuse_the_power_analysis_when_nothing_was_searched():
     assert result.verdict == "none"
     assert calls[n_power:] and all(not c for c in calls[n_power:])  # base model only after the power analysis
     assert set(sigs["effect"]) == set(settings.candidates)
-    for name, g in sigs.groupby("effect"):  # the ladder value nearest the test value, in the search coordinate
+    for name, g in sigs.groupby("effect"):  # the value tried nearest the test value, in the search coordinate
         tried = [k[0][1] for k in tables if k and k[0][0] == name]
         u_test = cat.to_u(name, CATALOGUE[name].test_value)
         assert g["value"].iloc[0] == min(tried, key=lambda v: abs(cat.to_u(name, v) - u_test))

@@ -90,8 +90,8 @@ def draw_gap_figure(gap: pd.DataFrame, candidates: pd.DataFrame, *, title: str =
 def power_figure(curve: pd.DataFrame, limits: pd.DataFrame, path: str | Path, *, title: str = "") -> Path:
     """Write ``power.png``: per candidate, the power of the test (share of pseudo-real
     replicates whose gap lies above the noise floor) against the effect's strength (its
-    distance from off in the search coordinate, so off is at the left also where its value is
-    at infinity, as clumping's and nonlinearity's; the ticks give the values), with 95 % Wilson
+    distance from off in the search coordinate, on a square-root axis, so off is at the left also
+    where its value is at infinity, as clumping's and nonlinearity's; the ticks give the values), with 95 % Wilson
     intervals, the power required (dashed), the detection limit (dotted) and the test value (grey).
 
     Parameters
@@ -120,6 +120,8 @@ def power_figure(curve: pd.DataFrame, limits: pd.DataFrame, path: str | Path, *,
         def at(value, name=name, u0=u0):  # a value's strength
             return abs(cat.to_u(name, float(value)) - u0)
 
+        # a square-root axis: the walk's steps towards the limit lie far below the test value
+        ax.set_xscale("function", functions=(lambda x: np.sqrt(np.clip(x, 0.0, None)), np.square))
         ax.set_xticks(v, ["off"] + [f"{x:.3g}" for x in c["value"].to_numpy(float)[1:]])
         p = c["power"].to_numpy(float)
         lo = c["power_ci_low"].to_numpy(float) if "power_ci_low" in c else p
@@ -144,6 +146,7 @@ def power_figure(curve: pd.DataFrame, limits: pd.DataFrame, path: str | Path, *,
             unit = str(r["unit"])
         else:
             unit = ""
+        ax.set_xlim(0.0, v[-1] * 1.1)
         ax.set_ylim(-0.03, 1.03)
         ax.set_title(name, fontsize=9)
         ax.set_xlabel(unit, fontsize=8)
@@ -151,7 +154,7 @@ def power_figure(curve: pd.DataFrame, limits: pd.DataFrame, path: str | Path, *,
     for ax in axes[:, 0]:
         ax.set_ylabel("power", fontsize=8)
     reps = int(curve["replicates"].iloc[0]) if len(curve) else 0
-    fig.suptitle((title + "\n" if title else "") + f"power per value, off at the left ({reps} pseudo-real replicates, 95 % Wilson "
+    fig.suptitle((title + "\n" if title else "") + f"power per value, off at the left, distance from off on a square-root axis ({reps} pseudo-real replicates, 95 % Wilson "
                  "intervals); dashed: power required, dotted: limit (shaded: its 95 % interval), grey: test value", fontsize=9)
     path = Path(path)
     with atomic_path(path) as tmp:

@@ -422,6 +422,14 @@ def _reason(result: SearchResult, gap: pd.DataFrame) -> str:
     return result.reason
 
 
+def _at_bound(r) -> str:
+    """``0.45 [0.26, 0.66] at 4 LAI``, or "not tried" (a row of :data:`.power.LIMIT_COLUMNS`)."""
+    if pd.isna(r.power_at_bound):
+        return "not tried"
+    return (f"{_fmt(r.power_at_bound, 2)} [{_fmt(r.power_at_bound_ci_low, 2)}, {_fmt(r.power_at_bound_ci_high, 2)}] "
+            f"at {_fmt(r.upper_bound)} {r.unit}")
+
+
 def _limits_markdown(limits: pd.DataFrame, curve: pd.DataFrame, real_floor: float) -> list[str]:
     """The ``diagnose.md`` section on detection limits (``real_floor``: the real data's noise floor)."""
     reps = int(limits["replicates"].iloc[0]) if len(limits) else 0
@@ -431,7 +439,8 @@ def _limits_markdown(limits: pd.DataFrame, curve: pd.DataFrame, real_floor: floa
              if len(off) and "power_ci_low" in off else "")
     off_floor = float(off["noise_floor"].iloc[0]) if len(off) else math.nan
     lines = ["## What these data could have seen", "",
-             f"Each candidate simulated at a ladder of values as pseudo-real data of these pulses, {reps} "
+             f"Each candidate simulated at its test value and at steps towards its limit as pseudo-real data of "
+             f"these pulses, {reps} "
              "replicate(s), tested as the base model's gap is (above the noise floor at the same alpha, or the "
              "signature test, same cluster bootstrap); the smallest value detected in at least "
              f"{_fmt(float(limits['power'].iloc[0]) * 100 if len(limits) else math.nan)} % of the replicates "
@@ -441,14 +450,12 @@ def _limits_markdown(limits: pd.DataFrame, curve: pd.DataFrame, real_floor: floa
              "plants than between simulated ones, and limits that are too small. The pseudo-real data are the "
              "model's own twins: where real data differ from the model in other ways too, an effect at or somewhat "
              "above its limit can still go unnamed (docs/validation.md, Diagnose at the paper's scale).", "",
-             "| effect | smallest detectable [95 %] | test value | seen at the test value (power [95 %]) | power at the strongest "
-             "value tried [95 %] |", "|---|---|---|---|---|"]
+             "| effect | smallest detectable [95 %] | test value | seen at the test value (power [95 %]) | power at the "
+             "range's bound [95 %] (tried when the test value is missed) |", "|---|---|---|---|---|"]
     for r, seen in zip(limits.itertuples(), seen_at_test(limits)):
         found = (f"not reached up to {_fmt(r.upper_bound)} {r.unit}" if pd.isna(r.smallest_detectable)
                  else f"{_fmt(r.smallest_detectable)} {interval_of(r)} {r.unit}".replace("  ", " "))
         lines.append(f"| {r.effect} | {found} | {_fmt(r.test_value)} {r.unit} | "
-                     f"{seen}{f' ({p})' if (p := power_at_test(r)) else ''} | {_fmt(r.power_at_bound, 2)} "
-                     f"[{_fmt(r.power_at_bound_ci_low, 2)}, {_fmt(r.power_at_bound_ci_high, 2)}] at "
-                     f"{_fmt(r.upper_bound)} {r.unit} |")
+                     f"{seen}{f' ({p})' if (p := power_at_test(r)) else ''} | {_at_bound(r)} |")
     lines += ["", "Power per value tried: detection_curve.csv and power.png.", ""]
     return lines

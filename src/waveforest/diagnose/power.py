@@ -11,7 +11,7 @@ design of the data and the test that decides the verdict ``none``:
   search's settings and the same cluster bootstrap over field samples: v is *detected* in a
   replicate when the lower bound of the excess gap's interval (:func:`.gap.gap_report`,
   ``alpha``) is above 0, or when the signature test fires (:mod:`.signature_test`, at
-  ``signature_alpha``; the candidates' signatures are those of their far bounds, the pool's
+  ``signature_alpha``; the candidates' signatures are those of their test values, the pool's
   first seed against the base model's, and the test is calibrated on the replicates without
   effect). Without one of them the search names nothing.
 * **Replicates from a pool.** Every model (off and each value) is simulated over all pulses
@@ -23,27 +23,33 @@ design of the data and the test that decides the verdict ``none``:
   replicates share simulations, so they are less independent than ``replicates`` separate
   simulations would be (the Wilson intervals of the power assume independence). Power(v) =
   share of replicates that detect v, with its 95 % Wilson interval.
-* **Ladder.** Per candidate, ``values`` strengths from its off value towards the bound on
-  the side of its test value (search coordinate u, :mod:`.catalogue`): the bound, the test
-  value itself, then halvings of the test value's distance from off (1/2, 1/4, ... of it).
-  With the test value a rung, whether the data see it is a power measured there, not an
-  interpolation (a saturating signature, as the understory's, bends the gap away from the
-  square law the interpolation assumes). The ladder is walked from the bound down and stops
-  at the first value whose power is below ``power`` (smaller ones are not evaluated). Each
-  replicate's crossing (where LB turns positive) is interpolated between that value and the
-  next stronger one (the off value below the weakest), linearly in the squared distance from
-  off for the gap (it grows as its square) and linearly in the distance for the signature
-  test's margin (z grows as the shift), the weaker of the two crossings; the limit is the
-  ceil(power x replicates)-th smallest crossing. Empty (NaN) when the bound itself is detected
-  with less power.
+* **The walk towards the limit.** Per candidate, up to ``values`` strengths on the side of its
+  test value (search coordinate u, :mod:`.catalogue`; strength = distance from off). The first
+  is the test value itself: whether the data see an effect of that size is a power measured
+  there, not an interpolation. If it is detected with power, each next strength is the limit
+  estimated from the strengths evaluated so far (below), kept inside the bracket between the
+  weakest value detected with power and the strongest one below it that is not (off at the
+  start): at most :data:`STEP_DOWN` times weaker than the former, and at least
+  :data:`BRACKET_MARGIN` of the bracket's width from its ends. The walk stops after
+  ``values`` strengths or when the bracket is narrower than :data:`BRACKET_MARGIN` of its top.
+  If the test value is missed, the bound is tried instead (the walk then ends there). Each
+  replicate's crossing (where LB turns positive) is interpolated between the bracket's ends,
+  linearly in the squared strength for the gap (it grows as its square) and, for the signature
+  test, each candidate's z linearly in the strength (z grows as the shift, on the replicate's own
+  noise: :func:`_z_crossing`), the weaker of the two crossings; the limit is the ceil(power x replicates)-th smallest crossing. Empty (NaN) when
+  the bound is detected with less power. A limit interpolated from one rung far above it is
+  the interpolation's, not the data's: margins saturate (z grows ever slower as the
+  bootstrap's spread grows with the shift) and some effects grow as the strength's square
+  (``nonlinearity``), so the walk evaluates a rung where the limit is expected and
+  interpolates over the last bracket only (docs/validation.md, Diagnose: detection limits).
 * **The limit's interval.** The limit estimates the power-quantile of the crossings' distribution;
   its 95 % interval is the distribution-free one of that quantile, [X_(r), X_(s)] of the
   sorted crossings with ranks from Binomial(replicates, power)
   (:func:`waveforest.stats.proportion.quantile_ranks`; 20 replicates at 0.8: the 12th and the
   20th). A replicate that misses the value above the limit crosses between the stronger
   values evaluated, so the upper end can lie beyond it; NaN when some replicate misses the
-  bound itself. A lower end on the weaker ladder value is at most that value (weaker ones
-  are not evaluated). Like the Wilson intervals, it assumes independent replicates.
+  strongest value tried. A lower end at the bracket's weaker value is at most that value
+  (weaker ones are not evaluated). Like the Wilson intervals, it assumes independent replicates.
 
 **The floor calibrated on twins.** The off replicates are data without effect on this very
 design: the gap they give is the noise floor by definition. Their mean gap over their mean
@@ -130,15 +136,16 @@ LIMIT_COLUMNS = ("effect", "unit", "smallest_detectable", "limit_ci_low", "limit
 """Columns of ``detection_limits.csv`` (:func:`detection_limits`), a contract with the report:
 effect and unit; ``smallest_detectable`` the limit (NaN unless ``status`` is "detected");
 ``limit_ci_low`` <= ``limit_ci_high`` its 95 % interval (module docstring), NaN on the side of
-the strongest value tried (``upper_bound``) when it lies beyond it (both NaN without a limit);
-``status`` "detected" or "not reached" (the strongest value tried, ``upper_bound``, is detected
-in fewer than ``power`` x ``replicates`` replicates: "not reached up to upper_bound");
+the strongest value tried when it lies beyond it (both NaN without a limit);
+``status`` "detected" or "not reached" (the far bound ``upper_bound``, tried when the test value
+is missed, is detected in fewer than ``power`` x ``replicates`` replicates: "not reached up to
+upper_bound");
 ``test_value`` the effect's realistic size (:data:`waveforest.effects.CATALOGUE`) and
 ``sees_test_value`` whether the limit lies at or below it (the data can see an effect of that size);
 ``power`` the power required and ``replicates`` the pseudo-real replicates per value;
-``power_at_bound`` the share of replicates that detect ``upper_bound``, with its Wilson interval;
-``power_at_test`` the same at the test value (a rung of the ladder: :func:`ladder`), NaN where
-it was not evaluated (the walk stopped at the bound, or a ladder of one value)."""
+``power_at_bound`` the share of replicates that detect ``upper_bound``, with its Wilson interval,
+NaN where the bound was not tried (the test value was detected with power);
+``power_at_test`` the same at the test value (always the walk's first value)."""
 
 CURVE_COLUMNS = ("effect", "value", "strength", "replicates", "detected", "power", "power_ci_low", "power_ci_high",
                  "gap", "noise_floor", "excess_ci_low", "signature_margin")
@@ -157,7 +164,8 @@ class PowerSettings:
     replicates : int
         Independent pseudo-real data sets.
     values : int
-        Ladder values per candidate (off not counted).
+        Strengths evaluated per candidate (off not counted): the test value, then steps towards
+        the limit (module docstring); the bound replaces them when the test value is missed.
     power : float
         Share of replicates that must detect a value for it to count as detectable.
     pool : int
@@ -180,19 +188,18 @@ class PowerSettings:
         return max(1, math.ceil(self.power * self.replicates - 1e-9))
 
 
-def ladder(name: str, n_values: int) -> np.ndarray:
-    """Search coordinates of the ladder of ``name``, weakest first (module docstring).
+STEP_DOWN = 32.0
+"""A next strength is at least the weakest detected one over this (the estimate from a rung far
+above the limit can be low by more than ten times when margins saturate)."""
 
-    Returns
-    -------
-    (n_values,) float64
-        u of the values at 1/2^(n-2), ..., 1/2, 1 of the test value's distance from off, then
-        the far bound on the test value's side (``n_values`` 1: the bound alone).
-    """
-    u0, u_test = cat.off_u(name), cat.to_u(name, CATALOGUE[name].test_value)
-    end = 1.0 if u_test >= u0 else 0.0
-    frac = 2.0 ** -np.arange(n_values - 2, -1, -1, dtype=np.float64)
-    return np.append(u0 + (u_test - u0) * frac, end)
+BRACKET_MARGIN = 0.1
+"""A next strength stays this share of the bracket's width inside it; a bracket narrower than
+this share of its top ends the walk."""
+
+
+def _far_bound(name: str) -> float:
+    """u of the bound on the test value's side of off."""
+    return 1.0 if cat.to_u(name, CATALOGUE[name].test_value) >= cat.off_u(name) else 0.0
 
 
 def _crossing(s_lo: float, lb_lo: float, s_hi: float, lb_hi: float) -> float:
@@ -205,20 +212,28 @@ def _crossing(s_lo: float, lb_lo: float, s_hi: float, lb_hi: float) -> float:
     return math.sqrt(s_lo**2 + (s_hi**2 - s_lo**2) * (-lb_lo) / (lb_hi - lb_lo))
 
 
-def _linear_crossing(s_lo: float, m_lo: float, s_hi: float, m_hi: float) -> float:
-    """Strength at which the signature test's margin turns positive between two strengths,
-    linear in strength (z grows as the effect's shift)."""
-    if m_lo > 0:
+def _z_crossing(s_lo: float, w_lo: np.ndarray, s_hi: float, w_hi: np.ndarray) -> float:
+    """Strength at which the signature test fires between two strengths, each candidate's z
+    linear in strength (the effect adds to the replicate's own noise: its bootstrap and
+    simulation side are the same at both); ``w`` = z / (c crit) per candidate, the test fires
+    where some |w| first exceeds 1. Interpolating the margin (max |w| - 1) instead would let a
+    replicate whose noise points against the effect cross too early: its |z| first falls."""
+    w_lo, w_hi = np.nan_to_num(w_lo), np.nan_to_num(w_hi)
+    if np.abs(w_lo).max(initial=0.0) > 1.0:
         return s_lo
-    if m_hi <= 0:
+    if np.abs(w_hi).max(initial=0.0) <= 1.0:
         return math.nan
-    return s_lo + (s_hi - s_lo) * (-m_lo) / (m_hi - m_lo)
+    b = w_hi - w_lo
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.concatenate([(1.0 - w_lo) / b, (-1.0 - w_lo) / b])
+    return s_lo + (s_hi - s_lo) * float(t[np.isfinite(t) & (t >= 0.0) & (t <= 1.0)].min())
 
 
-def _crossings(strengths: np.ndarray, lbs: list, j: int, crossing=_crossing) -> np.ndarray:
-    """Each replicate's crossing (``crossing``, default :func:`_crossing`) between rungs ``j - 1``
-    and ``j``; a replicate that does not detect rung ``j`` crosses between the first stronger rung
-    it detects and the rung below that one, inf when it detects none.
+def _crossings(strengths: np.ndarray, lbs: list, j: int, crossing=_crossing, values: list | None = None) -> np.ndarray:
+    """Each replicate's crossing (``crossing``, default :func:`_crossing`, of ``values``, default
+    ``lbs``) between rungs ``j - 1`` and ``j``; a replicate that does not detect rung ``j`` crosses
+    between the first stronger rung it detects and the rung below that one, inf when it detects
+    none.
 
     Parameters
     ----------
@@ -226,8 +241,7 @@ def _crossings(strengths: np.ndarray, lbs: list, j: int, crossing=_crossing) -> 
         Distance from off of each rung, increasing (rung 0 is off).
     lbs : list of (R,) float64 or None
         The replicates' scores per rung, > 0 where detected (excess lower bounds, or signature
-        margins with :func:`_linear_crossing`); None for a rung not evaluated (only rungs below
-        ``j - 1`` may be).
+        margins); None for a rung not evaluated (only rungs below ``j - 1`` may be).
     j : int
         The rung of the first interval, 1 <= j < n_rungs.
 
@@ -237,11 +251,12 @@ def _crossings(strengths: np.ndarray, lbs: list, j: int, crossing=_crossing) -> 
         Strengths; the first interval's as in the limit (a replicate that detects rung j - 1
         crosses at it), inf beyond the strongest rung.
     """
+    values = lbs if values is None else values
     out = np.full(len(lbs[j]), np.inf)
     todo = np.ones(len(out), dtype=bool)
     for i in range(j, len(strengths)):
         for r in np.flatnonzero(todo & (lbs[i] > 0)):
-            out[r] = crossing(strengths[i - 1], lbs[i - 1][r], strengths[i], lbs[i][r])
+            out[r] = crossing(strengths[i - 1], values[i - 1][r], strengths[i], values[i][r])
         todo &= ~(lbs[i] > 0)
     return out
 
@@ -323,7 +338,7 @@ def _null_replicates(keys: pd.DataFrame, simulate: Simulator, settings: SearchSe
 def calibrate_floor(keys: pd.DataFrame, simulate: Simulator, settings: SearchSettings, power: PowerSettings,
                     seed: int, *, progress: Callable[[str], None] | None = None) -> FloorCalibration:
     """The noise floor's calibration alone: :func:`detection_limits`' off replicates (same
-    seeds, same pool: the factor the diagnosis applies), without the ladders."""
+    seeds, same pool: the factor the diagnosis applies), without the walks."""
     if keys.empty:
         raise WaveforestError("diagnose: no pulse for the power analysis")
     return floor_calibration(np.array([gap for gap, _ in _null_replicates(keys, simulate, settings, power, seed,
@@ -337,53 +352,101 @@ def _detected(res: np.ndarray) -> np.ndarray:
 
 
 def _signature_test(pool: _Pool, reps: list[_Replicate], walks: dict, off_terms: list, alpha: float) -> SignatureTest:
-    """The signature test of the candidates at their far bounds (the walks' first values: the
+    """The signature test of the candidates at their test values (the walks' first values: the
     pool's first seed against the base model's, common random numbers), calibrated on the
-    replicates' terms without effect ``off_terms``."""
+    replicates' terms without effect ``off_terms``. The test value, not the bound: the shape of
+    an effect near its limit is that of a moderate effect, not of the strongest (saturated
+    echoes, a crown's worth of clumping)."""
     s, universe = reps[0].settings, reps[0].universe
     kw = {"floors": s.floors, "min_pulses": s.min_pulses, "min_samples": s.min_samples}
     base = pool.get({}, 0)
-    sigs = {name: terms(pool.get(cat.with_effect({}, name, cat.from_u(name, w.us[-1])), 0), base, universe, **kw)[0]
-            for name, w in walks.items()}
+    sigs = {name: terms(pool.get(w.effects(w.test), 0), base, universe, **kw)[0] for name, w in walks.items()}
     return SignatureTest.calibrate(sigs, off_terms, alpha, cluster_df(universe))
 
 
 def _results(tests: list, scale: float, signature: SignatureTest | None) -> np.ndarray:
-    """(R, 4) rows of the replicates' ``tests`` (:meth:`_Replicate.test`): gap, floor and excess
-    lower bound under the floor calibrated by ``scale``, and the signature margin (-inf without
-    a signature test)."""
-    margins = [-math.inf if signature is None else signature.margin(*t)[0] for _, t in tests]
-    return np.column_stack([_calibrated([g for g, _ in tests], scale), margins])
+    """(R, 4 + m) rows of the replicates' ``tests`` (:meth:`_Replicate.test`): gap, floor and
+    excess lower bound under the floor calibrated by ``scale``, the signature margin (-inf
+    without a signature test), and each of its m candidates' z / (c crit) (none without)."""
+    base = _calibrated([g for g, _ in tests], scale)
+    if signature is None:
+        return np.column_stack([base, np.full(len(tests), -math.inf)])
+    zs = [signature.z(*t) for _, t in tests]
+    margins = [signature.margin_of(z)[0] for z in zs]
+    w = np.array([[z[e] / (signature.scale[e] * signature.crit) for e in signature.signatures] for z in zs])
+    return np.column_stack([base, margins, w])
+
+
+def _limit(strengths: np.ndarray, scores: list, needed: int) -> tuple[float, np.ndarray]:
+    """The limit from results at increasing ``strengths`` (rung 0 off; ``scores`` their rows of
+    :func:`_results`), interpolated below the weakest rung j from which every stronger one is
+    detected with power: (limit, the replicates' sorted crossings); NaN and no crossings when
+    the strongest rung is not detected with power."""
+    det = [int(_detected(r).sum()) >= needed for r in scores]
+    if not det[-1]:
+        return math.nan, np.array([])
+    j = max(1, min(i for i in range(len(det)) if all(det[i:])))
+    cross = np.sort(np.minimum(  # the weaker of the two tests' crossings
+        _crossings(strengths, [r[:, 2] for r in scores], j),
+        _crossings(strengths, [r[:, 3] for r in scores], j, _z_crossing, [r[:, 4:] for r in scores])))
+    return min(cross[needed - 1], strengths[j]), cross  # within the range tried
 
 
 @dataclass
-class _LadderWalk:
-    """One candidate's walk down its ladder ``us`` (search coordinate), from the far bound
-    towards off, while a value is detected in at least ``needed`` replicates: ``k`` the value
-    under test (at the end: the first not detected, -1 if all were), ``rows`` each tested value's
-    results (:func:`_detected`)."""
+class _Walk:
+    """One candidate's walk towards its limit (module docstring): ``rows`` the results
+    (:func:`_results`) of each strength evaluated, ``next`` the strength to evaluate (None: the
+    walk is done)."""
 
     name: str
-    us: np.ndarray
-    k: int
+    values: int
+    test: float
+    bound: float
     rows: dict = field(default_factory=dict)
-    done: bool = False
+    next: float | None = None
 
     @classmethod
-    def start(cls, name: str, values: int) -> _LadderWalk:
-        """The walk of ``name`` over :func:`ladder` (``values`` values), at its far bound."""
-        us = ladder(name, values)
-        return cls(name, us, len(us) - 1)
+    def start(cls, name: str, values: int) -> _Walk:
+        """The walk of ``name``, at its test value."""
+        u0 = cat.off_u(name)
+        test = abs(cat.to_u(name, CATALOGUE[name].test_value) - u0)
+        return cls(name, values, test, abs(_far_bound(name) - u0), next=test)
 
-    def record(self, res: np.ndarray, needed: int) -> None:
-        """The results (R, 4) of value ``k`` (:func:`_detected`); the walk stops at a value not
-        detected or at off."""
-        self.rows[self.k] = res
-        if _detected(res).sum() < needed:
-            self.done = True
-        else:
-            self.k -= 1
-            self.done = self.k < 0
+    def u(self, strength: float) -> float:
+        """The search coordinate at ``strength`` (distance from off, on the test value's side)."""
+        u0 = cat.off_u(self.name)
+        return u0 + math.copysign(strength, _far_bound(self.name) - u0)
+
+    def value(self, strength: float) -> float:
+        """The effect's value at ``strength``."""
+        return cat.from_u(self.name, self.u(strength))
+
+    def effects(self, strength: float) -> dict:
+        """The model with the effect at ``strength``."""
+        return cat.with_effect({}, self.name, self.value(strength))
+
+    def rungs(self, off: np.ndarray) -> tuple[np.ndarray, list]:
+        """(strengths, results) of off and every strength evaluated, weakest first."""
+        ks = sorted(self.rows)
+        return np.array([0.0, *ks]), [off, *(self.rows[k] for k in ks)]
+
+    def record(self, res: np.ndarray, off: np.ndarray, needed: int) -> None:
+        """The results (:func:`_results`) at ``next``, and the strength to try after it."""
+        self.rows[self.next] = res
+        seen = {k: int(_detected(r).sum()) >= needed for k, r in self.rows.items()}
+        self.next = None
+        if not seen[self.test]:  # the test value missed: the bound decides
+            if self.bound not in self.rows and self.bound > self.test:
+                self.next = self.bound
+            return
+        hi = min(k for k, ok in seen.items() if ok)
+        lo = max([0.0, *(k for k, ok in seen.items() if not ok and k < hi)])
+        width = hi - lo
+        if len(self.rows) >= self.values or width < BRACKET_MARGIN * hi:
+            return
+        estimate = _limit(*self.rungs(off), needed)[0]
+        low = hi / STEP_DOWN if lo == 0.0 else lo + BRACKET_MARGIN * width
+        self.next = float(np.clip(estimate, low, hi - BRACKET_MARGIN * width)) if math.isfinite(estimate) else None
 
 
 def detection_limits(keys: pd.DataFrame, simulate: Simulator, settings: SearchSettings, power: PowerSettings,
@@ -411,19 +474,19 @@ def detection_limits(keys: pd.DataFrame, simulate: Simulator, settings: SearchSe
         common-random-number pairs (:func:`.missing_effects.signatures` reads them).
     calibration : dict, optional
         Filled with ``{"floor": FloorCalibration, "signature": SignatureTest or None}`` of the
-        off replicates; the tests of the ladder use that calibrated floor (``settings.floor_scale``
+        off replicates; the tests of the walks use that calibrated floor (``settings.floor_scale``
         is ignored) and that signature test (None with ``settings.signature_alpha`` None).
 
     Returns
     -------
     limits : DataFrame
-        :data:`LIMIT_COLUMNS`, one row per candidate; ``smallest_detectable`` NaN when the
-        far bound (``upper_bound``) is detected in fewer than :attr:`PowerSettings.needed`
-        replicates.
+        :data:`LIMIT_COLUMNS`, one row per candidate; ``smallest_detectable`` NaN when neither
+        the test value nor the far bound (``upper_bound``) is detected in
+        :attr:`PowerSettings.needed` replicates.
     curve : DataFrame
-        :data:`CURVE_COLUMNS`, per candidate its off value and the ladder values evaluated,
-        weakest first (``strength``: distance from off in the search coordinate; gap, floor
-        and lower bound: medians over the replicates).
+        :data:`CURVE_COLUMNS`, per candidate its off value and the values evaluated, weakest
+        first (``strength``: distance from off in the search coordinate; gap, floor and lower
+        bound: medians over the replicates).
     """
     if keys.empty:
         raise WaveforestError("diagnose: no pulse for the power analysis")
@@ -431,66 +494,55 @@ def detection_limits(keys: pd.DataFrame, simulate: Simulator, settings: SearchSe
         return pd.DataFrame(columns=list(LIMIT_COLUMNS)), pd.DataFrame(columns=list(CURVE_COLUMNS))
     pool, reps, off_tests = _null_replicates(keys, simulate, settings, power, seed, progress)
     cal = floor_calibration(np.array([g for g, _ in off_tests]))
-    walks = {name: _LadderWalk.start(name, power.values) for name in settings.candidates}
+    walks = {name: _Walk.start(name, power.values) for name in settings.candidates}
     sig_test, off = None, None
-    while active := [w for w in walks.values() if not w.done]:
-        tried = [cat.with_effect({}, w.name, cat.from_u(w.name, w.us[w.k])) for w in active]
+    while active := [w for w in walks.values() if w.next is not None]:
+        tried = [w.effects(w.next) for w in active]
         for k in range(len(pool.seeds)):  # seed by seed: each seed's base plants stay in the scene cache
             for effects in tried:
                 pool.get(effects, k)
-        if off is None:  # the first step simulated every far bound: the signatures
+        if off is None:  # the first step simulated every test value: the signatures
             if settings.signature_alpha is not None:
                 sig_test = _signature_test(pool, reps, walks, [t for _, t in off_tests], settings.signature_alpha)
             off = _results(off_tests, cal.scale, sig_test)
         for w, effects in zip(active, tried):
-            w.record(_results([r.test(effects) for r in reps], cal.scale, sig_test), power.needed)
+            w.record(_results([r.test(effects) for r in reps], cal.scale, sig_test), off, power.needed)
     if calibration is not None:
         calibration.update(floor=cal, signature=sig_test)
     limits, curve = [], []
     for name in settings.candidates:
         w = walks[name]
-        us, k, rows = w.us, w.k, w.rows
-        u0 = cat.off_u(name)
+        strengths, scores = w.rungs(off)
+        s, cross = _limit(strengths, scores, power.needed)
         limit = ci_low = ci_high = math.nan
-        if k < len(us) - 1:  # the far bound is detected: interpolate below the weakest detected value
-            # rung 0 is off, rung i + 1 the ladder's value i; the weakest detected with power is rung k + 2
-            strengths = np.abs(np.concatenate([[u0], us]) - u0)
-            scores = [off] + [rows.get(i) for i in range(len(us))]
-            cross = np.sort(np.minimum(  # the weaker of the two tests' crossings
-                _crossings(strengths, [None if r is None else r[:, 2] for r in scores], k + 2),
-                _crossings(strengths, [None if r is None else r[:, 3] for r in scores], k + 2, _linear_crossing)))
-            # within the range tried: at most the weakest value detected with power
-            s = min(cross[power.needed - 1], strengths[k + 2])
-            limit = cat.from_u(name, u0 + math.copysign(s, us[-1] - u0))
+        if math.isfinite(s):
+            limit = w.value(s)
             r_lo, r_hi = (quantile_ranks(power.replicates, power.power) if power.power < 1
                           else (power.replicates, power.replicates + 1))
             # rank 0 is off (strength 0: inf on an inverse scale), rank R + 1 or an inf crossing NaN
             ends = np.concatenate([[0.0], cross, [np.inf]])[[r_lo, r_hi]]
-            weak, strong = (cat.value_interval(name, u, u)[0] if np.isfinite(e) else math.nan
-                            for e, u in zip(ends, u0 + np.copysign(ends, us[-1] - u0)))
+            weak, strong = (cat.value_interval(name, w.u(e), w.u(e))[0] if np.isfinite(e) else math.nan for e in ends)
             # in the values' order (clumping and nonlinearity fall as the effect grows), the
             # unbounded strong end NaN
-            rising = cat.value_interval(name, u0, u0)[0] < cat.from_u(name, us[-1])
+            rising = cat.value_interval(name, cat.off_u(name), cat.off_u(name))[0] < w.value(w.bound)
             ci_low, ci_high = (weak, strong) if rising else (strong, weak)
-        n_bound = int(_detected(rows[len(us) - 1]).sum())
-        b_lo, b_hi = wilson_interval(n_bound / power.replicates, power.replicates)
-        # the test value is the rung below the bound (values >= 2), evaluated unless the walk stopped at the bound
-        p_test = float(_detected(rows[len(us) - 2]).mean()) if len(us) >= 2 and len(us) - 2 in rows else math.nan
-        t_lo, t_hi = wilson_interval(p_test, power.replicates)
-        test = float(CATALOGUE[name].test_value)
-        sees = bool(np.isfinite(limit) and abs(cat.to_u(name, limit) - u0) <= abs(cat.to_u(name, test) - u0) + 1e-9)
+        at = {}
+        for key, strength in (("bound", w.bound), ("test", w.test)):
+            p = float(_detected(w.rows[strength]).mean()) if strength in w.rows else math.nan
+            at[key] = (p, *wilson_interval(p, power.replicates))
         limits.append({"effect": name, "unit": cat.UNITS[name], "smallest_detectable": limit,
                        "limit_ci_low": ci_low, "limit_ci_high": ci_high,
                        "status": "detected" if np.isfinite(limit) else "not reached",
-                       "upper_bound": cat.from_u(name, us[-1]), "test_value": test, "sees_test_value": sees,
-                       "power": power.power, "replicates": power.replicates, "power_at_bound": n_bound / power.replicates,
-                       "power_at_bound_ci_low": b_lo, "power_at_bound_ci_high": b_hi,
-                       "power_at_test": p_test, "power_at_test_ci_low": t_lo, "power_at_test_ci_high": t_hi})
-        for kk, res in sorted({-1: off, **rows}.items()):
-            u = u0 if kk < 0 else us[kk]
+                       "upper_bound": w.value(w.bound), "test_value": float(CATALOGUE[name].test_value),
+                       "sees_test_value": bool(np.isfinite(limit) and s <= w.test + 1e-9),
+                       "power": power.power, "replicates": power.replicates,
+                       "power_at_bound": at["bound"][0], "power_at_bound_ci_low": at["bound"][1],
+                       "power_at_bound_ci_high": at["bound"][2], "power_at_test": at["test"][0],
+                       "power_at_test_ci_low": at["test"][1], "power_at_test_ci_high": at["test"][2]})
+        for strength, res in zip(strengths, scores):
             hits = int(_detected(res).sum())
             p_lo, p_hi = wilson_interval(hits / power.replicates, power.replicates)
-            curve.append({"effect": name, "value": cat.from_u(name, u), "strength": abs(u - u0),
+            curve.append({"effect": name, "value": w.value(strength), "strength": float(strength),
                           "replicates": power.replicates, "detected": hits, "power": hits / power.replicates,
                           "power_ci_low": p_lo, "power_ci_high": p_hi,
                           "gap": float(np.median(res[:, 0])), "noise_floor": float(np.median(res[:, 1])),
@@ -502,9 +554,13 @@ def detection_limits(keys: pd.DataFrame, simulate: Simulator, settings: SearchSe
 
 
 def interval_of(r) -> str:
-    """:func:`limit_interval` of a row of :data:`LIMIT_COLUMNS` ("" for tables without it)."""
+    """:func:`limit_interval` of a row of :data:`LIMIT_COLUMNS` ("" for tables without it); an open
+    end reaches past the strongest value tried (the test value where the bound was not)."""
+    strongest = float(r.upper_bound)
+    if pd.isna(getattr(r, "power_at_bound", 0.0)) and math.isfinite(float(getattr(r, "test_value", math.nan))):
+        strongest = float(r.test_value)
     return limit_interval(float(getattr(r, "limit_ci_low", math.nan)), float(getattr(r, "limit_ci_high", math.nan)),
-                          float(r.upper_bound))
+                          strongest)
 
 
 def power_at_test(r) -> str:
@@ -539,7 +595,7 @@ def verdict_with_limits(verdict: str, limits: pd.DataFrame, lead: str = "") -> s
     strongest value tried. Candidates :func:`seen_at_test` puts at the "edge" read "at the edge
     of what these data see", with the power measured at the test value. ``lead`` (what was
     named, or why none was) comes first; the limits of an effect with values on both sides of
-    off (lad_shift, leaf_albedo) are said to lie on its test value's side only (the ladder runs
+    off (lad_shift, leaf_albedo) are said to lie on its test value's side only (the walk runs
     from off towards it).
     """
     if limits.empty:

@@ -174,9 +174,10 @@ class SignatureTest:
 
     def margin(self, point: pd.Series, boot: np.ndarray) -> tuple[float, str]:
         """(``max_e |z_e| / c_e - crit``, the candidate e that reaches it); > 0: the test fires."""
-        return self._margin(self.z(point, boot))
+        return self.margin_of(self.z(point, boot))
 
-    def _margin(self, z: dict) -> tuple[float, str]:
+    def margin_of(self, z: dict) -> tuple[float, str]:
+        """:meth:`margin` of the z_e of :meth:`z`."""
         r = {e: abs(v) / self.scale[e] for e, v in z.items() if math.isfinite(v)}
         if not r:
             return -math.inf, ""
@@ -188,7 +189,7 @@ class SignatureTest:
         ``effect`` (the candidate of the largest ``|z| / c``), ``threshold`` (crit), and per
         candidate ``z`` and ``scale`` (c)."""
         z = self.z(point, boot)
-        margin, best = self._margin(z)
+        margin, best = self.margin_of(z)
         num = lambda x: float(x) if math.isfinite(x) else None  # noqa: E731
         return {"fires": bool(margin > 0), "margin": num(margin), "effect": best, "threshold": float(self.crit),
                 "z": {e: num(v) for e, v in z.items()}, "scale": {e: float(c) for e, c in self.scale.items()}}

@@ -537,12 +537,12 @@ def detection_limits(d: Path) -> pd.DataFrame | None:
                                             if np.isfinite(ub) else "nothing within the bounds is detectable")),
             "95 % interval": ((limit_interval(_num(r.get("limit_ci_low")), _num(r.get("limit_ci_high")), ub)
                                or missing("no interval")) if np.isfinite(sd) else missing("no limit")),
-            "strongest value tried (range: off to this)": f"{ub:.3g} {unit}".strip() if np.isfinite(ub) else missing("no bound given"),
+            "range (off to this bound)": f"{ub:.3g} {unit}".strip() if np.isfinite(ub) else missing("no bound given"),
             "power": f"{power:.2f}" if np.isfinite(power) else missing("no power given"),
             "replicates": f"{int(reps)}" if np.isfinite(reps) else missing("no count given"),
         })
     return pd.DataFrame(rows, columns=["effect", "weakest effect detected", "95 % interval",
-                                       "strongest value tried (range: off to this)", "power", "replicates"])
+                                       "range (off to this bound)", "power", "replicates"])
 
 
 def detection_sentence(dl: pd.DataFrame) -> str:
