@@ -31,7 +31,7 @@ from waveforest.diagnose.power import (
 from waveforest.diagnose.search import SearchSettings
 from waveforest.effects import CATALOGUE
 from waveforest.errors import WaveforestError
-from waveforest.stats.proportion import limit_interval
+from waveforest.stats.proportion import limit_interval, strongest_tried
 
 SETTINGS = SearchSettings(features=FEATURES, n_boot=100, candidates=("hotspot", "understory"))
 POWER = PowerSettings(replicates=3, values=4, power=0.8)
@@ -259,6 +259,9 @@ def test_a_blind_candidates_limit_reads_with_its_interval():
     (clumping)."""
     assert limit_interval(1.9, math.nan, 4.0) == "[1.9, > 4]" and limit_interval(0.2, 0.41, 0.05) == "[0.2, 0.41]"
     assert limit_interval(math.nan, 0.41, 0.05) == "[< 0.05, 0.41]" and limit_interval(math.nan, math.nan, 4.0) == ""
+    # the strongest value tried: the bound where it was (its power measured), else the test value
+    assert strongest_tried(4.0, 2.5, 0.9) == 4.0 and strongest_tried(4.0, 2.5, math.nan) == 2.5
+    assert strongest_tried(4.0, math.nan, math.nan) == 4.0  # a table without test values
     limits = pd.DataFrame([
         {"effect": "understory", "unit": "LAI", "smallest_detectable": 3.18, "limit_ci_low": 1.92,
          "limit_ci_high": math.nan, "status": "detected", "upper_bound": 4.0, "test_value": 2.5,

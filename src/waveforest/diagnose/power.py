@@ -35,9 +35,10 @@ design of the data and the test that decides the verdict ``none``:
   If the test value is missed, the bound is tried instead (the walk then ends there). Each
   replicate's crossing (where LB turns positive) is interpolated between the bracket's ends,
   linearly in the squared strength for the gap (it grows as its square) and, for the signature
-  test, each candidate's z linearly in the strength (z grows as the shift, on the replicate's own
-  noise: :func:`_z_crossing`), the weaker of the two crossings; the limit is the ceil(power x replicates)-th smallest crossing. Empty (NaN) when
-  the bound is detected with less power. A limit interpolated from one rung far above it is
+  test, each candidate's z linearly in the strength (z grows as the shift, on the replicate's
+  own noise: :func:`_z_crossing`), the weaker of the two crossings; the limit is the
+  ceil(power x replicates)-th smallest crossing. Empty (NaN) when the bound is detected with
+  less power. A limit interpolated from one rung far above it is
   the interpolation's, not the data's: margins saturate (z grows ever slower as the
   bootstrap's spread grows with the shift) and some effects grow as the strength's square
   (``nonlinearity``), so the walk evaluates a rung where the limit is expected and
@@ -85,7 +86,7 @@ from waveforest.effects import CATALOGUE
 from waveforest.errors import WaveforestError
 from waveforest.rng import named_generator, named_seeds
 from waveforest.stats.bootstrap import bootstrap_weights, cluster_df
-from waveforest.stats.proportion import limit_interval, quantile_ranks, wilson_interval
+from waveforest.stats.proportion import limit_interval, quantile_ranks, strongest_tried, wilson_interval
 
 MIN_CALIBRATION_REPLICATES = 5
 """Fewest off replicates from which the noise floor is calibrated (:func:`floor_calibration`)."""
@@ -554,11 +555,9 @@ def detection_limits(keys: pd.DataFrame, simulate: Simulator, settings: SearchSe
 
 
 def interval_of(r) -> str:
-    """:func:`limit_interval` of a row of :data:`LIMIT_COLUMNS` ("" for tables without it); an open
-    end reaches past the strongest value tried (the test value where the bound was not)."""
-    strongest = float(r.upper_bound)
-    if pd.isna(getattr(r, "power_at_bound", 0.0)) and math.isfinite(float(getattr(r, "test_value", math.nan))):
-        strongest = float(r.test_value)
+    """:func:`limit_interval` of a row of :data:`LIMIT_COLUMNS` ("" for tables without it)."""
+    strongest = strongest_tried(float(r.upper_bound), float(getattr(r, "test_value", math.nan)),
+                                float(getattr(r, "power_at_bound", 0.0)))
     return limit_interval(float(getattr(r, "limit_ci_low", math.nan)), float(getattr(r, "limit_ci_high", math.nan)),
                           strongest)
 

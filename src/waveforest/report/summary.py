@@ -29,7 +29,7 @@ from waveforest.errors import WaveforestError
 from waveforest.io import paper
 from waveforest.io.results import read_classify_result, read_model
 from waveforest.report.markdown import NO_VALUE
-from waveforest.stats.proportion import limit_interval
+from waveforest.stats.proportion import limit_interval, strongest_tried
 
 T3_FEATURES = ("H", "Npeaks", "Apeak", "FWHM", "E")
 """Table 3's features, in the paper's order."""
@@ -535,7 +535,8 @@ def detection_limits(d: Path) -> pd.DataFrame | None:
             "weakest effect detected": (f"{sd:.3g} {unit}".strip() if np.isfinite(sd) else
                                     missing(f"nothing up to {ub:.3g} {unit} is detectable".replace("  ", " ")
                                             if np.isfinite(ub) else "nothing within the bounds is detectable")),
-            "95 % interval": ((limit_interval(_num(r.get("limit_ci_low")), _num(r.get("limit_ci_high")), ub)
+            "95 % interval": ((limit_interval(_num(r.get("limit_ci_low")), _num(r.get("limit_ci_high")),
+                                              strongest_tried(ub, _num(r.get("test_value")), _num(r.get("power_at_bound", 0.0))))
                                or missing("no interval")) if np.isfinite(sd) else missing("no limit")),
             "range (off to this bound)": f"{ub:.3g} {unit}".strip() if np.isfinite(ub) else missing("no bound given"),
             "power": f"{power:.2f}" if np.isfinite(power) else missing("no power given"),

@@ -38,12 +38,20 @@ def quantile_ranks(n: int, p: float, level: float = 0.95) -> tuple[int, int]:
     return r, s
 
 
-def limit_interval(low: float, high: float, upper_bound: float) -> str:
-    """A detection limit's interval as text (``limit_ci_low``, ``limit_ci_high``, ``upper_bound`` of
-    :data:`waveforest.diagnose.power.LIMIT_COLUMNS`): ``[1.9, 3.2]``, or ``[1.9, > 4]`` when its
-    end on the side of the strongest value tried lies beyond it (NaN); "" when both are NaN."""
+def strongest_tried(upper_bound: float, test_value: float, power_at_bound: float) -> float:
+    """The strongest value a detection limit's walk tried, from its row of
+    :data:`waveforest.diagnose.power.LIMIT_COLUMNS`: the range's bound where it was tried (its
+    power is not NaN), else the test value (NaN in a table without one: the bound)."""
+    return upper_bound if not math.isnan(power_at_bound) or math.isnan(test_value) else test_value
+
+
+def limit_interval(low: float, high: float, strongest: float) -> str:
+    """A detection limit's interval as text (``limit_ci_low``, ``limit_ci_high`` of
+    :data:`waveforest.diagnose.power.LIMIT_COLUMNS`, and :func:`strongest_tried`): ``[1.9, 3.2]``,
+    or ``[1.9, > 2.5]`` when its end on the side of the strongest value tried lies beyond it
+    (NaN); "" when both are NaN."""
     if math.isnan(low) and math.isnan(high):
         return ""
-    lo = f"< {upper_bound:.3g}" if math.isnan(low) else f"{low:.3g}"
-    hi = f"> {upper_bound:.3g}" if math.isnan(high) else f"{high:.3g}"
+    lo = f"< {strongest:.3g}" if math.isnan(low) else f"{low:.3g}"
+    hi = f"> {strongest:.3g}" if math.isnan(high) else f"{high:.3g}"
     return f"[{lo}, {hi}]"
