@@ -437,7 +437,7 @@ class _Walk:
         seen = {k: int(_detected(r).sum()) >= needed for k, r in self.rows.items()}
         self.next = None
         if not seen[self.test]:  # the test value missed: the bound decides
-            if self.bound not in self.rows and self.bound > self.test:
+            if self.bound not in self.rows:
                 self.next = self.bound
             return
         hi = min(k for k, ok in seen.items() if ok)
