@@ -374,6 +374,7 @@ def test_outputs_when_nothing_is_named(tmp_path):
     assert set(curve["effect"]) == set(CATALOGUE) and (curve["power"].between(0, 1)).all()
     md = paths["markdown"].read_text()
     assert "**Verdict: none: seen in >= 80% of the model's twins from " in md and "What these data could have seen" in md
+    assert ".** The base model's gap " in md  # the reason is a sentence of its own
     verdict = json.loads(paths["verdict"].read_text())  # the report shows the diagnosis's verdict, not the search's
     assert diagnosis_text(tmp_path).startswith(f"Diagnosis — verdict: {verdict['text']} ({verdict['reason']})")
 

@@ -326,7 +326,7 @@ def summary_markdown(result: SearchResult, gap: pd.DataFrame, cand: pd.DataFrame
         "# Diagnosis: where simulation and measurement disagree",
         "",
         f"**Verdict: {verdict_text(result, limits)}.** "
-        f"{_reason(result, gap)}.",
+        f"{(why := _reason(result, gap))[:1].upper()}{why[1:]}.",
         "",
         f"Datasets {', '.join(datasets)}; {n_pulses} real pulses from {n_samples} field samples; "
         f"base model effects {base_effects or 'none (the paper model)'}; {result.n_simulations} half-sample "
