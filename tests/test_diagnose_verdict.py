@@ -120,14 +120,22 @@ def test_a_firing_signature_test_gives_the_search_a_gap_to_explain():
     real = study.real({})
     kw = {"min_pulses": SETTINGS.min_pulses, "min_samples": SETTINGS.min_samples}
     sig, _ = terms(study.real({"hotspot": 1.3}), real, sample_universe(real), **kw)
+    other, _ = terms(study.real({"understory": 2.5}), real, sample_universe(real), **kw)
     for crit, fires in ((0.0, True), (1e6, False)):
-        test = SignatureTest(signatures={"hotspot": sig}, null_var=pd.Series(1.0, index=sig.index),
+        test = SignatureTest(signatures={"hotspot": sig, "understory": other.reindex(sig.index).fillna(0.0)},
+                             null_var=pd.Series(1.0, index=sig.index),
                              null_corr=pd.DataFrame(np.eye(len(sig)), index=sig.index, columns=sig.index),
-                             scale={"hotspot": 1.0}, crit=crit)
+                             scale={"hotspot": 1.0, "understory": 1.0}, crit=crit)
         result, gap, _, _ = find_missing_effects(study.keys, real, study.simulate, SETTINGS, seed=5, signature=test)
         rec = verdict_record(result, gap, _limits({"hotspot": True, "understory": True}))
         json.dumps(rec)
-        assert rec["signature_test"]["fires"] is fires and rec["signature_test"]["effect"] == "hotspot"
+        reading = rec["signature_test"]
+        assert reading["fires"] is fires
+        z = {e: abs(v) for e, v in reading["z"].items()}
+        best, runner = sorted(z, key=z.get, reverse=True)
+        assert reading["effect"] == best
+        # every verdict's reason carries the test's reading: the largest |z| / c and the next
+        assert f"the largest |z| / c is {z[best]:.3g} ({best}), then {z[runner]:.3g} ({runner})" in rec["reason"]
         if fires:
             assert result.verdict != "none" and not result.candidates.empty
         elif not base_gap_significant(gap):

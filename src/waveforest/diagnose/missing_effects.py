@@ -411,15 +411,23 @@ def _reason(result: SearchResult, gap: pd.DataFrame) -> str:
     """Why the search stopped, worded from the base model's gap as reported in ``gap``."""
     tot = gap[gap["level"] == "total"].iloc[0]
     sig = result.signature
-    along = (f"; along the signatures, the largest |z| / c is {_fmt(sig['margin'] + sig['threshold'])} "
-             f"({sig['effect']}), threshold {_fmt(sig['threshold'])}" if sig and sig["margin"] is not None else "")
+    along = _along(sig) if sig and sig["margin"] is not None else ""
     if result.verdict == "none":
         return (f"the base model's gap {_fmt(tot['gap_before'])} [{_fmt(tot['before_ci_low'])}, "
                 f"{_fmt(tot['before_ci_high'])}] is not above its noise floor {_fmt(tot['noise_floor'])} "
                 f"(the lower bound of its interval is not above the floor){along}")
     if sig and sig["fires"] and not base_gap_significant(gap):
         return f"the gap's interval reaches its noise floor, but the signature test fires{along}; {result.reason}"
-    return result.reason
+    return f"{result.reason}{along}"
+
+
+def _along(sig: dict) -> str:
+    """The signature test's reading (:meth:`.signature_test.SignatureTest.read`) in words: the
+    largest |z| / c and its candidate, the next largest, the threshold."""
+    r = sorted(((abs(z) / sig["scale"][e], e) for e, z in sig["z"].items() if z is not None), reverse=True)
+    runner = f", then {_fmt(r[1][0])} ({r[1][1]})" if len(r) > 1 else ""
+    return (f"; along the signatures, the largest |z| / c is {_fmt(sig['margin'] + sig['threshold'])} "
+            f"({sig['effect']}){runner}, threshold {_fmt(sig['threshold'])}")
 
 
 def _at_bound(r) -> str:
