@@ -426,8 +426,7 @@ def _along(sig: dict) -> str:
     largest |z| / c and its candidate, the next largest, the threshold."""
     r = sorted(((abs(z) / sig["scale"][e], e) for e, z in sig["z"].items() if z is not None), reverse=True)
     runner = f", then {_fmt(r[1][0])} ({r[1][1]})" if len(r) > 1 else ""
-    return (f"; along the signatures, the largest |z| / c is {_fmt(sig['margin'] + sig['threshold'])} "
-            f"({sig['effect']}){runner}, threshold {_fmt(sig['threshold'])}")
+    return f"; along the signatures, the largest |z| / c is {_fmt(r[0][0])} ({r[0][1]}){runner}, threshold {_fmt(sig['threshold'])}"
 
 
 def _at_bound(r) -> str:
