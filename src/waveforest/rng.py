@@ -150,7 +150,7 @@ STREAMS: dict[str, NamedStream] = {
     "missing_effects": NamedStream((8,), "diagnosis, 3 seeds: search, 'after' simulations, before/after bootstrap"),
     "power": NamedStream((9,), "power analysis: one seed per pseudo-real replicate"),
     "power_replicate": NamedStream((), "one power replicate's 3 seeds: its pool members per field sample (a generator), -, bootstrap"),
-    "search": NamedStream((), "search, 6 seeds: split, simulations A, B, bootstrap weights A, B, gap on all"),
+    "search": NamedStream((), "search, 7 seeds: split, simulations A, B, bootstrap weights A, B, gap on all, signature on all"),
     "search_split": NamedStream((), "search: the shuffle of each stratum's samples into the halves"),
     "replicate": NamedStream((), "the simulator seed of replicate r (key r) of a simulation seed"),
     "bootstrap": NamedStream((), "cluster bootstrap: the multinomial multiplicities of the samples"),

@@ -132,7 +132,8 @@ def find_missing_effects(keys: pd.DataFrame, real: pd.DataFrame, simulate, setti
                                         floors=settings.floors, min_pulses=settings.min_pulses,
                                         min_samples=settings.min_samples))
     result = search(keys, real, simulate, settings, seed=int(s_search), progress=progress, fit_keys=fit_keys,
-                    significant=base_gap_significant(shown) or bool(reading and reading["fires"]))
+                    significant=base_gap_significant(shown) or bool(reading and reading["fires"]),
+                    signature=signature)
     result = replace(result, signature=reading)
     after = before if not result.named else simulate_all(simulate, keys, result.effects, int(s_after),
                                                           settings.replicates)
@@ -200,8 +201,9 @@ def verdict_record(result: SearchResult, gap: pd.DataFrame, limits: pd.DataFrame
     Keys: ``verdict`` (:data:`waveforest.io.results.VERDICTS`), ``search_verdict`` (``model.yaml``'s), ``text`` (the
     verdict with its limits, as in ``diagnose.md``), ``reason``, ``gap`` (the base model's total
     gap, its interval, noise floor, excess and its interval, ``above_floor``: the interval's lower
-    bound above the floor), ``named`` (name, value, interval), ``blind_to`` (per candidate these
-    data cannot see at its test value, :func:`.power.seen_at_test` "no": effect, test_value,
+    bound above the floor), ``named`` (name, value, interval, ``by``: "gap" or "signature", the
+    step of :mod:`.search` that named it), ``blind_to`` (per candidate these data cannot see at
+    its test value, :func:`.power.seen_at_test` "no": effect, test_value,
     smallest_detectable or null, limit_ci (its interval, null ends as in
     ``detection_limits.csv``), status, upper_bound, unit, power_at_test and its interval, null
     where not measured), ``at_edge`` (the same for the candidates at the "edge"),
@@ -233,8 +235,8 @@ def verdict_record(result: SearchResult, gap: pd.DataFrame, limits: pd.DataFrame
                 "excess_ci": [num(tot["before_ci_low"] - tot["noise_floor"]),
                               num(tot["before_ci_high"] - tot["noise_floor"])],
                 "above_floor": bool(tot["before_ci_low"] > tot["noise_floor"])},
-        "named": [{"name": e.name, "value": float(e.value), "ci": [float(e.ci_low), float(e.ci_high)]}
-                  for e in result.named],
+        "named": [{"name": e.name, "value": float(e.value), "ci": [float(e.ci_low), float(e.ci_high)],
+                   "by": "signature" if e.along_signature else "gap"} for e in result.named],
         "blind_to": unseen("no"),
         "at_edge": unseen("edge"),
         "floor_calibration": {"scale": num(floor.scale), "off_gap": num(floor.gap), "off_floor": num(floor.floor),
@@ -383,7 +385,13 @@ def summary_markdown(result: SearchResult, gap: pd.DataFrame, cand: pd.DataFrame
                 lines += [f"{e.name} was fitted at the edge of its range: these data do not tell the values "
                           f"from {_fmt(e.ci_low)} to {_fmt(e.ci_high)} apart (a signature that saturates); the "
                           "effect is there, its size known only to lie in that interval.", ""]
-            if e.look_alikes:
+            if e.along_signature:
+                lines += [f"{e.name} was named {e.along_signature}: its gap reduction on the test halves was "
+                          "not significant, the signature test on all samples was."
+                          + (f" {', '.join(e.look_alikes)} explain{'s' if len(e.look_alikes) == 1 else ''} "
+                             "it along their signatures too: on these data, as good an explanation."
+                             if e.look_alikes else ""), ""]
+            elif e.look_alikes:
                 lines += [f"{', '.join(e.look_alikes)} reduced the gap significantly too in round {e.round}, by an "
                           f"amount not told apart from {e.name}'s: on these data, as good an explanation.", ""]
         model = {**base_effects, **result.effects}

@@ -27,9 +27,19 @@ docs/method.md §(j) (the search). Procedure (one *round*; :func:`search` runs u
    named, and so are significant candidates not told apart from it (:func:`look_alikes`).
    If it is not significant, a significant fit at the bound whose interval reaches well into
    the range (not :func:`pinned`) is named instead.
+5. **Along the signatures.** When step 4 names nothing and the search has the signature test
+   (:mod:`.signature_test`), the test reads the current model on all samples; if it fires,
+   each candidate it reads above its threshold is fitted along its signature on the round's
+   grid simulations (:mod:`.signature_fit`: where the test's statistic crosses 0, with a
+   bootstrap interval), and the one that explains the evidence (inside its range, interval
+   excluding off; at the fitted value the test silent and at least half the terms' excess
+   evidence gone) is named: the gap's half-sample fit can miss an effect that the signature
+   test reads on all samples. Other candidates that explain it too are its look-alikes. An
+   effect named so keeps its value in the re-fits.
+
    From the second effect on, re-fit all named effects by coordinate descent
-   (:data:`REFIT_PASSES`). Stop when the best candidate is not significant, when
-   ``rounds`` effects are named, or when the model's gap is within the noise floor.
+   (:data:`REFIT_PASSES`). Stop when nothing is named, when ``rounds`` effects are named,
+   or when the model's gap is within the noise floor.
 
 Verdict (:data:`waveforest.io.results.VERDICTS`): ``none`` when the base model's gap is not significant
 above its noise floor; ``named`` when at least one effect was named; ``inconclusive`` when a
@@ -64,7 +74,9 @@ from waveforest.diagnose.gap import (
 )
 from waveforest.diagnose.optimise import parabolic_vertex, refinement_step
 from waveforest.diagnose.replicate_cache import HALVES, SimulationCache, Simulator
+from waveforest.diagnose.signature_fit import EXPLAINED_SHARE, common_terms, explained, fit_along, terms_at
 from waveforest.diagnose.signature_test import ALPHA as SIGNATURE_ALPHA
+from waveforest.diagnose.signature_test import SignatureTest, terms
 from waveforest.effects import CATALOGUE
 from waveforest.errors import WaveforestError
 from waveforest.model.forward import drift_dof
@@ -198,10 +210,13 @@ class Estimate:
     @classmethod
     def combine(cls, fits: list[Fit], alpha: float) -> Estimate:
         """Mean of the folds' fits; interval from the replicate-wise means."""
-        name = fits[0].name
-        u_hat = float(np.mean([f.u_hat for f in fits]))
-        u_b = np.mean([f.u_boot for f in fits], axis=0)
-        u_b = u_b[np.isfinite(u_b)]
+        return cls.of(fits[0].name, float(np.mean([f.u_hat for f in fits])),
+                      np.mean([f.u_boot for f in fits], axis=0), alpha)
+
+    @classmethod
+    def of(cls, name: str, u_hat: float, u_boot: np.ndarray, alpha: float) -> Estimate:
+        """The fit ``u_hat`` with the percentile interval of its replicates ``u_boot`` (B,)."""
+        u_b = u_boot[np.isfinite(u_boot)]
         lo, hi = np.quantile(u_b, [alpha / 2, 1 - alpha / 2]) if u_b.size else (u_hat, u_hat)
         v_lo, v_hi = cat.value_interval(name, lo, hi)
         return cls(name=name, u_hat=u_hat, value=cat.from_u(name, u_hat), ci_low=v_lo, ci_high=v_hi,
@@ -225,6 +240,9 @@ class Estimate:
         top = cat.from_u(self.name, 1.0)
         return replace(self, ci_low=self.value * math.exp(-down), ci_high=min(self.value * math.exp(up), top))
 
+
+SIGNATURE_REFINE = 2
+"""Simulations of a fit along a signature at its last crossing (step 5), each interpolated anew."""
 
 DRIFT_EFFECTS = ("xy_error",)
 """Effects that are the SD of a random process of which the compared pulses hold few
@@ -303,6 +321,9 @@ class NamedEffect:
     look_alikes: list[str] = field(default_factory=list)
     """Candidates of its round that reduced the gap significantly too, by an amount not told
     apart from its own (:func:`look_alikes`): on these data, as good an explanation."""
+    along_signature: str = ""
+    """Empty when the gap named it; else the evidence of its fit along the signature (step 5
+    of the module docstring), in words."""
 
 
 @dataclass
@@ -411,13 +432,16 @@ class _Context:
     """What every step of one search shares: halves, simulations, settings.
 
     ``halves``/``sims`` hold the fit pulses of each half, ``test_halves``/``test_sims`` the
-    tested pulses (the same objects when every pulse is fitted).
+    tested pulses (the same objects when every pulse is fitted); ``signature`` the signature
+    test and ``everything`` the real rows, universe and bootstrap weights of all tested samples
+    it reads (step 5 of the module docstring; None without it).
     """
 
     def __init__(self, halves: dict[str, _Half], sims: SimulationCache, settings: SearchSettings,
                  test_halves: dict[str, _Half] | None = None, test_sims: SimulationCache | None = None,
-                 drift_dof: float = 0.0):
+                 drift_dof: float = 0.0, signature: SignatureTest | None = None, everything: _Half | None = None):
         self.halves = halves
+        self.signature, self.everything = signature, everything
         self.drift_dof = drift_dof
         self.sims = sims
         self.settings = settings
@@ -440,6 +464,12 @@ class _Context:
 # --------------------------------------------------------------------------------------
 
 
+def _model_at(name: str, u: float, current: dict[str, float]) -> dict[str, float]:
+    """``current`` with ``name`` at search coordinate ``u`` (removed at its off value)."""
+    others = {k: v for k, v in current.items() if k != name}
+    return others if abs(u - cat.off_u(name)) < 1e-12 else cat.with_effect(others, name, cat.from_u(name, u))
+
+
 def fit_candidate(name: str, current: dict[str, float], ctx: _Context, half: str) -> Fit:
     """1-D fit of one effect on one half (grid + Brent-like refinement, common seed).
 
@@ -455,12 +485,9 @@ def fit_candidate(name: str, current: dict[str, float], ctx: _Context, half: str
         ``"A"`` or ``"B"``.
     """
     settings = ctx.settings
-    others = {k: v for k, v in current.items() if k != name}
-    u0 = cat.off_u(name)
 
     def data_at(u: float) -> GapData:
-        eff = others if abs(u - u0) < 1e-12 else cat.with_effect(others, name, cat.from_u(name, u))
-        return ctx.data(half, eff)
+        return ctx.data(half, _model_at(name, u, current))
 
     us = list(cat.grid(name, settings.values))
     datas = [data_at(u) for u in us]
@@ -543,6 +570,8 @@ def _refit(named: list[NamedEffect], current: dict, ctx: _Context) -> dict:
     for _ in range(REFIT_PASSES):
         moved = 0.0
         for k, e in enumerate(named):
+            if e.along_signature:  # the gap's fit is what missed it
+                continue
             est, _ = _fit(e.name, current, ctx)
             moved = max(moved, abs(est.u_hat - cat.to_u(e.name, current.get(e.name, cat.effect(e.name).off))))
             current = cat.with_effect(current, e.name, est.value)
@@ -605,7 +634,7 @@ def _drift_values(keys: pd.DataFrame) -> float:
 
 
 def _setup(keys: pd.DataFrame, real: pd.DataFrame, simulate: Simulator, settings: SearchSettings, seed: int,
-           progress, fit_keys: pd.DataFrame | None):
+           progress, fit_keys: pd.DataFrame | None, signature: SignatureTest | None = None):
     """Split, seeds, halves and caches of a search: (context, halves' sample ids, report, df).
 
     ``report(effects)`` is the gap on all tested pulses under ``effects``; ``df`` the degrees
@@ -616,7 +645,7 @@ def _setup(keys: pd.DataFrame, real: pd.DataFrame, simulate: Simulator, settings
             raise WaveforestError(f"diagnose: pulse table lacks column {col!r}")
     keys = keys.assign(sample_id=keys["sample_id"].astype(str))
     real = real.assign(sample_id=real["sample_id"].astype(str))
-    s_split, s_a, s_b, s_wa, s_wb, s_all = named_seeds("search", seed, n=6)
+    s_split, s_a, s_b, s_wa, s_wb, s_all, s_sig = named_seeds("search", seed, n=7)
     ids = dict(zip(HALVES, split_samples(keys, s_split)))
     if not ids["A"] and not ids["B"]:
         raise WaveforestError("diagnose: no field sample to diagnose")
@@ -632,7 +661,12 @@ def _setup(keys: pd.DataFrame, real: pd.DataFrame, simulate: Simulator, settings
         if len(fit) != len(fk):
             raise WaveforestError("diagnose: fit pulses that are not among the tested pulses")
         halves, sims = _halves_of(fit, fit_real, ids, *seeds, simulate, settings, progress)
-    ctx = _Context(halves, sims, settings, test_halves, test_sims, _drift_values(keys))
+    everything = None
+    if signature is not None:
+        uni = sample_universe(keys)
+        everything = _Half(real=real, universe=uni,
+                           weights=bootstrap_weights(uni, settings.n_boot, s_sig))
+    ctx = _Context(halves, sims, settings, test_halves, test_sims, _drift_values(keys), signature, everything)
     df = cluster_df(pd.concat([test_halves[t].universe for _, t in settings.folds]))
 
     def report(effects: dict) -> GapReport:
@@ -710,6 +744,77 @@ def _not_named_reason(rnd: int, results: list[Candidate], order, inside: list, b
     return f"round {rnd}: the best candidate ({b.name}) {why}" + edge + alike_note
 
 
+def _named_along_signature(rnd: int, results: list[Candidate], state: _State,
+                           ctx: _Context) -> tuple[NamedEffect | None, str]:
+    """Step 5 of the module docstring: (the effect named along its signature or None, why in words).
+
+    On all tested samples, with the round's grid simulations (only when every pulse is fitted):
+    the signature test's reading of the current model; when it fires, every candidate of the
+    round whose |z| / c is above the threshold fitted along its signature
+    (:func:`.signature_fit.fit_along`). A fit *explains* the evidence when it crosses inside
+    the range, its interval excludes off, and it explains the evidence there
+    (:func:`.signature_fit.explained`); the one read lowest there is named, the other
+    explaining ones are its look-alikes."""
+    test, s, every = ctx.signature, ctx.settings, ctx.everything
+    if test is None or every is None or ctx.sims is not ctx.test_sims:
+        return None, ""
+    kw = {"floors": s.floors, "min_pulses": s.min_pulses, "min_samples": s.min_samples}
+
+    def terms_of(effects: dict) -> tuple[pd.Series, np.ndarray]:
+        return terms(every.real, ctx.sims.all(effects), every.universe, every.weights, **kw)
+
+    now = test.read(*terms_of(state.current))
+    if not now["fires"]:
+        return None, ""
+    by_name = {c.estimate.name: c for c in results}
+    ratio = {e: abs(z) / now["scale"][e] for e, z in now["z"].items() if z is not None and e in by_name}
+    above = sorted((e for e, r in ratio.items() if r > now["threshold"]), key=ratio.get, reverse=True)
+    explains, misses = [], []
+    for name in above:
+        u = list(cat.grid(name, s.values))
+        found = [terms_of(_model_at(name, v, state.current)) for v in u]
+        for step in range(SIGNATURE_REFINE + 1):  # each step simulates the last crossing
+            order = np.argsort(u)
+            x, xb, index = common_terms([found[i][0] for i in order], [found[i][1] for i in order])
+            u_hat, u_boot = fit_along(test, name, np.asarray(u)[order], x, xb, index, cat.off_u(name))
+            if step == SIGNATURE_REFINE or not math.isfinite(u_hat) or np.min(np.abs(np.asarray(u) - u_hat)) < 1e-3:
+                break
+            u.append(u_hat)
+            found.append(terms_of(_model_at(name, u_hat, state.current)))
+        u = np.asarray(u)[order]
+        if not math.isfinite(u_hat):
+            misses.append(f"{name} (no crossing in its range)")
+            continue
+        est = Estimate.of(name, u_hat, u_boot, s.alpha)
+        if name in DRIFT_EFFECTS:
+            est = est.with_drift_realization(ctx.drift_dof, s.alpha)
+        off = int(np.argmin(np.abs(u - cat.off_u(name))))
+        ok, after, share = explained(test, pd.Series(x[off], index=index), terms_at(u_hat, u, x, xb, index))
+        if at_bound(name, u_hat) or not est.excludes_off or not ok:
+            why = ("at the edge of its range" if at_bound(name, u_hat) else
+                   "its interval includes off" if not est.excludes_off else
+                   f"the test still fires there: {after['margin'] + after['threshold']:.3g} ({after['effect']})"
+                   if after["fires"] else
+                   f"it removes {share:.0%} of the evidence, less than {EXPLAINED_SHARE:.0%}")
+            misses.append(f"{name} {est.value:.3g} ({why})")
+            continue
+        explains.append((after["margin"], name, est, after, share))
+    if not explains:
+        return None, ("; along the signatures, no candidate explains the evidence: " + ", ".join(misses)
+                      if misses else "")
+    explains.sort(key=lambda f: f[0])
+    _, name, est, after, share = explains[0]
+    c = by_name[name]
+    text = (f"along its signature: |z| / c {ratio[name]:.3g} on the model before it (threshold "
+            f"{now['threshold']:.3g}), at {est.value:.3g} the largest |z| / c is "
+            f"{after['margin'] + after['threshold']:.3g} ({after['effect']}) and {share:.0%} of the "
+            "terms' excess evidence is gone")
+    return NamedEffect(name=name, value=est.value, ci_low=est.ci_low, ci_high=est.ci_high,
+                       gap_reduction=c.reduction, reduction_ci_low=c.reduction_ci_low,
+                       reduction_ci_high=c.reduction_ci_high, relative_reduction=c.relative, round=rnd,
+                       look_alikes=[f[1] for f in explains[1:]], along_signature=text), ""
+
+
 def _run_round(rnd: int, state: _State, ctx: _Context, df: int, report) -> bool:
     """One round (steps 2-4 of the module docstring); True when the search stops after it."""
     settings = ctx.settings
@@ -722,20 +827,21 @@ def _run_round(rnd: int, state: _State, ctx: _Context, df: int, report) -> bool:
     results = [_evaluate(rnd, name, state, ctx, df) for name in todo]
     order, inside, best, round_rows = _rank(results, df, settings.alpha)
     state.rows += round_rows
-    nameable = best.significant and not pinned(best.estimate)
-    if not inside and not nameable:
-        state.reason = f"round {rnd}: every candidate's fit lies at the edge of its range"
-        return True
     alike = look_alikes(round_rows, best.estimate.name)
-    if not nameable:
-        state.reason = _not_named_reason(rnd, results, order, inside, best, alike)
-        return True
-    e = best.estimate
-    state.current = cat.with_effect(state.current, e.name, e.value)
-    state.named.append(NamedEffect(name=e.name, value=e.value, ci_low=e.ci_low, ci_high=e.ci_high,
-                                   gap_reduction=best.reduction, reduction_ci_low=best.reduction_ci_low,
-                                   reduction_ci_high=best.reduction_ci_high, relative_reduction=best.relative,
-                                   round=rnd, look_alikes=alike))
+    if best.significant and not pinned(best.estimate):
+        e = best.estimate
+        named = NamedEffect(name=e.name, value=e.value, ci_low=e.ci_low, ci_high=e.ci_high,
+                            gap_reduction=best.reduction, reduction_ci_low=best.reduction_ci_low,
+                            reduction_ci_high=best.reduction_ci_high, relative_reduction=best.relative,
+                            round=rnd, look_alikes=alike)
+    else:
+        named, misses = _named_along_signature(rnd, results, state, ctx)
+        if named is None:
+            state.reason = (f"round {rnd}: every candidate's fit lies at the edge of its range" if not inside
+                            else _not_named_reason(rnd, results, order, inside, best, alike)) + misses
+            return True
+    state.current = cat.with_effect(state.current, named.name, named.value)
+    state.named.append(named)
     if settings.refit and len(state.named) > 1:
         state.current = _refit(state.named, state.current, ctx)
     if not report(state.current).significant:
@@ -755,6 +861,7 @@ def search(
     progress: Callable[[str], None] | None = None,
     fit_keys: pd.DataFrame | None = None,
     significant: bool | None = None,
+    signature: SignatureTest | None = None,
 ) -> SearchResult:
     """Find the effects that explain the gap between ``real`` and the simulation.
 
@@ -783,13 +890,17 @@ def search(
         Whether the base model's gap lies significantly above its noise floor, decided
         elsewhere (the gap that the diagnosis reports, :func:`.missing_effects.find_missing_effects`);
         default: the search's own baseline. It decides whether rounds run and the verdict ``none``.
+    signature : SignatureTest, optional
+        The signature test of the power analysis (``real`` then carries the whole waveform's
+        statistics): with it, a round whose gap names nothing may name along a signature
+        (step 5 of the module docstring).
 
     Returns
     -------
     SearchResult
     """
     settings = settings or SearchSettings()
-    ctx, ids, report, df = _setup(keys, real, simulate, settings, seed, progress, fit_keys)
+    ctx, ids, report, df = _setup(keys, real, simulate, settings, seed, progress, fit_keys, signature)
     baseline = report({})
     significant = baseline.significant if significant is None else bool(significant)
     state = _State(reason=_reason_not_to_search(significant, ctx, ids))

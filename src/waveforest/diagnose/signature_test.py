@@ -120,6 +120,9 @@ class SignatureTest:
         c_e (>= 1).
     crit : float
         Threshold on ``|z_e| / c_e``.
+    null_q : float
+        The mean of x_k^2 / v_k over the terms of the replicates without effect (about 1):
+        what each term adds to :meth:`excess` without effect.
     """
 
     signatures: dict
@@ -127,6 +130,7 @@ class SignatureTest:
     null_corr: pd.DataFrame
     scale: dict
     crit: float
+    null_q: float = 1.0
 
     @classmethod
     def calibrate(cls, signatures: dict, off: list, alpha: float = ALPHA, df: int | None = None,
@@ -149,16 +153,30 @@ class SignatureTest:
         z = pd.DataFrame([test.z(p, b) for p, b in off])
         scale = {e: max(1.0, math.sqrt(float(np.nanmean(z[e] ** 2)))) if z[e].notna().any() else 1.0
                  for e in signatures}
-        return replace(test, scale=scale)
+        q = np.concatenate([test._q(p) for p, _ in off])
+        return replace(test, scale=scale, null_q=float(q.mean()) if q.size else 1.0)
+
+    def _q(self, point: pd.Series) -> np.ndarray:
+        """x_k^2 / v_k of the terms of ``point`` with a null variance."""
+        v = self.null_var.reindex(point.index).to_numpy()
+        x = point.to_numpy()
+        ok = np.isfinite(x) & (v > 0)
+        return x[ok] ** 2 / v[ok]
+
+    def excess(self, point: pd.Series) -> float:
+        """The evidence of one data set's terms against its noise: sum_k (x_k^2 / v_k - null_q),
+        about 0 without effect, whatever the direction of a disagreement."""
+        return float(np.sum(self._q(point) - self.null_q))
 
     @cached_property
     def _signature_matrix(self) -> np.ndarray:
         """(K, m) the signatures over ``null_var``'s terms, NaN where a signature lacks one."""
         return pd.DataFrame(self.signatures).reindex(self.null_var.index).to_numpy()
 
-    def z(self, point: pd.Series, boot: np.ndarray) -> dict:
-        """z_e of every candidate for one data set's :func:`terms` (NaN: no common term)."""
-        names = list(self.signatures)
+    def project(self, point: pd.Series, boot: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """T_e of every candidate (in the order of ``signatures``) for one data set's
+        :func:`terms`: (T (m,), its bootstrap replicates (B, m), whether candidate e has a
+        common term (m,) bool). Terms NaN in ``point`` are left out."""
         pos = self.null_var.index.get_indexer(point.index)
         v = np.where(pos >= 0, self.null_var.to_numpy()[pos], np.nan)
         x = point.to_numpy()
@@ -166,11 +184,15 @@ class SignatureTest:
         sd = np.sqrt(v[ok])[:, None]
         r = self.null_corr.to_numpy()[np.ix_(pos[ok], pos[ok])]
         w = np.linalg.solve(r, np.nan_to_num(self._signature_matrix[pos[ok]]) / sd) / sd
-        t = x[ok] @ w
-        s = robust_sd(np.nan_to_num(boot[:, ok]) @ w)
+        return x[ok] @ w, np.nan_to_num(boot[:, ok]) @ w, np.abs(w).sum(axis=0) > 0
+
+    def z(self, point: pd.Series, boot: np.ndarray) -> dict:
+        """z_e of every candidate for one data set's :func:`terms` (NaN: no common term)."""
+        t, tb, has = self.project(point, boot)
+        s = robust_sd(tb)
         with np.errstate(invalid="ignore", divide="ignore"):
-            z = np.where((s > 0) & (np.abs(w).sum(axis=0) > 0), t / s, np.nan)
-        return {e: float(z[i]) for i, e in enumerate(names)}
+            z = np.where((s > 0) & has, t / s, np.nan)
+        return {e: float(z[i]) for i, e in enumerate(self.signatures)}
 
     def margin(self, point: pd.Series, boot: np.ndarray) -> tuple[float, str]:
         """(``max_e |z_e| / c_e - crit``, the candidate e that reaches it); > 0: the test fires."""

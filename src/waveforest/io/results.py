@@ -37,6 +37,7 @@ unreadable or malformed input; every writer is atomic (:mod:`waveforest.atomic`)
         relative_reduction: 0.9   # share of the then excess gap removed
         round: 1
         look_alikes: []       # candidates of that round that explained the gap as well
+        along_signature: ""   # empty when the gap named it; else its fit along the signature
     simulate_effects: {understory: 1.43}   # base + named: paste into simulate.effects
     gap: {before: ..., before_ci: [..], after: ..., after_ci: [..], noise_floor: ...}
 
