@@ -744,17 +744,46 @@ def _not_named_reason(rnd: int, results: list[Candidate], order, inside: list, b
     return f"round {rnd}: the best candidate ({b.name}) {why}" + edge + alike_note
 
 
+def _fit_along_signature(name: str, current: dict, ctx: _Context, terms_of) -> tuple[Estimate | None, str, tuple]:
+    """One candidate's fit along its signature on the round's grid, refined by
+    :data:`SIGNATURE_REFINE` simulations at its crossing: (estimate or None without crossing,
+    why it does not explain the evidence or "", (reading there, share of the evidence gone))."""
+    test, s = ctx.signature, ctx.settings
+    u = list(cat.grid(name, s.values))
+    found = [terms_of(_model_at(name, v, current)) for v in u]
+    for step in range(SIGNATURE_REFINE + 1):
+        order = np.argsort(u)
+        x, xb, index = common_terms([found[i][0] for i in order], [found[i][1] for i in order])
+        grid = np.asarray(u)[order]
+        u_hat, u_boot = fit_along(test, name, grid, x, xb, index, cat.off_u(name))
+        if step == SIGNATURE_REFINE or not math.isfinite(u_hat) or np.min(np.abs(grid - u_hat)) < 1e-3:
+            break
+        u.append(u_hat)
+        found.append(terms_of(_model_at(name, u_hat, current)))
+    if not math.isfinite(u_hat):
+        return None, "no crossing in its range", ()
+    est = Estimate.of(name, u_hat, u_boot, s.alpha)
+    if name in DRIFT_EFFECTS:
+        est = est.with_drift_realization(ctx.drift_dof, s.alpha)
+    off = int(np.argmin(np.abs(grid - cat.off_u(name))))
+    ok, after, share = explained(test, pd.Series(x[off], index=index), terms_at(u_hat, grid, x, xb, index))
+    why = ("at the edge of its range" if at_bound(name, u_hat) else
+           "its interval includes off" if not est.excludes_off else
+           f"the test still fires there: {after['margin'] + after['threshold']:.3g} ({after['effect']})"
+           if after["fires"] else
+           "" if ok else f"it removes {share:.0%} of the evidence, less than {EXPLAINED_SHARE:.0%}")
+    return est, why, (after, share)
+
+
 def _named_along_signature(rnd: int, results: list[Candidate], state: _State,
                            ctx: _Context) -> tuple[NamedEffect | None, str]:
-    """Step 5 of the module docstring: (the effect named along its signature or None, why in words).
+    """Step 5 of the module docstring: (the effect named along its signature or None, why not in words).
 
     On all tested samples, with the round's grid simulations (only when every pulse is fitted):
     the signature test's reading of the current model; when it fires, every candidate of the
-    round whose |z| / c is above the threshold fitted along its signature
-    (:func:`.signature_fit.fit_along`). A fit *explains* the evidence when it crosses inside
-    the range, its interval excludes off, and it explains the evidence there
-    (:func:`.signature_fit.explained`); the one read lowest there is named, the other
-    explaining ones are its look-alikes."""
+    round whose |z| / c is above the threshold is fitted along its signature
+    (:func:`_fit_along_signature`). Of those that explain the evidence, the one read lowest at
+    its fit is named, the others are its look-alikes."""
     test, s, every = ctx.signature, ctx.settings, ctx.everything
     if test is None or every is None or ctx.sims is not ctx.test_sims:
         return None, ""
@@ -768,55 +797,31 @@ def _named_along_signature(rnd: int, results: list[Candidate], state: _State,
         return None, ""
     by_name = {c.estimate.name: c for c in results}
     ratio = {e: abs(z) / now["scale"][e] for e, z in now["z"].items() if z is not None and e in by_name}
-    above = sorted((e for e, r in ratio.items() if r > now["threshold"]), key=ratio.get, reverse=True)
     explains, misses = [], []
-    for name in above:
-        u = list(cat.grid(name, s.values))
-        found = [terms_of(_model_at(name, v, state.current)) for v in u]
-        for step in range(SIGNATURE_REFINE + 1):  # each step simulates the last crossing
-            order = np.argsort(u)
-            x, xb, index = common_terms([found[i][0] for i in order], [found[i][1] for i in order])
-            u_hat, u_boot = fit_along(test, name, np.asarray(u)[order], x, xb, index, cat.off_u(name))
-            if step == SIGNATURE_REFINE or not math.isfinite(u_hat) or np.min(np.abs(np.asarray(u) - u_hat)) < 1e-3:
-                break
-            u.append(u_hat)
-            found.append(terms_of(_model_at(name, u_hat, state.current)))
-        u = np.asarray(u)[order]
-        if not math.isfinite(u_hat):
-            misses.append(f"{name} (no crossing in its range)")
-            continue
-        est = Estimate.of(name, u_hat, u_boot, s.alpha)
-        if name in DRIFT_EFFECTS:
-            est = est.with_drift_realization(ctx.drift_dof, s.alpha)
-        off = int(np.argmin(np.abs(u - cat.off_u(name))))
-        ok, after, share = explained(test, pd.Series(x[off], index=index), terms_at(u_hat, u, x, xb, index))
-        if at_bound(name, u_hat) or not est.excludes_off or not ok:
-            why = ("at the edge of its range" if at_bound(name, u_hat) else
-                   "its interval includes off" if not est.excludes_off else
-                   f"the test still fires there: {after['margin'] + after['threshold']:.3g} ({after['effect']})"
-                   if after["fires"] else
-                   f"it removes {share:.0%} of the evidence, less than {EXPLAINED_SHARE:.0%}")
-            misses.append(f"{name} {est.value:.3g} ({why})")
-            continue
-        explains.append((after["margin"], name, est, after, share))
+    for name in sorted((e for e, r in ratio.items() if r > now["threshold"]), key=ratio.get, reverse=True):
+        est, why, found = _fit_along_signature(name, state.current, ctx, terms_of)
+        if why:
+            misses.append(f"{name}{f' {est.value:.3g}' if est else ''} ({why})")
+        else:
+            explains.append((found[0]["margin"], est, *found))
     if not explains:
-        return None, ("; along the signatures, no candidate explains the evidence: " + ", ".join(misses)
-                      if misses else "")
-    explains.sort(key=lambda f: f[0])
-    _, name, est, after, share = explains[0]
-    c = by_name[name]
-    text = (f"along its signature: |z| / c {ratio[name]:.3g} on the model before it (threshold "
+        return None, "; along the signatures, no candidate explains the evidence" + (
+            f": {', '.join(misses)}" if misses else "")
+    _, est, after, share = min(explains, key=lambda f: f[0])
+    c = by_name[est.name]
+    text = (f"along its signature: |z| / c {ratio[est.name]:.3g} on the model before it (threshold "
             f"{now['threshold']:.3g}), at {est.value:.3g} the largest |z| / c is "
             f"{after['margin'] + after['threshold']:.3g} ({after['effect']}) and {share:.0%} of the "
             "terms' excess evidence is gone")
-    return NamedEffect(name=name, value=est.value, ci_low=est.ci_low, ci_high=est.ci_high,
+    return NamedEffect(name=est.name, value=est.value, ci_low=est.ci_low, ci_high=est.ci_high,
                        gap_reduction=c.reduction, reduction_ci_low=c.reduction_ci_low,
                        reduction_ci_high=c.reduction_ci_high, relative_reduction=c.relative, round=rnd,
-                       look_alikes=[f[1] for f in explains[1:]], along_signature=text), ""
+                       look_alikes=[f[1].name for f in explains if f[1] is not est],
+                       along_signature=text), ""
 
 
 def _run_round(rnd: int, state: _State, ctx: _Context, df: int, report) -> bool:
-    """One round (steps 2-4 of the module docstring); True when the search stops after it."""
+    """One round (steps 2-5 of the module docstring); True when the search stops after it."""
     settings = ctx.settings
     # effects that keep the plants first: they share the current model's cached scenes
     todo = sorted((c for c in settings.candidates if c not in state.current),
